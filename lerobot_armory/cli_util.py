@@ -1,0 +1,68 @@
+"""Shared command-line plumbing: draccus parsing and one-line errors instead of tracebacks."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import draccus
+
+from lerobot_armory.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def parse_or_exit(config_class: type[T], argv: list[str] | None, prog: str) -> T:
+    """Parse ``argv`` (default: ``sys.argv[1:]``) into ``config_class`` with draccus.
+
+    ``--help`` prints draccus' help. Any parse error (unknown option, unknown choice such as
+    ``--scheduler.type=nope``, a value of the wrong type) exits 2 with one line naming it.
+    """
+    args = sys.argv[1:] if argv is None else argv
+    # Accept the space-separated form (``--preset libero``) as well as draccus' ``--preset=libero``.
+    args = _join_space_separated(args)
+    try:
+        return draccus.parse(config_class=config_class, args=args, prog=prog)
+    except SystemExit:
+        raise
+    except ConfigError as exc:
+        _die(prog, str(exc))
+    except Exception as exc:  # draccus raises assorted decoding errors; none deserve a traceback
+        _die(prog, _first_line(exc))
+    raise AssertionError("unreachable")
+
+
+def run_or_exit(fn: Callable[[T], Any], cfg: T, prog: str = "lerobot-armory") -> Any:
+    """Call ``fn(cfg)``; a :class:`ConfigError` becomes one line on stderr and exit code 2."""
+    try:
+        return fn(cfg)
+    except ConfigError as exc:
+        _die(prog, str(exc))
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        sys.exit(130)
+
+
+def _join_space_separated(args: list[str]) -> list[str]:
+    out: list[str] = []
+    k = 0
+    while k < len(args):
+        a = args[k]
+        if a.startswith("--") and "=" not in a and a not in ("--help", "-h") and k + 1 < len(args) and not args[k + 1].startswith("--"):
+            out.append(f"{a}={args[k + 1]}")
+            k += 2
+        else:
+            out.append(a)
+            k += 1
+    return out
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
+
+
+def _die(prog: str, message: str) -> None:
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    sys.exit(2)

@@ -1,0 +1,1 @@
+"""Wire protocol (protobuf) between robots and the server: added with the server."""

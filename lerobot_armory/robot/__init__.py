@@ -1,0 +1,1 @@
+"""Robot side: the client control loop, simulated robots and robot adapters."""

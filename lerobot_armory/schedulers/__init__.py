@@ -1,0 +1,33 @@
+"""Schedulers behind one registry: ``rr``, ``edf``, ``lookahead`` (SPEC §3).
+
+Importing this package registers the built-in schedulers with :class:`SchedulerConfig`; a new
+scheduler is one module plus an import line here.
+"""
+
+from lerobot_armory.schedulers import edf, lookahead, rr  # noqa: F401  (registration side effect)
+from lerobot_armory.schedulers.base import (
+    Scheduler,
+    SchedulerConfig,
+    check_batch,
+    make_scheduler_config,
+    scheduler_names,
+    useful,
+)
+from lerobot_armory.schedulers.edf import EarliestDeadlineConfig, EarliestDeadlineScheduler
+from lerobot_armory.schedulers.lookahead import LookaheadConfig, LookaheadScheduler
+from lerobot_armory.schedulers.rr import RoundRobinConfig, RoundRobinScheduler
+
+__all__ = [
+    "EarliestDeadlineConfig",
+    "EarliestDeadlineScheduler",
+    "LookaheadConfig",
+    "LookaheadScheduler",
+    "RoundRobinConfig",
+    "RoundRobinScheduler",
+    "Scheduler",
+    "SchedulerConfig",
+    "check_batch",
+    "make_scheduler_config",
+    "scheduler_names",
+    "useful",
+]

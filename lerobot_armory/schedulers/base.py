@@ -1,0 +1,102 @@
+"""The scheduler interface and its registry (SPEC §3).
+
+A scheduler is a plain object that *decides*: given every robot's mirror and the time, it
+returns the robots whose latest observations form the next batch. It does no I/O and keeps no
+clock of its own, so the live server (wall time) and the simulator (simulated time) run the very
+same objects.
+
+Adding a scheduler is one file: a config dataclass registered under a name plus a
+:class:`Scheduler` subclass that the config builds::
+
+    @SchedulerConfig.register_subclass("mine")
+    @dataclass
+    class MineConfig(SchedulerConfig):
+        knob: int = 3
+        def build(self, profile, max_batch_size):
+            return MineScheduler(profile, max_batch_size, self.knob)
+
+then import the module from ``lerobot_armory/schedulers/__init__.py``; ``--scheduler.type=mine``
+selects it on every command line.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import draccus
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.mirror import RobotMirror
+
+
+class Scheduler(abc.ABC):
+    """Chooses which robots share the next batch.
+
+    Contract (checked by :func:`check_batch`): called only when the device is free and at least
+    one robot :meth:`~RobotMirror.is_useful`; returns a non-empty list of distinct useful
+    robots, at most ``max_batch_size`` long. All schedulers are work-conserving.
+    """
+
+    def __init__(self, profile: LatencyProfile, max_batch_size: int) -> None:
+        if max_batch_size < 1:
+            raise ConfigError("max_batch_size", f"must be >= 1, got {max_batch_size}")
+        self.profile = profile
+        self.max_batch_size = max_batch_size
+        # d_infer(b) in seconds, index b-1: looked up on every decision.
+        self.d_infer = profile.table_s(max_batch_size)
+
+    @abc.abstractmethod
+    def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
+        """Pick the next batch among ``robots`` (all robots, in registration order) at ``now``."""
+
+
+def useful(robots: Sequence[RobotMirror]) -> list[RobotMirror]:
+    """The robots whose latest observation is worth serving now (SPEC §3)."""
+    return [r for r in robots if r.is_useful()]
+
+
+def check_batch(batch: Sequence[RobotMirror], max_batch_size: int, name: str) -> None:
+    """Raise if a scheduler broke its contract (a bug in a plugin scheduler, never user input)."""
+    if not batch:
+        raise RuntimeError(f"scheduler {name!r} returned an empty batch although a useful request exists")
+    if len(batch) > max_batch_size:
+        raise RuntimeError(f"scheduler {name!r} returned {len(batch)} robots, above the cap {max_batch_size}")
+    if len({id(r) for r in batch}) != len(batch):
+        raise RuntimeError(f"scheduler {name!r} returned the same robot twice")
+    for r in batch:
+        if not r.is_useful():
+            raise RuntimeError(f"scheduler {name!r} chose robot {r.spec.robot_id!r}, whose request is not useful")
+
+
+@dataclass
+class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
+    """Base of the per-scheduler configs; ``--scheduler.type=NAME`` picks a registered one."""
+
+    @property
+    def type(self) -> str:
+        """The registered name of this scheduler."""
+        return self.get_choice_name(self.__class__)
+
+    @abc.abstractmethod
+    def build(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
+        """Instantiate the scheduler for a latency profile and batch cap."""
+
+    def label(self) -> str:
+        """Short name for tables and plots."""
+        return self.type
+
+
+def scheduler_names() -> list[str]:
+    """Registered scheduler names."""
+    return sorted(SchedulerConfig.get_known_choices())
+
+
+def make_scheduler_config(name: str, **kwargs: object) -> SchedulerConfig:
+    """Config of the scheduler registered as ``name`` (ConfigError if unknown)."""
+    known = SchedulerConfig.get_known_choices()
+    if name not in known:
+        raise ConfigError("scheduler.type", f"unknown scheduler {name!r}; known: {', '.join(sorted(known))}")
+    return known[name](**kwargs)

@@ -1,0 +1,1 @@
+"""The batched multi-robot policy server: frontend, engine and live scheduling loop."""

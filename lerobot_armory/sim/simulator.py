@@ -1,0 +1,245 @@
+"""Discrete-event fleet simulator: the real mirror and schedulers, driven by simulated time.
+
+The world has two views of every robot:
+
+- the *ground truth*, a :class:`~lerobot_armory.mirror.RobotTimeline` with the chunks' true
+  arrival times (network delays drawn per request);
+- the *server's mirror*, a :class:`~lerobot_armory.mirror.RobotMirror` fed only with what a
+  server could know: observations when they arrive (index + robot-clock capture time), and
+  execution reports (when a chunk reached the robot, robot clock). Robot clocks are offset from
+  the server's by a random amount, so the mirror's delay estimation is exercised honestly.
+
+Both move through the same transition (:func:`~lerobot_armory.mirror.advance`). Events are
+"the GPU becomes free" and, while the GPU idles, "an observation arrives"; the robots' ticks
+between events are advanced in bulk, which keeps 10 robots × 300 s well under a second of
+simulation for RR and EDF.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline
+from lerobot_armory.schedulers.base import Scheduler, check_batch
+from lerobot_armory.sim.network import LogNormalDelay
+
+# Robot clocks differ from the server's by up to this much (seconds); nothing may depend on it.
+MAX_CLOCK_OFFSET_S = 0.5
+# Compare the mirror's predicted index with the truth at every this many decisions.
+FIDELITY_EVERY = 8
+
+
+@dataclass
+class RobotResult:
+    """Ground-truth outcome for one robot."""
+
+    robot_id: str
+    tier: str
+    weight: float
+    fps: float
+    ticks: int
+    executed_steps: int
+    chunks_received: int
+    first_executed_index: Counter = field(default_factory=Counter)  # offset -> count; "unused"
+
+    @property
+    def starved_steps(self) -> int:
+        return self.ticks - self.executed_steps
+
+    @property
+    def starvation_pct(self) -> float:
+        return 100.0 * self.starved_steps / self.ticks if self.ticks else 0.0
+
+    @property
+    def executed_s(self) -> float:
+        return self.executed_steps / self.fps
+
+
+@dataclass
+class SimResult:
+    """Everything one simulated run measured."""
+
+    robots: list[RobotResult]
+    batch_sizes: Counter
+    decision_s: list[float]
+    duration_s: float
+    mirror_index_error: list[int]  # |predicted - true| index at every decision, for fidelity checks
+
+    @property
+    def avg_starvation_pct(self) -> float:
+        return float(np.mean([r.starvation_pct for r in self.robots]))
+
+    def tier(self, tier: str) -> list[RobotResult]:
+        return [r for r in self.robots if r.tier == tier]
+
+    def tier_starvation_pct(self, tier: str) -> float:
+        rows = self.tier(tier)
+        return float(np.mean([r.starvation_pct for r in rows])) if rows else float("nan")
+
+    @property
+    def executed_s(self) -> float:
+        return sum(r.executed_s for r in self.robots)
+
+    @property
+    def weighted_executed_s(self) -> float:
+        return sum(r.weight * r.executed_s for r in self.robots)
+
+    def decision_ms(self, q: float) -> float:
+        return float(np.percentile(self.decision_s, q) * 1000) if self.decision_s else 0.0
+
+    def first_executed_index(self) -> Counter:
+        total: Counter = Counter()
+        for r in self.robots:
+            total.update(r.first_executed_index)
+        return total
+
+
+class FleetSimulator:
+    """Simulates one fleet served by one scheduler.
+
+    Args:
+        specs: the robots.
+        scheduler: any registered scheduler (the object the live server would run).
+        duration_s: simulated seconds.
+        uplink / downlink: one-way delay models, drawn per request.
+        seed: seeds the network draws, tick phases and clock offsets.
+    """
+
+    def __init__(
+        self,
+        specs: Sequence[RobotSpec],
+        scheduler: Scheduler,
+        duration_s: float,
+        uplink: LogNormalDelay,
+        downlink: LogNormalDelay,
+        seed: int = 0,
+    ) -> None:
+        if not specs:
+            raise ConfigError("robots", "the fleet is empty")
+        if not duration_s > 0:
+            raise ConfigError("duration_s", f"must be > 0, got {duration_s}")
+        if len({s.robot_id for s in specs}) != len(specs):
+            raise ConfigError("robots", "robot ids must be unique")
+        self.specs = list(specs)
+        self.scheduler = scheduler
+        self.duration_s = duration_s
+        self.uplink = uplink
+        self.downlink = downlink
+        self.rng = np.random.default_rng(seed)
+
+    def run(self) -> SimResult:
+        """Run the whole duration and return the measurements."""
+        rng, T = self.rng, self.duration_s
+        n = len(self.specs)
+        phase = [rng.uniform(0.0, 1.0 / s.fps) for s in self.specs]
+        offset = [rng.uniform(-MAX_CLOCK_OFFSET_S, MAX_CLOCK_OFFSET_S) for _ in self.specs]  # server - robot
+        n_ticks = [max(0, int(np.ceil((T - phase[j]) * s.fps - 1e-9))) for j, s in enumerate(self.specs)]
+
+        # Observation k of robot j is captured at its tick k and reaches the server at obs_arr[j][k].
+        # The latest observation the server holds at t is the largest k with obs_arr <= t; a
+        # suffix minimum makes that one binary search even when jitter reorders arrivals.
+        obs_arr, suffix_min, sorted_arr = [], [], []
+        for j, s in enumerate(self.specs):
+            arr = phase[j] + np.arange(n_ticks[j]) / s.fps + self.uplink.sample(rng, n_ticks[j])
+            obs_arr.append(arr)
+            suffix_min.append(np.minimum.accumulate(arr[::-1])[::-1])
+            sorted_arr.append(np.sort(arr))
+
+        truth = [RobotTimeline(s.fps, phase[j]) for j, s in enumerate(self.specs)]
+        mirrors = [RobotMirror(s, DelayEstimator()) for s in self.specs]
+        for j, m in enumerate(mirrors):  # registration: one NTP-style exchange before the run
+            t0, up, down = -1.0, self.uplink.sample(rng), self.downlink.sample(rng)
+            m.estimator.add_exchange(t0 - offset[j], t0 + up, t0 + up, t0 + up + down - offset[j])
+
+        results = [RobotResult(s.robot_id, s.tier, s.weight, s.fps, n_ticks[j], 0, 0) for j, s in enumerate(self.specs)]
+        used: list[set[int]] = [set() for _ in self.specs]
+
+        def on_use_for(j: int):
+            def on_use(chunk: Chunk, first_offset: int) -> None:
+                if chunk.chunk_id not in used[j]:
+                    used[j].add(chunk.chunk_id)
+                    results[j].first_executed_index[str(first_offset)] += 1
+
+            return on_use
+
+        hooks = [on_use_for(j) for j in range(n)]
+        fed_tick = [-1] * n
+        reports: list[tuple[float, int, tuple]] = []  # heap of (server receipt time, robot, report)
+        batch_sizes: Counter = Counter()
+        decision_s: list[float] = []
+        index_error: list[int] = []
+        d_infer = self.scheduler.d_infer
+
+        def sync(t: float) -> None:
+            """Deliver to the mirrors everything that reached the server by time t."""
+            while reports and reports[0][0] <= t:
+                _, j, rep = heapq.heappop(reports)
+                mirrors[j].on_report(*rep)
+            for j in range(n):
+                k = int(np.searchsorted(suffix_min[j], t, side="right")) - 1
+                if k > fed_tick[j]:
+                    k = int(k if obs_arr[j][k] <= t else _latest_arrived(obs_arr[j], k, t))
+                    truth[j].run_to(k, hooks[j])
+                    fed_tick[j] = k
+                    capture_robot = phase[j] + k / self.specs[j].fps - offset[j]
+                    mirrors[j].on_observation(truth[j].index, capture_robot, float(obs_arr[j][k]))
+
+        t = 0.0
+        while t < T:
+            sync(t)
+            if any(m.is_useful() for m in mirrors):
+                if len(decision_s) % FIDELITY_EVERY == 0:  # mirror fidelity: predicted vs true index
+                    for j, m in enumerate(mirrors):
+                        truth_now = truth[j].index + _executed_between(truth[j], t)
+                        index_error.append(abs(m.predicted_index(t) - truth_now))
+                start = time.perf_counter()
+                batch = self.scheduler.select(mirrors, t)
+                decision_s.append(time.perf_counter() - start)
+                check_batch(batch, self.scheduler.max_batch_size, type(self.scheduler).__name__)
+                batch_sizes[len(batch)] += 1
+                t_done = t + d_infer[len(batch) - 1]
+                for m in batch:
+                    j = mirrors.index(m)
+                    capture_robot, obs_recv = m.obs_capture_robot, m.obs_recv
+                    chunk = m.on_dispatch(t_done)
+                    arrival = t_done + float(self.downlink.sample(rng))
+                    truth[j].add_chunk(Chunk(chunk.chunk_id, chunk.i_start, chunk.h, arrival))
+                    if arrival < T:
+                        results[j].chunks_received += 1
+                    report = (chunk.chunk_id, capture_robot, obs_recv, t_done, arrival - offset[j])
+                    heapq.heappush(reports, (arrival + float(self.uplink.sample(rng)), j, report))
+                t = t_done
+            else:
+                # GPU idle, nobody useful: jump to the next observation arrival.
+                nxt = [sa[i] for sa in sorted_arr if (i := int(np.searchsorted(sa, t, side="right"))) < len(sa)]
+                if not nxt:
+                    break
+                t = float(min(nxt))
+
+        for j, tl in enumerate(truth):
+            tl.run_to(n_ticks[j], hooks[j])
+            results[j].executed_steps = tl.index
+            unused = results[j].chunks_received - len(used[j])
+            if unused > 0:
+                results[j].first_executed_index["unused"] += unused
+        return SimResult(results, batch_sizes, decision_s, T, index_error)
+
+
+def _latest_arrived(arr: np.ndarray, k: int, t: float) -> int:
+    """Largest index <= k whose arrival is <= t (the suffix minimum guarantees one exists)."""
+    while arr[k] > t:
+        k -= 1
+    return k
+
+
+def _executed_between(tl: RobotTimeline, t: float) -> int:
+    """Steps the ground-truth robot executes from its current tick up to time t (no side effects)."""
+    probe = RobotTimeline(tl.fps, tl.anchor, tl.index, tl.tick, list(tl.chunks))
+    return probe.run_to(probe.ticks_before(t))
