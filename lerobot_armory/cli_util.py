@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import sys
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -22,9 +24,17 @@ def parse_or_exit(config_class: type[T], argv: list[str] | None, prog: str) -> T
     args = sys.argv[1:] if argv is None else argv
     # Accept the space-separated form (``--preset libero``) as well as draccus' ``--preset=libero``.
     args = _join_space_separated(args)
+    captured = io.StringIO()
     try:
-        return draccus.parse(config_class=config_class, args=args, prog=prog)
-    except SystemExit:
+        # argparse prints a usage block before its error; keep only the error line.
+        with contextlib.redirect_stderr(captured):
+            return draccus.parse(config_class=config_class, args=args, prog=prog)
+    except SystemExit as exc:
+        if exc.code not in (0, None):
+            lines = [ln for ln in captured.getvalue().strip().splitlines() if ln.strip()]
+            message = lines[-1] if lines else "invalid arguments"
+            prefix = f"{prog}: error: "
+            _die(prog, message[len(prefix):] if message.startswith(prefix) else message)
         raise
     except ConfigError as exc:
         _die(prog, str(exc))

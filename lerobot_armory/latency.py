@@ -133,13 +133,19 @@ def load_profile(name_or_path: str) -> LatencyProfile:
         raise ConfigError(field, f"{path}: expected an object with a 'latency_ms' list or object")
     raw = data["latency_ms"]
     if isinstance(raw, dict):
-        try:
-            sizes = sorted(int(k) for k in raw)
-        except ValueError:
-            raise ConfigError(field, f"{path}: latency_ms keys must be batch sizes (integers)") from None
+        by_size: dict[int, Any] = {}
+        for key, value in raw.items():
+            try:
+                size = int(key)
+            except ValueError:
+                raise ConfigError(field, f"{path}: latency_ms keys must be batch sizes (integers), got {key!r}") from None
+            if size in by_size:
+                raise ConfigError(field, f"{path}: batch size {size} appears twice in latency_ms")
+            by_size[size] = value
+        sizes = sorted(by_size)
         if sizes != list(range(1, len(sizes) + 1)):
             raise ConfigError(field, f"{path}: latency_ms must cover batch sizes 1..n without gaps, got {sizes}")
-        values = [raw[str(b)] if str(b) in raw else raw[b] for b in sizes]
+        values = [by_size[b] for b in sizes]
     elif isinstance(raw, list):
         values = raw
     else:

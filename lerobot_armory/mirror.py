@@ -134,10 +134,11 @@ def advance(
         index: action index before tick 0.
         chunks: ``(i_start, end, arrival_tick)`` sorted by ``i_start`` (ties: older first).
         n_ticks: ticks to run (<= 0 runs none).
-        on_use: if given, called as ``on_use(position_in_chunks, first_index_offset)`` the first
-            time the robot switches to a chunk (naive async: at each tick the newest arrived
-            chunk covering the index is the one executed). Used for the first-executed-index
-            metric; the schedulers' rollouts leave it out.
+        on_use: if given, called as ``on_use(position_in_chunks, first_index_offset)`` each time
+            the robot switches to a chunk (naive async: at each tick the newest arrived chunk
+            covering the index is the one executed). Within one call a chunk is reported once;
+            a caller that splits a run over several calls dedupes by chunk (the simulator does).
+            Used for the first-executed-index metric; the schedulers' rollouts leave it out.
 
     Returns:
         The index after the ticks; executed steps = result - ``index``, starved = n_ticks - that.
@@ -148,26 +149,31 @@ def advance(
     bounds = sorted({a for _, _, a in chunks if 0 < a < n_ticks})
     bounds.append(n_ticks)
     tick = 0
+    reported: set[int] = set()
     for bound in bounds:
         run = bound - tick
         covered = reach(i, chunks, tick) - i
         if covered < run:
             run = covered
         if run > 0 and on_use is not None:
-            _report_uses(i, i + run, chunks, tick, on_use)
+            _report_uses(i, i + run, chunks, tick, reported, on_use)
         i += run
         tick = bound
     return i
 
 
-def _report_uses(lo: int, hi: int, chunks: Sequence[TickChunk], tick: int, on_use: Callable[[int, int], None]) -> None:
+def _report_uses(
+    lo: int, hi: int, chunks: Sequence[TickChunk], tick: int, reported: set[int], on_use: Callable[[int, int], None]
+) -> None:
     """Tell ``on_use`` which chunk executes indices ``lo .. hi-1`` (newest covering chunk wins)."""
     x = lo
     while x < hi:
         for pos in range(len(chunks) - 1, -1, -1):
             start, end, arrival = chunks[pos]
             if arrival <= tick and start <= x < end:
-                on_use(pos, x - start)
+                if pos not in reported:
+                    reported.add(pos)
+                    on_use(pos, x - start)
                 x = end
                 break
         else:  # pragma: no cover - advance() only asks for covered stretches

@@ -170,13 +170,6 @@ def test_non_utf8_file(tmp_path):
     assert_profile_error(str(path))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=KeyError,
-    reason="BUG: load_profile() parses dict keys with int() (accepting '01', ' 1') but then looks "
-    "them up as str(b); {'latency_ms': {'01': 42.3}} raises a bare KeyError instead of loading "
-    "(or raising ConfigError('latency_profile'))",
-)
 def test_dict_keys_with_leading_zero(tmp_path):
     path = write(tmp_path, {"latency_ms": {"01": 42.3, "02": 56.0}})
     try:

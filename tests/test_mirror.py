@@ -225,12 +225,6 @@ def test_first_use_offsets_follow_the_switch_rule(index, reqs, n):
         assert 0 <= off < e - s
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG (minor, contract): advance() docstring says on_use is called 'the first time the robot "
-    "switches to a chunk', but it is called again for the same chunk at every later arrival boundary "
-    "(the simulator dedupes by chunk_id, so its metric is unaffected)",
-)
 def test_on_use_called_only_on_a_switch():
     # A covers everything; an unrelated chunk B (never covering the index in time) arrives at tick 5.
     _, calls = record_uses(0, [(0, 10, 0), (20, 30, 5)], 10)

@@ -75,6 +75,11 @@ def check_batch(batch: Sequence[RobotMirror], max_batch_size: int, name: str) ->
 class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
     """Base of the per-scheduler configs; ``--scheduler.type=NAME`` picks a registered one."""
 
+    @classmethod
+    def default_choice_name(cls) -> str | None:
+        """Lookahead is the default, so ``--scheduler.depth=2`` alone configures it."""
+        return "lookahead"
+
     @property
     def type(self) -> str:
         """The registered name of this scheduler."""

@@ -48,7 +48,7 @@ def run(cfg: SimConfig) -> list[dict]:
 def main(argv: list[str] | None = None) -> None:
     """Console entry point."""
     cfg = parse_or_exit(SimConfig, argv, "lerobot-armory-sim")
-    run_or_exit(run, cfg)
+    run_or_exit(run, cfg, "lerobot-armory-sim")
 
 
 if __name__ == "__main__":

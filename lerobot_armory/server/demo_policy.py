@@ -1,0 +1,126 @@
+"""``lerobot-armory-make-demo-policy``: a small random-weight ACT saved as a normal LeRobot policy.
+
+Built entirely offline (``pretrained_backbone_weights=None``: no ImageNet download), with its
+pre/post-processors, so ``--policy.path=DIR`` loads it through the very same code path as a hub
+policy. Deterministic at inference and for a given ``--seed``.
+
+    lerobot-armory-make-demo-policy --output=out/demo-policy
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.server.engine import SIDECAR
+
+
+@dataclass
+class DemoPolicyConfig:
+    """Options of the demo policy.
+
+    Attributes:
+        output: directory to write (created).
+        chunk_size: H, actions per chunk.
+        state_dim: length of ``observation.state``.
+        action_dim: length of each action (default: state_dim).
+        cameras: comma-separated camera names (features ``observation.images.<name>``).
+        image_size: square image side in pixels.
+        dim_model: transformer width (small keeps CPU inference fast).
+        n_encoder_layers: transformer encoder layers.
+        seed: torch seed for the random weights.
+    """
+
+    output: str = "out/demo-policy"
+    chunk_size: int = 20
+    state_dim: int = 2
+    action_dim: int | None = None
+    cameras: str = "front"
+    image_size: int = 64
+    dim_model: int = 128
+    n_encoder_layers: int = 2
+    seed: int = 0
+
+
+def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
+    """Build and save the policy; returns its directory."""
+    import torch
+    from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    cameras = [c.strip() for c in cfg.cameras.split(",") if c.strip()]
+    if not cameras:
+        raise ConfigError("cameras", "ACT needs at least one camera")
+    for field, value in (("chunk_size", cfg.chunk_size), ("state_dim", cfg.state_dim), ("image_size", cfg.image_size)):
+        if value < 1:
+            raise ConfigError(field, f"must be >= 1, got {value}")
+    action_dim = cfg.action_dim or cfg.state_dim
+    torch.manual_seed(cfg.seed)
+    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (cfg.state_dim,))}
+    for cam in cameras:
+        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, cfg.image_size, cfg.image_size))
+    outputs = {"action": PolicyFeature(FeatureType.ACTION, (action_dim,))}
+    config = ACTConfig(
+        input_features=inputs,
+        output_features=outputs,
+        chunk_size=cfg.chunk_size,
+        n_action_steps=cfg.chunk_size,
+        pretrained_backbone_weights=None,  # offline: the default would download ImageNet weights
+        dim_model=cfg.dim_model,
+        dim_feedforward=4 * cfg.dim_model,
+        n_encoder_layers=cfg.n_encoder_layers,
+        n_decoder_layers=1,
+        device="cpu",
+        normalization_mapping={
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ACTION": NormalizationMode.MEAN_STD,
+        },
+    )
+    policy = ACTPolicy(config)
+    stats = {
+        "observation.state": {"mean": torch.zeros(cfg.state_dim), "std": torch.ones(cfg.state_dim)},
+        "action": {"mean": torch.zeros(action_dim), "std": torch.ones(action_dim)},
+    }
+    for cam in cameras:
+        stats[f"observation.images.{cam}"] = {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)}
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    out = Path(cfg.output)
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    (out / SIDECAR).write_text(
+        json.dumps(
+            {
+                "action_names": [f"action_{k}" for k in range(action_dim)],
+                "made_by": "lerobot-armory-make-demo-policy",
+                "random_weights": True,
+                "seed": cfg.seed,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    return out
+
+
+def _run(cfg: DemoPolicyConfig) -> None:
+    out = make_demo_policy(cfg)
+    size_mb = sum(f.stat().st_size for f in out.iterdir()) / 1e6
+    print(f"demo ACT policy (random weights, {size_mb:.0f} MB) written to {out}; serve it with --policy.path={out}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point."""
+    cfg = parse_or_exit(DemoPolicyConfig, argv, "lerobot-armory-make-demo-policy")
+    run_or_exit(_run, cfg, "lerobot-armory-make-demo-policy")
+
+
+if __name__ == "__main__":
+    main()
