@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench sweep clean
+.PHONY: setup demo test bench sweep proto clean
 
 setup: $(STAMP)
 
@@ -42,6 +42,11 @@ bench: setup
 # The full reference sweep of SPEC §5 (about 15 minutes on 2 cores).
 sweep: setup
 	$(VENV)/bin/lerobot-armory-sweep --profile=full --out_dir=docs/results
+
+# Regenerate the committed protobuf/gRPC modules from lerobot_armory/proto/armory.proto.
+proto: setup
+	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. --grpc_python_out=. lerobot_armory/proto/armory.proto
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -228,6 +228,12 @@ class DelayEstimator:
             self.round_trip_s += self.alpha * (rtt - self.round_trip_s)
         self.samples += 1
 
+    def seed_offset(self, t_robot: float, t_server: float) -> None:
+        """Before any exchange, take the clock offset from one one-way message assuming zero
+        delay; the first real exchange replaces it (it is not counted as a sample)."""
+        if self.samples == 0:
+            self.offset_s = t_server - t_robot
+
     @property
     def one_way_s(self) -> float:
         """Estimated one-way delay (used for both ``d_obs`` and ``d_action``)."""
@@ -391,6 +397,13 @@ class RobotMirror:
             self.queue.sort(key=lambda c: (c.i_start, c.chunk_id))
         self.last_served_index = self.obs_index
         return chunk
+
+    def on_cancel(self, chunk: Chunk, previous_last_served: int | None) -> None:
+        """A dispatched chunk will never be delivered (its batch failed): forget it, so the robot
+        is useful again and the prediction does not count on it."""
+        self.queue = [c for c in self.queue if c.chunk_id != chunk.chunk_id]
+        if self.last_served_index == chunk.i_start:
+            self.last_served_index = previous_last_served
 
     def on_report(
         self,

@@ -180,7 +180,13 @@ def run(cfg: SweepConfig) -> list[dict[str, Any]]:
     start = time.perf_counter()
     records: list[dict[str, Any]] = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        for record in tqdm(pool.map(_run_job, jobs, chunksize=1), total=len(jobs), desc="simulating", unit="run"):
+        for record in tqdm(
+            pool.map(_run_job, jobs, chunksize=1),
+            total=len(jobs),
+            desc="simulating",
+            unit="run",
+            mininterval=0.2 if sys.stderr.isatty() else 10.0,  # keep CI logs short
+        ):
             records.append(record)
     elapsed = time.perf_counter() - start
 

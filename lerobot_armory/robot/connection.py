@@ -1,0 +1,202 @@
+"""The robot's side of the wire: register, then one bidirectional stream. Small on purpose.
+
+It knows nothing about control loops: it sends what it is given and calls back with what
+arrives. :class:`~lerobot_armory.robot.client.ArmoryClient` builds the control loop on it; tests
+and benchmarks use it directly as a robot double.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+
+import grpc
+import numpy as np
+
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.wire import FeatureSpec, decode, encode
+
+SESSION_KEY = "armory-session"
+_CLOSE = object()
+
+
+@dataclass
+class ReceivedChunk:
+    """A chunk as the robot sees it."""
+
+    chunk_id: int
+    i_start: int
+    actions: np.ndarray  # (H, action_dim) float32
+    server_send_time: float
+    arrival_time: float  # robot clock
+    obs_capture_time: float
+
+
+@dataclass
+class Registration:
+    """What the server answered at registration."""
+
+    session_id: str
+    action_names: list[str]
+    chunk_size: int
+    policy: str
+    expected_features: list[FeatureSpec]
+    clock_sync: pb.ClockSync
+
+
+class Connection:
+    """One robot's connection to an armory server.
+
+    Args:
+        address: ``host:port``.
+        clock: the robot's clock (seconds); never assumed synchronised with the server's.
+        max_message_bytes: largest message sent or received.
+    """
+
+    def __init__(self, address: str, clock: Callable[[], float] = time.monotonic, max_message_bytes: int = 16 << 20) -> None:
+        self.address = address
+        self.clock = clock
+        self.channel = grpc.insecure_channel(
+            address,
+            options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)],
+        )
+        self.stub = pb_grpc.ArmoryStub(self.channel)
+        self.registration: Registration | None = None
+        self._outgoing: queue.Queue = queue.Queue()
+        self._call = None
+        self._receiver: threading.Thread | None = None
+        self.closed = threading.Event()
+        self.error: grpc.RpcError | None = None
+
+    def wait_ready(self, timeout: float) -> bool:
+        """True once the server's port accepts connections (within ``timeout`` seconds)."""
+        try:
+            grpc.channel_ready_future(self.channel).result(timeout=timeout)
+            return True
+        except grpc.FutureTimeoutError:
+            return False
+
+    def register(
+        self,
+        robot_id: str,
+        features: Mapping[str, tuple[str, tuple[int, ...]]],
+        fps: float,
+        h_min: int,
+        h_max: int,
+        weight: float = 1.0,
+        tier: str = "slow",
+        task: str = "",
+        timeout: float = 10.0,
+    ) -> Registration:
+        """Register; raises ``grpc.RpcError`` (INVALID_ARGUMENT lists every mismatch)."""
+        request = pb.RegisterRequest(
+            robot_id=robot_id,
+            task=task,
+            fps=fps,
+            h_min=h_min,
+            h_max=h_max,
+            weight=weight,
+            tier=tier,
+            features=[pb.TensorSpec(name=n, dtype=d, shape=list(s)) for n, (d, s) in features.items()],
+            client_send_time=self.clock(),
+        )
+        response = self.stub.Register(request, timeout=timeout)
+        sync = pb.ClockSync(
+            client_send_time=request.client_send_time,
+            server_recv_time=response.server_recv_time,
+            server_send_time=response.server_send_time,
+            client_recv_time=self.clock(),
+        )
+        self.registration = Registration(
+            response.session_id,
+            list(response.action_names),
+            response.chunk_size,
+            response.policy,
+            [FeatureSpec.from_proto(f) for f in response.expected_features],
+            sync,
+        )
+        return self.registration
+
+    def open_stream(
+        self,
+        on_chunk: Callable[[ReceivedChunk], None],
+        on_notice: Callable[[pb.Notice], None] | None = None,
+        on_close: Callable[[grpc.RpcError | None], None] | None = None,
+    ) -> None:
+        """Open the stream; callbacks run on a receiver thread."""
+        assert self.registration is not None, "register first"
+        self._outgoing.put(pb.RobotMessage(clock_sync=self.registration.clock_sync))
+        self._call = self.stub.Stream(self._requests(), metadata=((SESSION_KEY, self.registration.session_id),))
+
+        def receive() -> None:
+            error = None
+            try:
+                for msg in self._call:
+                    kind = msg.WhichOneof("kind")
+                    if kind == "chunk":
+                        c = msg.chunk
+                        on_chunk(ReceivedChunk(c.chunk_id, c.i_start, decode(c.actions), c.server_send_time, self.clock(), c.obs_capture_time))
+                    elif kind == "notice" and on_notice is not None:
+                        on_notice(msg.notice)
+            except grpc.RpcError as exc:
+                if exc.code() != grpc.StatusCode.CANCELLED:
+                    error = exc
+                    self.error = exc
+            finally:
+                self.closed.set()
+                if on_close is not None:
+                    on_close(error)
+
+        self._receiver = threading.Thread(target=receive, name="armory-receive", daemon=True)
+        self._receiver.start()
+
+    def _requests(self) -> Iterator[pb.RobotMessage]:
+        while True:
+            item = self._outgoing.get()
+            if item is _CLOSE:
+                return
+            yield item
+
+    def send_observation(
+        self, index: int, arrays: Mapping[str, np.ndarray], capture_time: float | None = None, jpeg_quality: int | None = None
+    ) -> None:
+        """Queue one observation (images JPEG-encoded when ``jpeg_quality`` is set)."""
+        tensors = []
+        for name, arr in arrays.items():
+            q = jpeg_quality if (jpeg_quality is not None and arr.dtype == np.uint8 and arr.ndim == 3) else None
+            tensors.append(encode(name, arr, q))
+        t = self.clock() if capture_time is None else capture_time
+        self._outgoing.put(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors)))
+
+    def send_raw(self, msg: pb.RobotMessage) -> None:
+        """Queue any message (tests use it to send malformed ones)."""
+        self._outgoing.put(msg)
+
+    def send_report(
+        self, index: int, executed: int, starved: int, receipts: list[tuple[int, float, int]], report_time: float | None = None
+    ) -> None:
+        """Queue an execution report; ``receipts`` are (chunk_id, arrival_time, first_executed_index or -1)."""
+        self._outgoing.put(
+            pb.RobotMessage(
+                report=pb.ExecutionReport(
+                    report_time=self.clock() if report_time is None else report_time,
+                    index=index,
+                    executed_steps=executed,
+                    starved_steps=starved,
+                    chunks=[pb.ChunkReceipt(chunk_id=c, arrival_time=a, first_executed_index=f) for c, a, f in receipts],
+                )
+            )
+        )
+
+    def close(self) -> None:
+        """End the stream and the channel."""
+        self._outgoing.put(_CLOSE)
+        if self._call is not None:
+            self._call.cancel()
+        if self._receiver is not None:
+            self._receiver.join(timeout=5)
+        self.channel.close()

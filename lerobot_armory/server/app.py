@@ -1,0 +1,225 @@
+"""``lerobot-armory-server``: the serving process (front end + scheduler + engine).
+
+    lerobot-armory-server --policy.path=lerobot/pi05_libero --policy.device=cuda \\
+        --scheduler.type=lookahead --max_batch_size=3 --host=127.0.0.1 --port=8080
+
+Start-up loads the policy through LeRobot's factory, profiles ``d_infer(b)`` for b = 1..cap (or
+loads it: ``--latency_profile``), prints a summary, then serves until SIGINT/SIGTERM, logging one
+line of fleet status per second. Shutdown finishes the in-flight batch, tells every robot, and
+exits 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import statistics
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, load_profile
+from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
+from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+from lerobot_armory.server.fleet import Fleet
+from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
+from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
+
+log = logging.getLogger("lerobot_armory.server")
+
+
+@dataclass
+class ServerConfig:
+    """Options of ``lerobot-armory-server``.
+
+    Attributes:
+        policy: ``--policy.path`` (local directory or hub id) and ``--policy.device``.
+        scheduler: ``--scheduler.type=rr|edf|lookahead`` and its knobs.
+        max_batch_size: batch cap b.
+        host: bind address (loopback unless told otherwise).
+        port: TCP port (0 picks a free one and prints it).
+        latency_profile: a built-in name or a JSON file to load ``d_infer`` from instead of
+            profiling; a path that does not exist yet is profiled and saved there.
+        profile_reps: timed repetitions per batch size when profiling.
+        max_robots: robots served at once.
+        max_message_mb: largest message accepted, MiB.
+        status_interval_s: seconds between fleet status lines (0: none).
+        log_level: debug, info, warning, error.
+    """
+
+    policy: PolicyOptions = field(default_factory=PolicyOptions)
+    scheduler: SchedulerConfig = field(default_factory=LookaheadConfig)
+    max_batch_size: int = 3
+    host: str = "127.0.0.1"
+    port: int = 8080
+    latency_profile: str | None = None
+    profile_reps: int = 5
+    max_robots: int = 64
+    max_message_mb: float = 16.0
+    status_interval_s: float = 1.0
+    log_level: str = "info"
+
+    def validate(self) -> None:
+        if self.max_batch_size < 1:
+            raise ConfigError("max_batch_size", f"must be >= 1, got {self.max_batch_size}")
+        if not 0 <= self.port <= 65535:
+            raise ConfigError("port", f"must be in 0..65535, got {self.port}")
+        if self.max_robots < 1:
+            raise ConfigError("max_robots", f"must be >= 1, got {self.max_robots}")
+        if not self.max_message_mb > 0:
+            raise ConfigError("max_message_mb", f"must be > 0, got {self.max_message_mb}")
+        if self.profile_reps < 1:
+            raise ConfigError("profile_reps", f"must be >= 1, got {self.profile_reps}")
+        if self.log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
+            raise ConfigError("log_level", f"must be debug, info, warning or error, got {self.log_level!r}")
+
+
+class ArmoryServer:
+    """The whole serving process in one object: fleet, loop, gRPC front end.
+
+    ``engine`` is anything with ``infer(observations, tasks)``; ``policy`` says what robots must
+    send. Tests build it with a real :class:`PolicyEngine` on an ephemeral port.
+    """
+
+    def __init__(
+        self,
+        engine: Engine,
+        policy: PolicyInfo,
+        profile: LatencyProfile,
+        scheduler: SchedulerConfig,
+        max_batch_size: int,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        max_robots: int = 64,
+        max_message_bytes: int = 16 << 20,
+        clock=time.monotonic,
+    ) -> None:
+        self.policy = policy
+        self.profile = profile
+        self.scheduler_config = scheduler
+        self.scheduler = scheduler.build(profile, max_batch_size)
+        self.fleet = Fleet(clock, max_robots)
+        self.batch_log: list[BatchRecord] = []
+        self.loop = ServingLoop(self.fleet, engine, self.scheduler, on_batch=self.batch_log.append)
+        self.service = ArmoryService(self.fleet, policy, max_message_bytes)
+        self._host, self._port = host, port
+        self._max_robots, self._max_message_bytes = max_robots, max_message_bytes
+        self.grpc: RunningServer | None = None
+        self._stopped = threading.Event()
+
+    @property
+    def port(self) -> int:
+        assert self.grpc is not None, "server not started"
+        return self.grpc.port
+
+    @property
+    def address(self) -> str:
+        return f"{self._host}:{self.port}"
+
+    def start(self) -> ArmoryServer:
+        self.loop.start()
+        self.grpc = start_grpc_server(self.service, self._host, self._port, self._max_robots, self._max_message_bytes)
+        return self
+
+    def stop(self, grace_s: float = 2.0) -> None:
+        """Graceful stop: refuse new work, finish the in-flight batch, tell robots, close."""
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        if self.grpc is not None:
+            self.grpc.set_serving(False)
+        self.loop.stop(timeout=60.0)  # the in-flight batch completes and its chunks are queued
+        shutdown_notice(self.fleet)()
+        if self.grpc is not None:
+            self.grpc.server.stop(grace_s).wait()
+
+    def status_line(self) -> str:
+        """One line of fleet status (logged every second)."""
+        stats = self.loop.stats
+        with self.fleet.cond:
+            sessions = self.fleet.active()
+            tiers: dict[str, list[float]] = {}
+            for s in sessions:
+                tiers.setdefault(s.spec.tier, []).append(s.reported_starvation_pct)
+            errors = [s.index_error for s in sessions if s.index_error is not None]
+        sizes = stats.batch_sizes
+        total = sum(sizes.values())
+        mean_b = sum(k * v for k, v in sizes.items()) / total if total else 0.0
+        elapsed = max(1e-9, self.fleet.clock() - stats.started)
+        tier_txt = " ".join(f"{t} {statistics.mean(v):.1f}%" for t, v in sorted(tiers.items())) or "-"
+        dec = sorted(stats.decision_ms)
+        p99 = dec[min(len(dec) - 1, int(0.99 * len(dec)))] if dec else 0.0
+        return (
+            f"robots={len(sessions)} batches={stats.batches} mean_b={mean_b:.2f} busy={100 * stats.busy_s / elapsed:.0f}% "
+            f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
+            f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches}"
+        )
+
+
+def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
+    """Load ``--latency_profile`` if it names a profile or an existing file; else profile (and save)."""
+    name = cfg.latency_profile
+    if name and (name in BUILTIN_PROFILES or Path(name).is_file()):
+        profile = load_profile(name)
+        log.info("latency profile loaded from %s", name)
+        return profile
+    log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", cfg.max_batch_size, cfg.profile_reps)
+    profile = engine.profile(cfg.max_batch_size, reps=cfg.profile_reps)
+    if name:
+        profile.save(name)
+        log.info("latency profile saved to %s", name)
+    return profile
+
+
+def serve(cfg: ServerConfig) -> None:
+    """Build everything, print the summary, serve until a signal."""
+    cfg.validate()
+    logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log.info("loading policy %s ...", cfg.policy.path)
+    engine = PolicyEngine(cfg.policy)
+    profile = resolve_profile(cfg, engine)
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    server = ArmoryServer(
+        engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots, int(cfg.max_message_mb * (1 << 20))
+    )
+    server.start()
+    features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
+    print(
+        f"lerobot-armory-server listening on {server.address}\n"
+        f"  policy: {engine.description}\n"
+        f"  observation features robots must send:\n{features}\n"
+        f"  actions: {len(engine.action_names)} dims ({', '.join(engine.action_names)}), chunk size H={engine.chunk_size}\n"
+        f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
+        f"{profile.describe(cfg.max_batch_size)}",
+        flush=True,
+    )
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame) -> None:
+        log.info("received %s: finishing the in-flight batch and closing streams", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    while not stop.wait(cfg.status_interval_s if cfg.status_interval_s > 0 else 3600):
+        if server.loop.error is not None:
+            log.error("serving loop died: %s", server.loop.error)
+            server.stop()
+            sys.exit(1)
+        log.info("%s", server.status_line())
+    server.stop()
+    log.info("stopped cleanly")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point."""
+    cfg = parse_or_exit(ServerConfig, argv, "lerobot-armory-server")
+    run_or_exit(serve, cfg, "lerobot-armory-server")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,232 @@
+"""The live serving loop: scheduler decides, engine runs, chunks go out (SPEC §3-§4).
+
+One thread owns the device. Whenever the device is free and some robot has a useful request, it
+asks the scheduler for a batch (under the fleet lock, a fraction of a millisecond), takes each
+chosen robot's *latest* observation, drops requests that stopped being useful, releases the lock,
+runs one batched forward pass, and hands each robot its chunk (tagged with ``i_start``, the index
+of the observation it was computed from). Network threads keep feeding observations while the
+model runs; they never wait for it and it never waits for them.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from lerobot_armory.mirror import Chunk
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.schedulers.base import Scheduler, check_batch
+from lerobot_armory.server.fleet import Fleet, RobotSession
+from lerobot_armory.wire import encode
+
+log = logging.getLogger(__name__)
+
+
+class Engine(Protocol):
+    """What the loop needs from an engine (``PolicyEngine`` or a test double)."""
+
+    def infer(self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str]) -> np.ndarray: ...
+
+
+@dataclass
+class WorkItem:
+    """One robot's request inside a dispatched batch."""
+
+    session: RobotSession
+    observation: dict[str, np.ndarray]
+    chunk: Chunk
+    previous_last_served: int | None
+    capture_robot: float
+    obs_recv: float
+
+
+@dataclass
+class BatchRecord:
+    """One dispatched batch, for logs, metrics and the benchmark's batch log."""
+
+    t_start: float
+    t_end: float
+    robots: list[str]
+    i_starts: list[int]
+    decision_ms: float
+    ok: bool = True
+
+
+@dataclass
+class LoopStats:
+    """Running counters of the serving loop."""
+
+    batches: int = 0
+    failed_batches: int = 0
+    batch_sizes: collections.Counter = field(default_factory=collections.Counter)
+    infer_ms: dict[int, collections.deque] = field(default_factory=lambda: collections.defaultdict(lambda: collections.deque(maxlen=200)))
+    decision_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
+    dropped_not_useful: int = 0
+    busy_s: float = 0.0
+    idle_with_work_s: float = 0.0
+    started: float = 0.0
+
+
+class ServingLoop:
+    """Runs the scheduler/engine loop on its own thread until :meth:`stop`.
+
+    Args:
+        fleet: the shared fleet state.
+        engine: anything with ``infer(observations, tasks) -> (B, H, A)``.
+        scheduler: a registered scheduler built for the engine's latency profile.
+        on_batch: optional callback with each :class:`BatchRecord` (batch logs).
+    """
+
+    def __init__(
+        self,
+        fleet: Fleet,
+        engine: Engine,
+        scheduler: Scheduler,
+        on_batch: Callable[[BatchRecord], None] | None = None,
+    ) -> None:
+        self.fleet = fleet
+        self.engine = engine
+        self.scheduler = scheduler
+        self.on_batch = on_batch
+        self.stats = LoopStats(started=fleet.clock())
+        self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
+        self._last_end: float | None = None
+        self._work_at_last_end = False
+        self.error: BaseException | None = None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float | None = None) -> None:
+        """Stop after the in-flight batch (its chunks are still delivered)."""
+        self.fleet.stop()
+        self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                work = self._next_batch()
+                if work is None:
+                    return
+                items, decision_ms = work
+                if items:
+                    self._serve(items, decision_ms)
+        except BaseException as exc:  # pragma: no cover - a bug; logged and surfaced by the server
+            self.error = exc
+            log.exception("serving loop crashed")
+            raise
+
+    def _next_batch(self) -> tuple[list[WorkItem], float] | None:
+        fleet = self.fleet
+        with fleet.cond:
+            while True:
+                if fleet.stopping:
+                    return None
+                sessions = fleet.active()
+                if any(s.mirror.is_useful() for s in sessions):
+                    break
+                fleet.cond.wait(0.25)
+            now = fleet.clock()
+            if self._last_end is not None and self._work_at_last_end:
+                self.stats.idle_with_work_s += max(0.0, now - self._last_end)
+            mirrors = [s.mirror for s in sessions]
+            t0 = time.perf_counter()
+            chosen = self.scheduler.select(mirrors, now)
+            decision_ms = (time.perf_counter() - t0) * 1000.0
+            self.stats.decision_ms.append(decision_ms)
+            check_batch(chosen, self.scheduler.max_batch_size, type(self.scheduler).__name__)
+            by_mirror = {id(s.mirror): s for s in sessions}
+            t_done_estimate = now + self.scheduler.d_infer[len(chosen) - 1]
+            items = []
+            for mirror in chosen:
+                session = by_mirror[id(mirror)]
+                # The latest observation is read now; a request that stopped being useful since
+                # the decision (cannot happen under this lock, but the rule is the engine's) is dropped.
+                if session.latest is None or not mirror.is_useful():
+                    self.stats.dropped_not_useful += 1
+                    continue
+                previous = mirror.last_served_index
+                chunk = mirror.on_dispatch(t_done_estimate)
+                items.append(WorkItem(session, session.latest, chunk, previous, mirror.obs_capture_robot, mirror.obs_recv))
+            return items, decision_ms
+
+    def _serve(self, items: list[WorkItem], decision_ms: float) -> None:
+        fleet = self.fleet
+        t_start = fleet.clock()
+        try:
+            actions = self.engine.infer([it.observation for it in items], [it.session.task for it in items])
+            if actions.shape[0] != len(items):
+                raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {len(items)}")
+        except Exception as exc:
+            self._fail(items, exc, t_start, decision_ms)
+            return
+        t_done = fleet.clock()
+        size = len(items)
+        with fleet.cond:
+            for k, it in enumerate(items):
+                session = it.session
+                if fleet.sessions.get(session.session_id) is not session:
+                    continue  # the robot left while its batch ran: its chunk goes nowhere
+                # The chunk's real completion time replaces the estimate used at dispatch.
+                it.chunk.t_arrival = t_done + session.mirror.estimator.one_way_s
+                msg = pb.ServerMessage(
+                    chunk=pb.ActionChunk(
+                        chunk_id=it.chunk.chunk_id,
+                        i_start=it.chunk.i_start,
+                        actions=encode("action", np.ascontiguousarray(actions[k], dtype=np.float32)),
+                        server_send_time=t_done,
+                        obs_capture_time=it.capture_robot,
+                    )
+                )
+                fleet.record_sent(session, it.chunk, it.capture_robot, it.obs_recv, t_done)
+                session.outbox.put(msg)
+            self._finish(size, t_start, t_done)
+            fleet.cond.notify_all()
+        self._record(items, t_start, t_done, decision_ms, ok=True)
+
+    def _fail(self, items: list[WorkItem], exc: Exception, t_start: float, decision_ms: float) -> None:
+        """An engine error hurts only this batch: its robots are told and become useful again."""
+        log.error("inference failed for a batch of %d (%s): %s", len(items), ", ".join(it.session.robot_id for it in items), exc)
+        t_end = self.fleet.clock()
+        with self.fleet.cond:
+            for it in items:
+                it.session.mirror.on_cancel(it.chunk, it.previous_last_served)
+                it.session.outbox.put(
+                    pb.ServerMessage(
+                        notice=pb.Notice(
+                            kind=pb.Notice.INFERENCE_FAILED,
+                            message=f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
+                            index=it.chunk.i_start,
+                        )
+                    )
+                )
+            self.stats.failed_batches += 1
+            self._finish(len(items), t_start, t_end)
+            self.fleet.cond.notify_all()
+        self._record(items, t_start, t_end, decision_ms, ok=False)
+
+    def _finish(self, size: int, t_start: float, t_end: float) -> None:
+        """Counters at the end of a batch (lock held)."""
+        self.stats.batches += 1
+        self.stats.batch_sizes[size] += 1
+        self.stats.infer_ms[size].append((t_end - t_start) * 1000.0)
+        self.stats.busy_s += t_end - t_start
+        self._last_end = t_end
+        self._work_at_last_end = any(s.mirror.is_useful() for s in self.fleet.active())
+
+    def _record(self, items: list[WorkItem], t_start: float, t_end: float, decision_ms: float, ok: bool) -> None:
+        if self.on_batch is not None:
+            self.on_batch(
+                BatchRecord(t_start, t_end, [it.session.robot_id for it in items], [it.chunk.i_start for it in items], decision_ms, ok)
+            )

@@ -1,0 +1,248 @@
+"""The gRPC front end: registration, one bidirectional stream per robot, health checking.
+
+Each stream has a reader thread that decodes and validates the robot's messages and feeds the
+fleet, while the RPC's own thread writes what the serving loop put in the robot's outbox. A bad
+message gets a ``Notice`` saying why and is dropped; the stream, the server and every other robot
+go on. Nothing from the wire is unpickled, evaluated or used as a path.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable, Iterator
+from concurrent import futures
+from dataclasses import dataclass
+
+import grpc
+import numpy as np
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.server.engine import check_features
+from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
+from lerobot_armory.wire import FeatureSpec, WireError, decode_all
+
+log = logging.getLogger(__name__)
+
+SESSION_KEY = "armory-session"
+SERVICE_NAME = "lerobot_armory.v1.Armory"
+MAX_ROBOT_ID = 128
+MAX_TASK = 4096
+
+
+@dataclass(frozen=True)
+class PolicyInfo:
+    """What registration checks against and tells the robot."""
+
+    description: str
+    wire_features: list[FeatureSpec]
+    action_names: list[str]
+    chunk_size: int
+
+
+class ArmoryService(pb_grpc.ArmoryServicer):
+    """Implements ``Register`` and ``Stream`` over a :class:`Fleet`."""
+
+    def __init__(self, fleet: Fleet, policy: PolicyInfo, max_message_bytes: int) -> None:
+        self.fleet = fleet
+        self.policy = policy
+        self.max_message_bytes = max_message_bytes
+
+    # ---- Register ----------------------------------------------------------------------------
+
+    def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
+        recv = self.fleet.clock()
+        problems = self._check_registration(request)
+        if problems:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
+        spec = RobotSpec(request.robot_id, request.fps, self.policy.chunk_size, request.h_min, request.h_max, request.weight, request.tier)
+        features = {f.name: FeatureSpec.from_proto(f) for f in request.features}
+        try:
+            session = self.fleet.register(spec, request.task, features)
+        except FleetError as exc:
+            context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
+        log.info(
+            "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]) task=%r",
+            spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, request.task,
+        )  # fmt: skip
+        return pb.RegisterResponse(
+            session_id=session.session_id,
+            action_names=self.policy.action_names,
+            chunk_size=self.policy.chunk_size,
+            action_dim=len(self.policy.action_names),
+            server_recv_time=recv,
+            server_send_time=self.fleet.clock(),
+            policy=self.policy.description,
+            expected_features=[f.to_proto() for f in self.policy.wire_features],
+            max_message_bytes=self.max_message_bytes,
+        )
+
+    def _check_registration(self, r: pb.RegisterRequest) -> list[str]:
+        """Every problem with a registration (empty: accepted)."""
+        problems = []
+        if not r.robot_id or len(r.robot_id) > MAX_ROBOT_ID or not r.robot_id.isprintable():
+            problems.append(f"robot_id must be 1-{MAX_ROBOT_ID} printable characters")
+        if len(r.task) > MAX_TASK:
+            problems.append(f"task text is longer than {MAX_TASK} characters")
+        # RobotSpec's own validation, one field at a time so that every problem is listed.
+        fields = {"fps": r.fps, "h_min": r.h_min, "h_max": r.h_max, "weight": r.weight, "tier": r.tier}
+        H = self.policy.chunk_size
+        if not (math.isfinite(r.fps) and r.fps > 0):
+            problems.append(f"fps must be > 0, got {fields['fps']}")
+        if r.h_max < 1 or r.h_max > H:
+            problems.append(f"h_max must be in [1, H={H}] (the policy's chunk size), got {r.h_max}")
+        if r.h_min < 0 or r.h_min > max(r.h_max, 0):
+            problems.append(f"h_min must be in [0, h_max={r.h_max}], got {r.h_min}")
+        if not (math.isfinite(r.weight) and r.weight > 0):
+            problems.append(f"weight must be > 0, got {r.weight}")
+        if r.tier not in ("fast", "slow"):
+            problems.append(f"tier must be 'fast' or 'slow', got {r.tier!r}")
+        declared = []
+        for f in r.features:
+            if any(d < 0 for d in f.shape) or len(f.shape) > 8:
+                problems.append(f"feature {f.name!r}: invalid shape {list(f.shape)}")
+            else:
+                declared.append(FeatureSpec.from_proto(f))
+        problems += check_features(declared, self.policy.wire_features)
+        if not problems:
+            try:  # anything RobotSpec still refuses
+                RobotSpec(r.robot_id, r.fps, H, r.h_min, r.h_max, r.weight, r.tier)
+            except ConfigError as exc:
+                problems.append(str(exc))
+        return problems
+
+    # ---- Stream ------------------------------------------------------------------------------
+
+    def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:  # noqa: N802
+        session_id = dict(context.invocation_metadata()).get(SESSION_KEY, "")
+        try:
+            session = self.fleet.attach(session_id)
+        except FleetError as exc:
+            context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
+        log.info("stream open: %s", session.robot_id)
+        reader = threading.Thread(
+            target=self._read, args=(session, request_iterator), name=f"armory-read-{session.robot_id}", daemon=True
+        )
+        reader.start()
+        context.add_callback(session.outbox.close)  # client went away: stop writing
+        try:
+            while True:
+                msg = session.outbox.get(timeout=1.0)
+                if msg is None:
+                    if session.outbox.closed:
+                        return
+                    if not context.is_active():
+                        return
+                    continue
+                yield msg
+        finally:
+            self.fleet.detach(session.session_id)
+            log.info("stream closed: %s (its state is dropped)", session.robot_id)
+
+    def _read(self, session: RobotSession, requests: Iterator[pb.RobotMessage]) -> None:
+        """Consume one robot's messages until its stream ends."""
+        try:
+            for msg in requests:
+                kind = msg.WhichOneof("kind")
+                if kind == "observation":
+                    self._observation(session, msg.observation)
+                elif kind == "report":
+                    self._report(session, msg.report)
+                elif kind == "clock_sync":
+                    self.fleet.on_clock_sync(session, msg.clock_sync)
+                else:
+                    self._notice(session, pb.Notice.INFO, "empty message ignored")
+        except grpc.RpcError:
+            pass  # the stream died (client gone, cancelled): the writer side cleans up
+        except Exception:  # pragma: no cover - a bug must not take the server down
+            log.exception("reader for %s failed", session.robot_id)
+        finally:
+            session.outbox.close()
+
+    def _observation(self, session: RobotSession, obs: pb.Observation) -> None:
+        recv = self.fleet.clock()
+        try:
+            if not math.isfinite(obs.capture_time):
+                raise WireError("capture_time is not a finite number")
+            if obs.index < 0:
+                raise WireError(f"index must be >= 0, got {obs.index}")
+            arrays = decode_all(obs.tensors, session.features)
+            for name, arr in arrays.items():
+                if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+                    raise WireError(f"{name} contains NaN or inf")
+            self.fleet.on_observation(session, int(obs.index), float(obs.capture_time), arrays, recv)
+        except (WireError, ValueError) as exc:
+            session.rejected += 1
+            self._notice(session, pb.Notice.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)
+
+    def _report(self, session: RobotSession, report: pb.ExecutionReport) -> None:
+        if not math.isfinite(report.report_time) or report.executed_steps < 0 or report.starved_steps < 0:
+            self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite time or negative counts")
+            return
+        if any(not math.isfinite(c.arrival_time) for c in report.chunks):
+            self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite chunk arrival time")
+            return
+        self.fleet.on_report(session, report)
+
+    @staticmethod
+    def _notice(session: RobotSession, kind: int, message: str, index: int = -1) -> None:
+        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=kind, message=message, index=index)))
+
+
+@dataclass
+class RunningServer:
+    """A started gRPC server with its health servicer."""
+
+    server: grpc.Server
+    port: int
+    health: health.HealthServicer
+
+    def set_serving(self, serving: bool) -> None:
+        status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
+        for name in ("", SERVICE_NAME):
+            self.health.set(name, status)
+
+
+def start_grpc_server(
+    service: ArmoryService, host: str, port: int, max_robots: int, max_message_bytes: int
+) -> RunningServer:
+    """Bind and start the gRPC server (``port=0`` picks a free port)."""
+    # Each robot stream holds one worker thread for writing (its reader has its own thread).
+    pool = futures.ThreadPoolExecutor(max_workers=max_robots + 8, thread_name_prefix="armory-grpc")
+    server = grpc.server(
+        pool,
+        maximum_concurrent_rpcs=max_robots + 8,
+        options=[
+            ("grpc.max_receive_message_length", max_message_bytes),
+            ("grpc.max_send_message_length", max_message_bytes),
+            ("grpc.so_reuseport", 0),
+        ],
+    )
+    pb_grpc.add_ArmoryServicer_to_server(service, server)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    bound = server.add_insecure_port(address)
+    if bound == 0:
+        raise ConfigError("port", f"cannot bind {address} (in use or not allowed)")
+    server.start()
+    running = RunningServer(server, bound, health_servicer)
+    running.set_serving(True)
+    return running
+
+
+def shutdown_notice(fleet: Fleet, message: str = "the server is shutting down; reconnect later") -> Callable[[], None]:
+    """Tell every connected robot the server stops, then close their streams."""
+
+    def notify() -> None:
+        with fleet.cond:
+            for s in list(fleet.sessions.values()):
+                s.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.SHUTDOWN, message=message)))
+                s.outbox.close()
+
+    return notify

@@ -1,0 +1,321 @@
+"""A real server on an ephemeral loopback port, the tiny ACT, and several concurrent robots."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import grpc
+import numpy as np
+import pytest
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
+from lerobot_armory.robot.connection import Connection
+from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
+from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.service import PolicyInfo
+
+STATE = "observation.state"
+IMAGE = "observation.images.front"
+
+
+def features(engine):
+    return {f.name: (f.dtype, f.shape) for f in engine.wire_features}
+
+
+def observation(robot: int, index: int) -> dict[str, np.ndarray]:
+    """A distinct, reproducible observation per (robot, index)."""
+    rng = np.random.default_rng(1000 * robot + index)
+    return {
+        STATE: rng.standard_normal(2).astype(np.float32),
+        IMAGE: rng.integers(0, 256, (32, 32, 3), dtype=np.uint8),
+    }
+
+
+@pytest.fixture
+def server(engine):
+    profile = LatencyProfile("test", (20.0, 24.0, 28.0, 32.0))
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    srv = ArmoryServer(engine, info, profile, EarliestDeadlineConfig(), 3, port=0, max_message_bytes=256 << 10).start()
+    yield srv
+    srv.stop(grace_s=0.5)
+
+
+class Pusher:
+    """A robot double: pushes a new observation every period (index +1 each time), keeps chunks."""
+
+    def __init__(self, address: str, engine, k: int, period: float = 0.03, robot_id: str | None = None) -> None:
+        self.k = k
+        self.conn = Connection(address)
+        self.conn.register(robot_id or f"pusher{k}", features(engine), fps=1 / period, h_min=1, h_max=10, tier="fast")
+        self.chunks = []
+        self.notices = []
+        self.closed_with = None
+        self.conn.open_stream(self.chunks.append, self.notices.append, self._closed)
+        self.period = period
+        self.index = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _closed(self, err):
+        self.closed_with = err
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.conn.send_observation(self.index, observation(self.k, self.index))
+            self.index += 1
+            time.sleep(self.period)
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+        self.conn.close()
+
+
+def wait_for(cond, timeout=10.0, step=0.02):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(step)
+    return False
+
+
+def test_batches_form_and_each_robot_gets_its_own_chunk(server, engine):
+    robots = [Pusher(server.address, engine, k).start() for k in range(4)]
+    assert wait_for(lambda: all(len(r.chunks) >= 4 for r in robots), timeout=20)
+    for r in robots:
+        r.stop()
+    server.stop(grace_s=0.5)
+    sizes = server.loop.stats.batch_sizes
+    assert max(sizes) > 1, f"no batch larger than 1 formed: {sizes}"
+    assert max(sizes) <= 3
+    # Every chunk is the deterministic ACT's answer to *that robot's* observation i_start.
+    for r in robots:
+        assert all(c.actions.shape == (engine.chunk_size, engine.action_dim) for c in r.chunks)
+        starts = [c.i_start for c in r.chunks]
+        assert starts == sorted(starts) and len(set(starts)) == len(starts)
+        for c in r.chunks[:4]:
+            solo = engine.infer([observation(r.k, c.i_start)], ["x"])[0]
+            np.testing.assert_allclose(c.actions, solo, rtol=1e-4, atol=1e-4)
+            other = engine.infer([observation((r.k + 1) % 4, c.i_start)], ["x"])[0]
+            assert not np.allclose(c.actions, other, atol=1e-4), "chunk does not depend on the robot's own observation"
+
+
+def test_mirror_prediction_follows_a_real_control_loop(server, engine):
+    rng = np.random.default_rng(0)
+    executed = []
+    client = ArmoryClient(
+        server.address,
+        RobotIdentity("loop", fps=20, h_min=2, h_max=8, tier="fast"),
+        features(engine),
+        observe=lambda: {STATE: rng.standard_normal(2).astype(np.float32), IMAGE: np.zeros((32, 32, 3), np.uint8)},
+        act=executed.append,
+    )
+    stats = client.run(duration_s=3.0)
+    with server.fleet.cond:
+        session = next(s for s in server.fleet.sessions.values() if s.robot_id == "loop")
+        error, reported = session.index_error, session.reported_index
+    client.close()
+    assert stats["executed_steps"] == len(executed) > 20
+    assert stats["executed_steps"] + stats["starved_steps"] == stats["ticks"]
+    assert reported is not None and error is not None
+    assert error <= 2, f"mirror predicted index is {error} steps away from the robot's report"
+    assert sum(stats["first_executed_index"].values()) >= 1
+
+
+def bad_observations(engine):
+    ok = observation(9, 0)
+    raw = pb.Tensor(name=STATE, dtype="float32", shape=[2], data=b"\x00" * 5)
+    nan = dict(ok)
+    nan[STATE] = np.array([np.nan, 0.0], np.float32)
+    return {
+        "wrong dtype": {**ok, STATE: ok[STATE].astype(np.float64)},
+        "wrong shape": {**ok, STATE: np.zeros(3, np.float32)},
+        "missing feature": {STATE: ok[STATE]},
+        "extra feature": {**ok, "observation.extra": np.zeros(1, np.float32)},
+        "nan": nan,
+        "byte length": raw,
+    }
+
+
+def test_each_bad_observation_is_rejected_while_others_are_served(server, engine):
+    good = Pusher(server.address, engine, 0).start()
+    conn = Connection(server.address)
+    conn.register("bad", features(engine), fps=20, h_min=1, h_max=5)
+    notices = []
+    conn.open_stream(lambda c: None, notices.append)
+    expected = {
+        "wrong dtype": "registered float32",
+        "wrong shape": "registered float32[2]",
+        "missing feature": "missing feature",
+        "extra feature": "unexpected feature",
+        "nan": "NaN",
+        "byte length": "bytes",
+    }
+    for k, (name, obs) in enumerate(bad_observations(engine).items()):
+        if isinstance(obs, pb.Tensor):
+            img = observation(9, 0)[IMAGE]
+            from lerobot_armory.wire import encode
+
+            conn.send_raw(pb.RobotMessage(observation=pb.Observation(index=k, capture_time=time.monotonic(), tensors=[obs, encode(IMAGE, img)])))
+        else:
+            conn.send_observation(k, obs)
+    # an index going backwards after a good observation
+    conn.send_observation(10, observation(9, 10))
+    conn.send_observation(4, observation(9, 4))
+    assert wait_for(lambda: len(notices) >= 7)
+    texts = [n.message for n in notices if n.kind == pb.Notice.REJECTED_OBSERVATION]
+    for name, fragment in expected.items():
+        assert any(fragment in t for t in texts), f"{name}: no rejection mentioning {fragment!r} in {texts}"
+    assert any("backwards" in t for t in texts)
+    before = len(good.chunks)
+    assert wait_for(lambda: len(good.chunks) >= before + 3), "the well-behaved robot stopped receiving chunks"
+    conn.close()
+    good.stop()
+
+
+def test_registration_mismatches_are_all_listed(server, engine):
+    conn = Connection(server.address)
+    with pytest.raises(grpc.RpcError) as info:
+        conn.register("mis", {STATE: ("float32", (3,)), "observation.other": ("float32", (1,))}, fps=0, h_min=60, h_max=50)
+    assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    details = info.value.details()
+    for fragment in ("fps", "h_max", "h_min", "observation.state", "missing feature 'observation.images.front'", "unexpected feature 'observation.other'"):
+        assert fragment in details, f"{fragment!r} not in {details!r}"
+    conn.close()
+
+
+def test_duplicate_robot_id_and_stream_without_registration(server, engine):
+    first = Pusher(server.address, engine, 0, robot_id="twin").start()
+    conn = Connection(server.address)
+    with pytest.raises(grpc.RpcError) as info:
+        conn.register("twin", features(engine), fps=20, h_min=1, h_max=5)
+    assert info.value.code() == grpc.StatusCode.ALREADY_EXISTS
+    # A stream with no (or a made-up) session is refused before any observation is read.
+    stub = pb_grpc.ArmoryStub(conn.channel)
+    call = stub.Stream(iter([pb.RobotMessage(observation=pb.Observation(index=0))]), metadata=(("armory-session", "made-up"),))
+    with pytest.raises(grpc.RpcError) as info:
+        list(call)
+    assert info.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    conn.close()
+    before = len(first.chunks)
+    assert wait_for(lambda: len(first.chunks) > before)
+    first.stop()
+
+
+def test_oversized_message_and_dropped_stream_hurt_nobody_else(server, engine):
+    good = Pusher(server.address, engine, 0).start()
+    big = Connection(server.address)
+    big.register("big", features(engine), fps=20, h_min=1, h_max=5)
+    closed = threading.Event()
+    errors = []
+    big.open_stream(lambda c: None, None, lambda e: (errors.append(e), closed.set()))
+    huge = pb.Tensor(name=STATE, dtype="float32", shape=[100_000], data=b"\x00" * 400_000)
+    big.send_raw(pb.RobotMessage(observation=pb.Observation(index=0, tensors=[huge])))
+    assert closed.wait(10)
+    assert errors[0] is not None and errors[0].code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+    # A robot that vanishes while its request is in a batch.
+    ghost = Connection(server.address)
+    ghost.register("ghost", features(engine), fps=20, h_min=1, h_max=5)
+    ghost.open_stream(lambda c: None)
+    ghost.send_observation(0, observation(5, 0))
+    time.sleep(0.01)
+    ghost.close()
+    assert wait_for(lambda: all(s.robot_id not in ("ghost", "big") for s in server.fleet.sessions.values()))
+    before = len(good.chunks)
+    assert wait_for(lambda: len(good.chunks) >= before + 3)
+    good.stop()
+
+
+def test_health_check_and_graceful_stop(server, engine):
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    channel = grpc.insecure_channel(server.address)
+    health = health_pb2_grpc.HealthStub(channel)
+    assert health.Check(health_pb2.HealthCheckRequest(service="")).status == health_pb2.HealthCheckResponse.SERVING
+    robot = Pusher(server.address, engine, 0).start()
+    assert wait_for(lambda: len(robot.chunks) >= 1)
+    server.stop(grace_s=1.0)
+    assert wait_for(lambda: robot.conn.closed.is_set(), timeout=10)
+    assert any(n.kind == pb.Notice.SHUTDOWN for n in robot.notices)
+    robot.stop()
+    channel.close()
+
+
+def test_registration_refused_surfaces_the_reason(server, engine):
+    client = ArmoryClient(
+        server.address, RobotIdentity("nope", fps=20, h_min=1, h_max=99), features(engine), observe=dict, act=lambda a: None
+    )
+    with pytest.raises(RegistrationRefused, match="h_max"):
+        client.connect()
+
+
+def test_engine_failure_hits_one_batch_only(server, engine, monkeypatch):
+    robot = Pusher(server.address, engine, 0).start()
+    assert wait_for(lambda: len(robot.chunks) >= 1)
+    real = engine.infer
+    calls = {"n": 0}
+
+    def flaky(obs, tasks):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise RuntimeError("simulated CUDA error")
+        return real(obs, tasks)
+
+    monkeypatch.setattr(server.loop.engine, "infer", flaky)
+    assert wait_for(lambda: any(n.kind == pb.Notice.INFERENCE_FAILED for n in robot.notices))
+    before = len(robot.chunks)
+    assert wait_for(lambda: len(robot.chunks) >= before + 2), "robot not served again after a failed batch"
+    assert server.loop.stats.failed_batches == 1
+    robot.stop()
+
+
+def test_engine_rejects_missing_and_non_chunking_policies(engine, tmp_path, monkeypatch):
+    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+
+    with pytest.raises(ConfigError, match="policy.path"):
+        PolicyEngine(PolicyOptions(str(tmp_path / "nothing-here"), "cpu"))
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "config.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot load policy"):
+        PolicyEngine(PolicyOptions(str(tmp_path / "broken"), "cpu"))
+
+    def not_chunking(batch):
+        raise NotImplementedError("returns single actions")
+
+    monkeypatch.setattr(engine.policy, "predict_action_chunk", not_chunking)
+    with pytest.raises(ConfigError, match="does not predict action chunks"):
+        engine._dry_run()
+
+
+def test_server_cli_fails_with_one_line_on_a_missing_policy(capsys, tmp_path):
+    from lerobot_armory.server.app import main
+
+    with pytest.raises(SystemExit) as info:
+        main([f"--policy.path={tmp_path / 'missing'}", "--port=0"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "policy.path" in err[0] and "Traceback" not in err[0]
+
+
+def test_lookahead_serves_live_too(engine):
+    profile = LatencyProfile("test", (20.0, 24.0, 28.0))
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    srv = ArmoryServer(engine, info, profile, LookaheadConfig(), 3, port=0).start()
+    robots = [Pusher(srv.address, engine, k).start() for k in range(3)]
+    try:
+        assert wait_for(lambda: all(len(r.chunks) >= 3 for r in robots), timeout=20)
+    finally:
+        for r in robots:
+            r.stop()
+        srv.stop(grace_s=0.5)
