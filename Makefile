@@ -38,6 +38,8 @@ test: setup
 bench: setup
 	$(PY) benchmarks/sim_speed.py
 	$(PY) benchmarks/decision_time.py
+	$(PY) benchmarks/engine_efficiency.py
+	$(PY) benchmarks/serving_overhead.py
 
 # The full reference sweep of SPEC §5 (about 15 minutes on 2 cores).
 sweep: setup

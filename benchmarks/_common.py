@@ -27,6 +27,12 @@ class Targets:
         if not ok:
             self.misses.append(name)
 
+    def check_min(self, name: str, measured: float, floor: float, unit: str = "") -> None:
+        ok = measured >= floor
+        print(f"  {'PASS' if ok else 'MISS'}  {name}: {measured:.3f} {unit} (target >= {floor:g} {unit})")
+        if not ok:
+            self.misses.append(name)
+
     def finish(self) -> None:
         if self.misses:
             print(f"{len(self.misses)} target(s) missed: {', '.join(self.misses)}")

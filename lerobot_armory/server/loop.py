@@ -55,6 +55,7 @@ class BatchRecord:
     t_end: float
     robots: list[str]
     i_starts: list[int]
+    obs_recv: list[float]
     decision_ms: float
     ok: bool = True
 
@@ -228,5 +229,13 @@ class ServingLoop:
     def _record(self, items: list[WorkItem], t_start: float, t_end: float, decision_ms: float, ok: bool) -> None:
         if self.on_batch is not None:
             self.on_batch(
-                BatchRecord(t_start, t_end, [it.session.robot_id for it in items], [it.chunk.i_start for it in items], decision_ms, ok)
+                BatchRecord(
+                    t_start,
+                    t_end,
+                    [it.session.robot_id for it in items],
+                    [it.chunk.i_start for it in items],
+                    [it.obs_recv for it in items],
+                    decision_ms,
+                    ok,
+                )
             )

@@ -1,0 +1,135 @@
+"""Engine efficiency: served chunks/s at batch b >= 0.9 x a bare batched predict_action_chunk loop.
+
+For b = 1, 3, 5 and the demo ACT (random weights, CPU):
+
+- *bare*: LeRobot's pre-processor -> ``predict_action_chunk`` -> post-processor on ready-made
+  tensors, as fast as it can, in this process;
+- *served*: chunks/s a real server delivers over loopback gRPC with a batch cap of b, to 2b robot
+  doubles in a separate process pushing observations at 50 Hz (so some robot is always useful).
+
+This machine's speed drifts by ±20 % from second to second, so the two are measured in
+alternating windows (robots paused during bare windows) and the medians are compared.
+Run: ``.venv/bin/python benchmarks/engine_efficiency.py``. Exits 1 if a ratio is below 0.9.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import Targets  # noqa: E402
+
+SIZES = (1, 3, 5)
+ROUNDS = 5
+BARE_S = 1.5
+SERVED_S = 2.0
+TARGET = 0.9
+PUSH_PERIOD_S = 0.02
+
+
+def robots_process(address: str, n: int, features: dict, pushing, done) -> None:
+    """n robot doubles pushing observations while ``pushing`` is set, until ``done``."""
+    import threading
+
+    import numpy as np
+
+    from lerobot_armory.robot.connection import Connection
+
+    rng = np.random.default_rng(0)
+    obs = {
+        name: (rng.integers(0, 256, shape, dtype=np.uint8) if dtype == "uint8" else rng.standard_normal(shape).astype(dtype))
+        for name, (dtype, shape) in features.items()
+    }
+    conns = []
+    for k in range(n):
+        c = Connection(address)
+        c.register(f"bench{k}", features, fps=1 / PUSH_PERIOD_S, h_min=1, h_max=10)
+        c.open_stream(lambda chunk: None)
+        conns.append(c)
+
+    def push(c: Connection) -> None:
+        i = 0
+        while not done.is_set():
+            if pushing.wait(0.1):
+                c.send_observation(i, obs)
+                i += 1
+                time.sleep(PUSH_PERIOD_S)
+
+    threads = [threading.Thread(target=push, args=(c,)) for c in conns]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for c in conns:
+        c.close()
+
+
+def main() -> None:
+    import torch
+
+    from lerobot_armory.latency import LatencyProfile
+    from lerobot_armory.schedulers import EarliestDeadlineConfig
+    from lerobot_armory.server.app import ArmoryServer, tune_process
+    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.server.service import PolicyInfo
+
+    tune_process()  # as lerobot-armory-server does
+    tmp = tempfile.mkdtemp()
+    make_demo_policy(DemoPolicyConfig(output=f"{tmp}/policy"))
+    engine = PolicyEngine(PolicyOptions(f"{tmp}/policy", "cpu"))
+    features = {f.name: (f.dtype, f.shape) for f in engine.wire_features}
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    targets = Targets()
+    print(f"demo ACT ({engine.description}), torch intra-op threads={torch.get_num_threads()}")
+    ctx = mp.get_context("spawn")
+    for b in SIZES:
+        obs = [engine.example_observation(k) for k in range(b)]
+        batch = engine.to_batch(obs)
+        batch["task"] = [""] * b
+        server = ArmoryServer(engine, info, LatencyProfile("flat", tuple([10.0] * b)), EarliestDeadlineConfig(), b, port=0).start()
+        pushing, done = ctx.Event(), ctx.Event()
+        proc = ctx.Process(target=robots_process, args=(server.address, max(2, 2 * b), features, pushing, done))
+        proc.start()
+        bare_runs, served_runs = [], []
+        for _ in range(ROUNDS):
+            pushing.clear()
+            time.sleep(0.3)  # let the in-flight batch finish
+            n, t0 = 0, time.perf_counter()
+            with torch.inference_mode():
+                while time.perf_counter() - t0 < BARE_S:
+                    engine.postprocessor(engine.policy.predict_action_chunk(engine.preprocessor(dict(batch))))
+                    n += 1
+            bare_runs.append(n * b / (time.perf_counter() - t0))
+            pushing.set()
+            time.sleep(0.5)  # robots resume, batches refill
+            stats = server.loop.stats
+            c0, t0 = sum(k * v for k, v in stats.batch_sizes.items()), time.perf_counter()
+            time.sleep(SERVED_S)
+            served_runs.append((sum(k * v for k, v in stats.batch_sizes.items()) - c0) / (time.perf_counter() - t0))
+        done.set()
+        pushing.set()
+        proc.join()
+        sizes = dict(server.loop.stats.batch_sizes)
+        infer = sorted(server.loop.stats.infer_ms[b])
+        busy = server.loop.stats.busy_s / max(1e-9, server.fleet.clock() - server.loop.stats.started)
+        server.stop(grace_s=0.5)
+        bare, served = statistics.median(bare_runs), statistics.median(served_runs)
+        ratio = served / bare
+        print(
+            f"  b={b}: bare {bare:6.1f} chunks/s ({1000 * b / bare:.1f} ms/batch)   served {served:6.1f} chunks/s   "
+            f"ratio {ratio:.3f}   (per window: bare {[round(x) for x in bare_runs]}, served {[round(x) for x in served_runs]}; "
+            f"batch sizes {sizes})\n        in-server batch p50 {infer[len(infer) // 2]:.1f} ms, idle with work waiting "
+            f"{1000 * server.loop.stats.idle_with_work_s / max(1, server.loop.stats.batches):.2f} ms/batch"
+        )
+        targets.check_min(f"served/bare b={b}", ratio, TARGET)
+    targets.finish()
+
+
+if __name__ == "__main__":
+    main()
