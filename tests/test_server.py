@@ -319,3 +319,49 @@ def test_lookahead_serves_live_too(engine):
         for r in robots:
             r.stop()
         srv.stop(grace_s=0.5)
+
+
+def test_server_command_profiles_serves_and_exits_0_on_sigterm(demo_policy_dir, engine, tmp_path):
+    """The real console entry point: start-up summary, saved profile, a robot served, SIGTERM -> exit 0."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    profile_path = tmp_path / "profile.json"
+    proc = subprocess.Popen(
+        [
+            sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={demo_policy_dir}", "--policy.device=cpu",
+            "--port=0", "--max_batch_size=2", f"--latency_profile={profile_path}", "--profile_reps=1", "--scheduler.type=edf",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+    lines = []
+    address = None
+    deadline = time.monotonic() + 120
+    while address is None and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if "listening on" in line:
+            address = line.split("listening on")[1].strip()
+    assert address, "".join(lines)
+    for _ in range(12):  # the rest of the summary
+        lines.append(proc.stdout.readline())
+    summary = "".join(lines)
+    assert "chunk size H=10" in summary and "observation.images.front: uint8[32, 32, 3]" in summary
+    assert "b=2" in summary and profile_path.is_file()
+    robot = Pusher(address, engine, 0)
+    robot.start()
+    assert wait_for(lambda: len(robot.chunks) >= 2, timeout=30)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 0
+    assert wait_for(lambda: robot.conn.closed.is_set(), timeout=10)
+    assert any(n.kind == pb.Notice.SHUTDOWN for n in robot.notices)
+    robot.stop()
+    rest = proc.stdout.read()
+    assert "stopped cleanly" in rest, rest
