@@ -5,6 +5,11 @@ for the current index from the newest arrived chunk covering it — or starve (n
 motors, the index stays). Execution reports (what arrived when, what was executed first) go back
 a few times a second so the server can estimate delays without synchronised clocks.
 
+Losing the server never makes the robot act on stale data: the moment the stream breaks, every
+buffered chunk is dropped and the robot holds (starves) while a background thread reconnects
+with exponential back-off, registers again and resumes. Chunks of an earlier session are
+recognised by their session epoch and never executed.
+
 The loop is independent of any hardware: it takes ``observe()`` and ``act(action)`` callables,
 so a LeRobot robot, a simulated robot or a test double plug in the same way.
 """
@@ -21,12 +26,15 @@ from typing import Any
 import grpc
 import numpy as np
 
+from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
 from lerobot_armory.robot.connection import Connection, ReceivedChunk
 
 log = logging.getLogger(__name__)
 
 REPORT_EVERY_S = 0.2
+# Registration answers that mean "try again later" rather than "you are wrong".
+RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.ALREADY_EXISTS)
 
 
 class RegistrationRefused(RuntimeError):
@@ -46,6 +54,15 @@ class RobotIdentity:
     task: str = ""
 
 
+@dataclass
+class Backoff:
+    """Reconnection delays: ``initial_s``, doubling up to ``max_s``; ``give_up_s`` 0 = never."""
+
+    initial_s: float = 0.5
+    max_s: float = 5.0
+    give_up_s: float = 0.0
+
+
 class ArmoryClient:
     """Runs one robot's control loop against a server.
 
@@ -57,6 +74,7 @@ class ArmoryClient:
         act: sends one action to the motors.
         clock / sleep: injectable for tests.
         jpeg_quality: JPEG-encode uint8 images on the wire (None: raw bytes).
+        backoff: reconnection policy.
     """
 
     def __init__(
@@ -69,6 +87,7 @@ class ArmoryClient:
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         jpeg_quality: int | None = None,
+        backoff: Backoff | None = None,
     ) -> None:
         self.address = address
         self.identity = identity
@@ -78,22 +97,54 @@ class ArmoryClient:
         self.clock = clock
         self.sleep = sleep
         self.jpeg_quality = jpeg_quality
+        self.backoff = backoff or Backoff()
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
+        self._epoch = 0
+        self.connection: Connection | None = None
+        self._reconnecting: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.fatal: BaseException | None = None
         self.index = 0
         self.ticks = 0
         self.executed = 0
         self.starved = 0
+        self.reconnects = 0
+        self.chunks_received = 0
         self.notices: list[str] = []
-        self.connection: Connection | None = None
-        self._stop = threading.Event()
+        self.policy: str = ""
+        self.chunk_size: int = 0
 
     # ---- connection --------------------------------------------------------------------------
 
-    def connect(self, timeout: float = 10.0) -> None:
-        """Register and open the stream. Raises RegistrationRefused with the server's reason."""
+    @property
+    def connected(self) -> bool:
+        return self.connection is not None
+
+    def connect(self) -> None:
+        """Register and open the stream, retrying with back-off while the server is unreachable.
+
+        Raises:
+            RegistrationRefused: the server said no (the message is its reason).
+            ConnectionError: ``backoff.give_up_s`` passed without reaching the server.
+        """
+        start = self.clock()
+        delay = self.backoff.initial_s
+        while not self._stop.is_set():
+            try:
+                self._connect_once()
+                return
+            except ConnectionError as exc:
+                waited = self.clock() - start
+                if self.backoff.give_up_s and waited + delay > self.backoff.give_up_s:
+                    raise ConnectionError(f"{exc}; gave up after {waited:.1f} s") from None
+                log.warning("%s; retrying in %.1f s", exc, delay)
+                self._stop.wait(delay)
+                delay = min(delay * 2, self.backoff.max_s)
+
+    def _connect_once(self) -> None:
         conn = Connection(self.address, self.clock)
-        if not conn.wait_ready(timeout):
+        if not conn.wait_ready(timeout=2.0):
             conn.close()
             raise ConnectionError(f"server {self.address} is unreachable")
         ident = self.identity
@@ -101,31 +152,76 @@ class ArmoryClient:
             reg = conn.register(ident.robot_id, self.features, ident.fps, ident.h_min, ident.h_max, ident.weight, ident.tier, ident.task)
         except grpc.RpcError as exc:
             conn.close()
-            if exc.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-                raise ConnectionError(f"server {self.address} is unreachable: {exc.details()}") from None
+            if exc.code() in RETRYABLE:
+                raise ConnectionError(f"server {self.address} not ready: {exc.code().name}: {exc.details()}") from None
             raise RegistrationRefused(f"{exc.code().name}: {exc.details()}") from None
-        log.info("registered as %s with %s (H=%d)", ident.robot_id, reg.policy, reg.chunk_size)
-        conn.open_stream(self._on_chunk, self._on_notice)
-        self.connection = conn
-
-    def _on_chunk(self, chunk: ReceivedChunk) -> None:
         with self._lock:
-            self.buffer.add(chunk.chunk_id, chunk.i_start, chunk.actions, chunk.arrival_time)
+            self._epoch += 1
+            epoch = self._epoch
+            self.buffer.clear()  # nothing from an earlier session may ever run
+            self.connection = conn
+        self.policy, self.chunk_size = reg.policy, reg.chunk_size
+        conn.open_stream(
+            lambda chunk: self._on_chunk(epoch, chunk),
+            self._on_notice,
+            lambda error: self._on_close(epoch, error),
+        )
+        log.info("registered as %s with %s (H=%d), session %d", ident.robot_id, reg.policy, reg.chunk_size, epoch)
 
-    def _on_notice(self, notice: Any) -> None:
+    def _on_chunk(self, epoch: int, chunk: ReceivedChunk) -> None:
+        with self._lock:
+            if epoch != self._epoch or self.connection is None:
+                return  # a chunk of a dead session: never executed
+            self.buffer.add(chunk.chunk_id, chunk.i_start, chunk.actions, chunk.arrival_time)
+            self.chunks_received += 1
+
+    def _on_notice(self, notice: pb.Notice) -> None:
         self.notices.append(notice.message)
-        log.warning("server notice: %s", notice.message)
+        level = logging.INFO if notice.kind == pb.Notice.SHUTDOWN else logging.WARNING
+        log.log(level, "server: %s", notice.message)
+
+    def _on_close(self, epoch: int, error: grpc.RpcError | None) -> None:
+        with self._lock:
+            if epoch != self._epoch or self._stop.is_set():
+                return
+            lost, self.connection = self.connection, None
+            self.buffer.clear()  # hold: no stale actions while disconnected
+        reason = f"{error.code().name}: {error.details()}" if error is not None else "stream closed by the server"
+        log.warning("connection lost (%s); holding position and reconnecting", reason)
+        if lost is not None:
+            threading.Thread(target=lost.close, daemon=True).start()
+        self._start_reconnect()
+
+    def _start_reconnect(self) -> None:
+        if self._reconnecting is not None and self._reconnecting.is_alive():
+            return
+
+        def run() -> None:
+            try:
+                self.connect()
+                if self.connection is not None:
+                    self.reconnects += 1
+            except RegistrationRefused as exc:
+                log.error("re-registration refused: %s", exc)
+                self.fatal = exc
+            except ConnectionError as exc:
+                log.error("%s", exc)
+                self.fatal = exc
+
+        self._reconnecting = threading.Thread(target=run, name="armory-reconnect", daemon=True)
+        self._reconnecting.start()
 
     # ---- the control loop --------------------------------------------------------------------
 
     def step(self) -> bool:
         """One control tick: observe, push, execute or starve. Returns True if it executed."""
-        assert self.connection is not None
         t = self.clock()
         obs = self.observe()
-        self.connection.send_observation(self.index, obs, capture_time=t, jpeg_quality=self.jpeg_quality)
+        conn = self.connection
+        if conn is not None:
+            conn.send_observation(self.index, obs, capture_time=t, jpeg_quality=self.jpeg_quality)
         with self._lock:
-            action = self.buffer.action_for(self.index)
+            action = self.buffer.action_for(self.index) if self.connection is not None else None
         self.ticks += 1
         if action is None:
             self.starved += 1
@@ -137,13 +233,19 @@ class ArmoryClient:
 
     def report(self) -> None:
         """Send an execution report with every chunk receipt not yet reported."""
-        assert self.connection is not None
+        conn = self.connection
+        if conn is None:
+            return
         with self._lock:
             receipts = self.buffer.take_receipts()
-        self.connection.send_report(self.index, self.executed, self.starved, receipts)
+        conn.send_report(self.index, self.executed, self.starved, receipts)
 
     def run(self, duration_s: float = 0.0) -> dict[str, Any]:
-        """Connect if needed and run ticks until ``duration_s`` (0: until :meth:`stop`)."""
+        """Connect if needed, then tick at ``fps`` for ``duration_s`` (0: until :meth:`stop`).
+
+        Raises RegistrationRefused / ConnectionError if the server refuses or cannot be reached
+        (at start, or when reconnecting gives up).
+        """
         if self.connection is None:
             self.connect()
         period = 1.0 / self.identity.fps
@@ -151,11 +253,13 @@ class ArmoryClient:
         next_tick = start
         last_report = start
         while not self._stop.is_set():
+            if self.fatal is not None:
+                raise self.fatal
             now = self.clock()
             if duration_s and now - start >= duration_s:
                 break
             if now < next_tick:
-                self.sleep(next_tick - now)
+                self.sleep(min(next_tick - now, 0.05))
                 continue
             self.step()
             if now - last_report >= REPORT_EVERY_S:
@@ -168,24 +272,30 @@ class ArmoryClient:
         return self.stats()
 
     def stop(self) -> None:
+        """Ask :meth:`run` to return after the current tick."""
         self._stop.set()
 
     def close(self) -> None:
-        if self.connection is not None:
-            self.connection.close()
-            self.connection = None
+        """Stop and close the connection."""
+        self._stop.set()
+        with self._lock:
+            conn, self.connection = self.connection, None
+            self._epoch += 1
+        if conn is not None:
+            conn.close()
 
     def stats(self) -> dict[str, Any]:
         """The stats JSON of the run so far."""
         with self._lock:
             first = dict(self.buffer.first_executed_index)
-            received = self.buffer.received
         return {
             "robot_id": self.identity.robot_id,
+            "tier": self.identity.tier,
             "ticks": self.ticks,
             "executed_steps": self.executed,
             "starved_steps": self.starved,
             "starvation_pct": 100.0 * self.starved / self.ticks if self.ticks else 0.0,
-            "chunks_received": received,
+            "chunks_received": self.chunks_received,
             "first_executed_index": first,
+            "reconnects": self.reconnects,
         }

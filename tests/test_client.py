@@ -1,0 +1,271 @@
+"""Robot side: the action buffer, the client loop with armory_sim robots against a real server,
+starvation under a slow server, reconnects without stale chunks, refused registrations."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.robot.actions import ActionBuffer
+from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+from lerobot_armory.robot.client import ArmoryClient, Backoff, RegistrationRefused, RobotIdentity
+from lerobot_armory.robot.features import FeatureMap
+from lerobot_armory.schedulers import EarliestDeadlineConfig
+from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.wire import FeatureSpec
+
+SIM_FEATURES = [FeatureSpec("observation.state", "float32", (2,)), FeatureSpec("observation.images.front", "uint8", (32, 32, 3))]
+
+
+# ---- action buffer ---------------------------------------------------------------------------
+
+
+def test_buffer_uses_newest_covering_chunk_and_never_beyond_h_max():
+    buf = ActionBuffer(h_max=3)
+    buf.add(0, 0, np.arange(10.0)[:, None], arrival_time=0.0)
+    assert buf.action_for(0)[0] == 0.0
+    buf.add(1, 1, 100 + np.arange(10.0)[:, None], arrival_time=0.1)
+    assert buf.action_for(1)[0] == 100.0  # newest chunk wins
+    assert buf.action_for(2)[0] == 101.0
+    assert buf.action_for(3)[0] == 102.0
+    assert buf.action_for(4) is None  # chunk 1 covers [1, 4) only (h_max = 3), chunk 0 [0, 3)
+    receipts = buf.take_receipts()
+    assert (0, 0.0, 0) in receipts and (1, 0.1, 0) in receipts
+    assert dict(buf.first_executed_index) == {"0": 2}
+
+
+def test_buffer_reports_late_chunks_as_unused_and_clear_drops_everything():
+    buf = ActionBuffer(h_max=2)
+    buf.add(0, 0, np.zeros((5, 1)), 0.0)
+    buf.action_for(0)
+    buf.action_for(1)
+    buf.add(1, 0, np.ones((5, 1)), 0.2)  # arrives after the robot passed index 1
+    assert buf.action_for(2) is None
+    assert (1, 0.2, -1) in buf.take_receipts()
+    buf.add(2, 2, np.ones((5, 1)), 0.3)
+    buf.clear()
+    assert buf.action_for(2) is None
+
+
+def test_feature_map_follows_lerobot_conventions():
+    fmap = FeatureMap.for_robot({"x.pos": float, "y.pos": float, "front": (32, 32, 3)}, {"x.pos": float, "y.pos": float})
+    assert fmap.wire_features() == {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}
+    wire = fmap.to_wire({"x.pos": 0.5, "y.pos": -0.5, "front": np.zeros((32, 32, 3), np.uint8)})
+    np.testing.assert_array_equal(wire["observation.state"], np.array([0.5, -0.5], np.float32))
+    assert fmap.to_action(np.array([0.1, 0.2])) == {"x.pos": pytest.approx(0.1), "y.pos": pytest.approx(0.2)}
+    with pytest.raises(ValueError, match="dims"):
+        fmap.to_action(np.zeros(3))
+
+
+# ---- against a real server -------------------------------------------------------------------
+
+
+class ConstEngine:
+    """Returns chunks whose every action equals ``value`` (optionally slow)."""
+
+    def __init__(self, value: float, delay_s: float = 0.0, horizon: int = 10) -> None:
+        self.value, self.delay_s, self.horizon = value, delay_s, horizon
+
+    def infer(self, observations, tasks):
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        return np.full((len(observations), self.horizon, 2), self.value, np.float32)
+
+
+def start_server(engine, port: int = 0, cap: int = 3) -> ArmoryServer:
+    info = PolicyInfo("test engine", SIM_FEATURES, ["x", "y"], 10)
+    return ArmoryServer(engine, info, LatencyProfile("t", (5.0, 6.0, 7.0)), EarliestDeadlineConfig(), cap, port=port).start()
+
+
+def sim_client(address: str, name: str, scene: str = "static", tier: str = "slow", h_max: int = 8, fps: float = 20.0, backoff=None):
+    robot = ArmorySim(ArmorySimConfig(scene=scene, image_size=32))
+    robot.connect()
+    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+    executed = []
+
+    def act(vector):
+        executed.append((time.monotonic(), client.index, vector.copy()))
+        robot.send_action(fmap.to_action(vector))
+
+    client = ArmoryClient(
+        address,
+        RobotIdentity(name, fps=fps, h_min=2, h_max=h_max, tier=tier),
+        fmap.wire_features(),
+        observe=lambda: fmap.to_wire(robot.get_observation()),
+        act=act,
+        backoff=backoff,
+    )
+    return client, robot, executed
+
+
+def run_in_thread(client: ArmoryClient, duration_s: float):
+    out = {}
+    t = threading.Thread(target=lambda: out.update(client.run(duration_s)), daemon=True)
+    t.start()
+    return t, out
+
+
+def test_fleet_of_sim_robots_executes_chunks_in_order(engine):
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    server = ArmoryServer(engine, info, LatencyProfile("t", (15.0, 20.0, 25.0)), EarliestDeadlineConfig(), 3, port=0).start()
+    received: dict[str, list] = {}
+    runs = []
+    try:
+        for k, (scene, tier) in enumerate([("dynamic", "fast"), ("dynamic", "fast"), ("static", "slow")]):
+            client, robot, executed = sim_client(server.address, f"sim{k}", scene, tier, h_max=8 if tier == "fast" else 10)
+            chunks = received.setdefault(client.identity.robot_id, [])
+            original = client.buffer.add
+
+            def spy(chunk_id, i_start, actions, arrival, original=original, chunks=chunks):
+                chunks.append((chunk_id, i_start, actions, arrival))
+                original(chunk_id, i_start, actions, arrival)
+
+            client.buffer.add = spy
+            runs.append((client, robot, executed, *run_in_thread(client, 3.0)))
+        for client, robot, executed, thread, out in runs:
+            thread.join(20)
+            stats = out
+            client.close()
+            assert stats["executed_steps"] + stats["starved_steps"] == stats["ticks"] > 30
+            assert stats["executed_steps"] > 20
+            chunks = received[client.identity.robot_id]
+            indices = [i for _, i, _ in executed]
+            assert indices == list(range(len(indices))), "indices must increase by one per executed step"
+            for t, i, vector in executed:
+                # the action executed at index i is action (i - i_start) of the newest chunk that
+                # had arrived and covers i within h_max
+                cands = [c for c in chunks if c[3] <= t and c[1] <= i < c[1] + client.identity.h_max]
+                assert cands, f"index {i} executed with no covering chunk"
+                newest = max(cands, key=lambda c: (c[1], c[0]))
+                np.testing.assert_allclose(vector, newest[2][i - newest[1]])
+    finally:
+        server.stop(grace_s=0.5)
+
+
+def test_starvation_is_counted_when_the_server_is_slow():
+    fast_server = start_server(ConstEngine(0.0))
+    client, _, _ = sim_client(fast_server.address, "quick", h_max=8)
+    quick = client.run(2.0)
+    client.close()
+    fast_server.stop(0.5)
+
+    slow_server = start_server(ConstEngine(0.0, delay_s=0.5))
+    client, _, _ = sim_client(slow_server.address, "starving", h_max=4)
+    slow = client.run(3.0)
+    client.close()
+    slow_server.stop(0.5)
+    assert quick["starvation_pct"] < 20
+    assert slow["starvation_pct"] > 40, slow
+    assert slow["executed_steps"] + slow["starved_steps"] == slow["ticks"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_reconnect_never_replays_a_stale_chunk():
+    port = free_port()
+    first = start_server(ConstEngine(+1.0, horizon=10), port=port)
+    client, _, executed = sim_client(f"127.0.0.1:{port}", "phoenix", h_max=10, backoff=Backoff(0.2, 0.5))
+    thread, out = run_in_thread(client, 6.0)
+    time.sleep(1.5)
+    assert any(v[0] == 1.0 for _, _, v in executed)
+    first.stop(grace_s=0.2)
+    t_lost = time.monotonic()
+    time.sleep(1.0)
+    index_while_down = client.index
+    second = start_server(ConstEngine(-1.0, horizon=10), port=port)
+    try:
+        thread.join(20)
+    finally:
+        client.close()
+        second.stop(0.5)
+    stats = out
+    assert stats["reconnects"] >= 1
+    after = [(t, i, v) for t, i, v in executed if t > t_lost]
+    assert after, "the robot never resumed after the reconnect"
+    assert all(v[0] == -1.0 for _, _, v in after), "a chunk from before the reconnect was executed"
+    assert min(i for _, i, _ in after) >= index_while_down
+    assert stats["starved_steps"] >= 15  # it held while the server was gone
+
+
+def test_registration_errors_surface_with_the_servers_reason():
+    server = start_server(ConstEngine(0.0))
+    try:
+        client, _, _ = sim_client(server.address, "bad", h_max=99)
+        with pytest.raises(RegistrationRefused, match="h_max"):
+            client.connect()
+    finally:
+        server.stop(0.5)
+
+
+def test_unreachable_server_is_retried_then_given_up():
+    client, _, _ = sim_client(f"127.0.0.1:{free_port()}", "lonely", backoff=Backoff(0.1, 0.2, give_up_s=1.0))
+    start = time.monotonic()
+    with pytest.raises(ConnectionError, match="unreachable"):
+        client.connect()
+    assert 0.5 < time.monotonic() - start < 10
+
+
+def test_client_waits_for_a_server_that_comes_up_late():
+    port = free_port()
+    client, _, _ = sim_client(f"127.0.0.1:{port}", "patient", backoff=Backoff(0.1, 0.3))
+    holder = {}
+    t = threading.Thread(target=lambda: holder.update(stats=client.run(2.0)), daemon=True)
+    t.start()
+    time.sleep(1.0)
+    server = start_server(ConstEngine(0.0), port=port)
+    try:
+        t.join(20)
+    finally:
+        client.close()
+        server.stop(0.5)
+    assert holder["stats"]["executed_steps"] > 0
+
+
+def test_client_command_exits_1_with_the_reason_and_2_on_bad_flags(capsys):
+    from lerobot_armory.robot.cli import main
+
+    server = start_server(ConstEngine(0.0))
+    try:
+        with pytest.raises(SystemExit) as info:
+            main(["--robot.type=armory_sim", "--robot.image_size=32", f"--server_address={server.address}", "--h_max=50", "--h_min=1"])
+        assert info.value.code == 1
+        assert "h_max" in capsys.readouterr().err
+    finally:
+        server.stop(0.5)
+    with pytest.raises(SystemExit) as info:
+        main(["--robot.type=armory_sim", "--fps=0"])
+    assert info.value.code == 2
+    assert "fps" in capsys.readouterr().err
+
+
+def test_client_command_runs_and_writes_stats(tmp_path, capsys):
+    import json
+
+    from lerobot_armory.robot.cli import main
+
+    server = start_server(ConstEngine(0.2))
+    try:
+        stats_path = tmp_path / "stats.json"
+        main(
+            [
+                "--robot.type=armory_sim", "--robot.image_size=32", "--robot.scene=dynamic", f"--server_address={server.address}",
+                "--fps=20", "--h_min=2", "--h_max=8", "--tier=fast", "--duration_s=1.5", f"--stats_path={stats_path}",
+            ]
+        )  # fmt: skip
+    finally:
+        server.stop(0.5)
+    stats = json.loads(stats_path.read_text())
+    for key in ("robot_id", "ticks", "executed_steps", "starved_steps", "starvation_pct", "chunks_received", "first_executed_index", "successes"):
+        assert key in stats
+    assert stats["executed_steps"] > 0 and stats["chunks_received"] > 0
+    assert "successes" in capsys.readouterr().out
