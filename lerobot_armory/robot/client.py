@@ -29,6 +29,7 @@ import numpy as np
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
 from lerobot_armory.robot.connection import Connection, ReceivedChunk
+from lerobot_armory.robot.netem import NetworkEmulator
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,7 @@ class ArmoryClient:
         clock / sleep: injectable for tests.
         jpeg_quality: JPEG-encode uint8 images on the wire (None: raw bytes).
         backoff: reconnection policy.
+        network: factory of an emulated network per connection (benchmarks).
     """
 
     def __init__(
@@ -88,6 +90,7 @@ class ArmoryClient:
         sleep: Callable[[float], None] = time.sleep,
         jpeg_quality: int | None = None,
         backoff: Backoff | None = None,
+        network: Callable[[], NetworkEmulator] | None = None,
     ) -> None:
         self.address = address
         self.identity = identity
@@ -98,6 +101,7 @@ class ArmoryClient:
         self.sleep = sleep
         self.jpeg_quality = jpeg_quality
         self.backoff = backoff or Backoff()
+        self.network = network
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
         self._epoch = 0
@@ -143,7 +147,7 @@ class ArmoryClient:
                 delay = min(delay * 2, self.backoff.max_s)
 
     def _connect_once(self) -> None:
-        conn = Connection(self.address, self.clock)
+        conn = Connection(self.address, self.clock, network=self.network() if self.network else None)
         if not conn.wait_ready(timeout=2.0):
             conn.close()
             raise ConnectionError(f"server {self.address} is unreachable")

@@ -17,6 +17,7 @@ import grpc
 import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
@@ -55,11 +56,19 @@ class Connection:
         address: ``host:port``.
         clock: the robot's clock (seconds); never assumed synchronised with the server's.
         max_message_bytes: largest message sent or received.
+        network: optional emulated network delays (benchmarks); None sends at once.
     """
 
-    def __init__(self, address: str, clock: Callable[[], float] = time.monotonic, max_message_bytes: int = 16 << 20) -> None:
+    def __init__(
+        self,
+        address: str,
+        clock: Callable[[], float] = time.monotonic,
+        max_message_bytes: int = 16 << 20,
+        network: NetworkEmulator | None = None,
+    ) -> None:
         self.address = address
         self.clock = clock
+        self.network = network
         self.channel = grpc.insecure_channel(
             address,
             options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)],
@@ -139,7 +148,15 @@ class Connection:
                     kind = msg.WhichOneof("kind")
                     if kind == "chunk":
                         c = msg.chunk
-                        on_chunk(ReceivedChunk(c.chunk_id, c.i_start, decode(c.actions), c.server_send_time, self.clock(), c.obs_capture_time))
+                        actions = decode(c.actions)
+
+                        def deliver(c=c, actions=actions) -> None:  # arrival is when the robot sees it
+                            on_chunk(ReceivedChunk(c.chunk_id, c.i_start, actions, c.server_send_time, self.clock(), c.obs_capture_time))
+
+                        if self.network is None:
+                            deliver()
+                        else:
+                            self.network.receive(deliver)
                     elif kind == "notice" and on_notice is not None:
                         on_notice(msg.notice)
             except grpc.RpcError as exc:
@@ -170,7 +187,13 @@ class Connection:
             q = jpeg_quality if (jpeg_quality is not None and arr.dtype == np.uint8 and arr.ndim == 3) else None
             tensors.append(encode(name, arr, q))
         t = self.clock() if capture_time is None else capture_time
-        self._outgoing.put(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors)))
+        self._enqueue(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors)))
+
+    def _enqueue(self, msg: pb.RobotMessage) -> None:
+        if self.network is None:
+            self._outgoing.put(msg)
+        else:
+            self.network.send(lambda: self._outgoing.put(msg))
 
     def send_raw(self, msg: pb.RobotMessage) -> None:
         """Queue any message (tests use it to send malformed ones)."""
@@ -180,7 +203,7 @@ class Connection:
         self, index: int, executed: int, starved: int, receipts: list[tuple[int, float, int]], report_time: float | None = None
     ) -> None:
         """Queue an execution report; ``receipts`` are (chunk_id, arrival_time, first_executed_index or -1)."""
-        self._outgoing.put(
+        self._enqueue(
             pb.RobotMessage(
                 report=pb.ExecutionReport(
                     report_time=self.clock() if report_time is None else report_time,
@@ -195,6 +218,8 @@ class Connection:
     def close(self) -> None:
         """End the stream and the channel."""
         self._outgoing.put(_CLOSE)
+        if self.network is not None:
+            self.network.close()
         if self._call is not None:
             self._call.cancel()
         if self._receiver is not None:

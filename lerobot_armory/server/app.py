@@ -11,6 +11,8 @@ exits 0.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import signal
 import statistics
@@ -24,6 +26,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, load_profile
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
+from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
 from lerobot_armory.server.fleet import Fleet
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
@@ -38,6 +41,7 @@ class ServerConfig:
 
     Attributes:
         policy: ``--policy.path`` (local directory or hub id) and ``--policy.device``.
+        engine: ``--engine.emulate_profile=NAME|FILE`` replays a latency profile (see emulation.py).
         scheduler: ``--scheduler.type=rr|edf|lookahead`` and its knobs.
         max_batch_size: batch cap b.
         host: bind address (loopback unless told otherwise).
@@ -49,9 +53,11 @@ class ServerConfig:
         max_message_mb: largest message accepted, MiB.
         status_interval_s: seconds between fleet status lines (0: none).
         log_level: debug, info, warning, error.
+        batch_log: append one JSON line per dispatched batch to this file (benchmarks).
     """
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
+    engine: EngineOptions = field(default_factory=EngineOptions)
     scheduler: SchedulerConfig = field(default_factory=LookaheadConfig)
     max_batch_size: int = 3
     host: str = "127.0.0.1"
@@ -62,6 +68,7 @@ class ServerConfig:
     max_message_mb: float = 16.0
     status_interval_s: float = 1.0
     log_level: str = "info"
+    batch_log: str | None = None
 
     def validate(self) -> None:
         if self.max_batch_size < 1:
@@ -110,6 +117,7 @@ class ArmoryServer:
         self._max_robots, self._max_message_bytes = max_robots, max_message_bytes
         self.grpc: RunningServer | None = None
         self._stopped = threading.Event()
+        self._batch_file = None
 
     @property
     def port(self) -> int:
@@ -119,6 +127,17 @@ class ArmoryServer:
     @property
     def address(self) -> str:
         return f"{self._host}:{self.port}"
+
+    def log_batches_to(self, path: str) -> None:
+        """Append every batch as one JSON line to ``path`` (robots, i_start, times)."""
+        handle = open(path, "a", buffering=1)  # noqa: SIM115 - closed in stop()
+        self._batch_file = handle
+
+        def write(record: BatchRecord) -> None:
+            self.batch_log.append(record)
+            handle.write(json.dumps(dataclasses.asdict(record)) + "\n")
+
+        self.loop.on_batch = write
 
     def start(self) -> ArmoryServer:
         self.loop.start()
@@ -136,6 +155,8 @@ class ArmoryServer:
         shutdown_notice(self.fleet)()
         if self.grpc is not None:
             self.grpc.server.stop(grace_s).wait()
+        if self._batch_file is not None:
+            self._batch_file.close()
 
     def status_line(self) -> str:
         """One line of fleet status (logged every second)."""
@@ -192,11 +213,22 @@ def serve(cfg: ServerConfig) -> None:
     logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log.info("loading policy %s ...", cfg.policy.path)
     engine = PolicyEngine(cfg.policy)
-    profile = resolve_profile(cfg, engine)
+    serving_engine: Engine = engine
+    latency_note = ""
+    if cfg.engine.emulate_profile:
+        profile = load_profile(cfg.engine.emulate_profile)
+        serving_engine = EmulatedLatencyEngine(engine, profile)
+        latency_note = " (emulated latency)"
+        log.info("emulating latency profile %s: every batch takes exactly d_infer(b)", profile.name)
+    else:
+        profile = resolve_profile(cfg, engine)
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     server = ArmoryServer(
-        engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots, int(cfg.max_message_mb * (1 << 20))
-    )
+        serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
+        int(cfg.max_message_mb * (1 << 20)),
+    )  # fmt: skip
+    if cfg.batch_log:
+        server.log_batches_to(cfg.batch_log)
     server.start()
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
     print(
@@ -205,7 +237,7 @@ def serve(cfg: ServerConfig) -> None:
         f"  observation features robots must send:\n{features}\n"
         f"  actions: {len(engine.action_names)} dims ({', '.join(engine.action_names)}), chunk size H={engine.chunk_size}\n"
         f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
-        f"{profile.describe(cfg.max_batch_size)}",
+        f"{profile.describe(cfg.max_batch_size)}{latency_note}",
         flush=True,
     )
     stop = threading.Event()

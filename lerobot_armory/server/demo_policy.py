@@ -24,6 +24,8 @@ class DemoPolicyConfig:
 
     Attributes:
         output: directory to write (created).
+        kind: ``act`` (small random-weight ACT) or ``planner`` (the analytic ``armory_planner``
+            that solves the ``armory_sim`` tasks when served on time; one camera, 2-D state).
         chunk_size: H, actions per chunk.
         state_dim: length of ``observation.state``.
         action_dim: length of each action (default: state_dim).
@@ -35,6 +37,7 @@ class DemoPolicyConfig:
     """
 
     output: str = "out/demo-policy"
+    kind: str = "act"
     chunk_size: int = 20
     state_dim: int = 2
     action_dim: int | None = None
@@ -53,7 +56,11 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
+    if cfg.kind not in ("act", "planner"):
+        raise ConfigError("kind", f"must be act or planner, got {cfg.kind!r}")
     cameras = [c.strip() for c in cfg.cameras.split(",") if c.strip()]
+    if cfg.kind == "planner":
+        return _make_planner(cfg, cameras)
     if not cameras:
         raise ConfigError("cameras", "ACT needs at least one camera")
     for field, value in (("chunk_size", cfg.chunk_size), ("state_dim", cfg.state_dim), ("image_size", cfg.image_size)):
@@ -110,10 +117,44 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     return out
 
 
+def _make_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_armory.policies.armory_planner.configuration_armory_planner import ArmoryPlannerConfig
+    from lerobot_armory.policies.armory_planner.modeling_armory_planner import ArmoryPlannerPolicy
+
+    if len(cameras) != 1 or cfg.state_dim != 2 or (cfg.action_dim or 2) != 2:
+        raise ConfigError("kind", "the planner works on armory_sim: one camera, state_dim=2, action_dim=2")
+    camera = f"observation.images.{cameras[0]}"
+    config = ArmoryPlannerConfig(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (2,)),
+            camera: PolicyFeature(FeatureType.VISUAL, (3, cfg.image_size, cfg.image_size)),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))},
+        chunk_size=cfg.chunk_size,
+        n_action_steps=cfg.chunk_size,
+        camera=camera,
+        device="cpu",
+    )
+    policy = ArmoryPlannerPolicy(config)
+    pre, post = make_pre_post_processors(config)
+    out = Path(cfg.output)
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    sidecar = {"action_names": ["x.pos", "y.pos"], "made_by": "lerobot-armory-make-demo-policy", "kind": "planner"}
+    (out / SIDECAR).write_text(json.dumps(sidecar, indent=2) + "\n")
+    return out
+
+
 def _run(cfg: DemoPolicyConfig) -> None:
     out = make_demo_policy(cfg)
     size_mb = sum(f.stat().st_size for f in out.iterdir()) / 1e6
-    print(f"demo ACT policy (random weights, {size_mb:.0f} MB) written to {out}; serve it with --policy.path={out}")
+    what = "analytic armory_planner policy" if cfg.kind == "planner" else "ACT policy (random weights)"
+    print(f"demo {what}, {size_mb:.1f} MB, written to {out}; serve it with --policy.path={out}")
 
 
 def main(argv: list[str] | None = None) -> None:

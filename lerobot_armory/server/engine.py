@@ -181,8 +181,15 @@ def _load(path: str, device: str):
     try:
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.utils.import_utils import register_third_party_plugins
     except ImportError as exc:  # pragma: no cover - lerobot is a hard dependency
         raise ConfigError("policy.path", f"cannot import lerobot: {exc}") from None
+    import lerobot_armory.policies  # noqa: F401  (registers armory_planner)
+
+    try:
+        register_third_party_plugins()  # lerobot_policy_* packages the user installed
+    except Exception as exc:  # a broken plugin must not stop the policies that do work
+        log.warning("third-party plugin registration failed: %s", exc)
     local = Path(path)
     if (local.exists() or path.startswith((".", "/"))) and not (local / "config.json").is_file():
         raise ConfigError("policy.path", f"{path}: not a LeRobot policy directory (no config.json)")

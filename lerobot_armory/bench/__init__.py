@@ -1,0 +1,1 @@
+"""Live benchmark: the real server and a fleet of simulated robots over the real protocol."""

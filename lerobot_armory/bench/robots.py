@@ -1,0 +1,75 @@
+"""A group of ``armory_sim`` robots in one process (``python -m lerobot_armory.bench.robots SPEC.json``).
+
+The live benchmark starts a few of these so that a 2-core machine is not drowned in processes;
+each robot runs the real :class:`~lerobot_armory.robot.client.ArmoryClient` loop in its own
+thread, with the emulated network of the spec, and writes its stats JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
+from lerobot_armory.robot.features import FeatureMap
+from lerobot_armory.robot.netem import NetworkEmulator
+from lerobot_armory.sim.network import LogNormalDelay
+
+
+def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:
+    robot = ArmorySim(ArmorySimConfig(scene=spec["scene"], image_size=group["image_size"], seed=spec["seed"]))
+    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+    net = LogNormalDelay(group["net_median_ms"] / 1000.0, group["net_sigma"])
+    network = (lambda: NetworkEmulator(net, net, seed=spec["seed"])) if group["net_median_ms"] > 0 else None
+    client = ArmoryClient(
+        group["address"],
+        RobotIdentity(spec["robot_id"], spec["fps"], spec["h_min"], spec["h_max"], spec["weight"], spec["tier"], spec["scene"]),
+        fmap.wire_features(),
+        observe=lambda: fmap.to_wire(robot.get_observation()),
+        act=lambda vector: robot.send_action(fmap.to_action(vector)),
+        backoff=Backoff(0.2, 1.0, give_up_s=30.0),
+        network=network,
+    )
+    robot.connect()
+    try:
+        stats = client.run(group["duration_s"])
+    finally:
+        client.close()
+        robot.disconnect()
+    stats.update(robot.task_stats())
+    minutes = stats["ticks"] / spec["fps"] / 60.0
+    stats["successes_per_min"] = stats["successes"] / minutes if minutes else 0.0
+    stats.update({k: spec[k] for k in ("scene", "fps", "h_min", "h_max", "weight")})
+    return stats
+
+
+def main(path: str) -> None:
+    group = json.loads(Path(path).read_text())
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    out = Path(group["stats_dir"])
+    errors: list[str] = []
+
+    def worker(spec: dict[str, Any]) -> None:
+        try:
+            stats = run_robot(spec, group)
+            (out / f"{spec['robot_id']}.json").write_text(json.dumps(stats, indent=2) + "\n")
+        except Exception as exc:  # reported by the bench, which then fails loudly
+            errors.append(f"{spec['robot_id']}: {type(exc).__name__}: {exc}")
+
+    threads = [threading.Thread(target=worker, args=(spec,)) for spec in group["robots"]]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        print("\n".join(errors), file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

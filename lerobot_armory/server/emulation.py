@@ -1,0 +1,59 @@
+"""Latency-profile emulation: replay a GPU's ``d_infer(b)`` on any machine.
+
+The wrapped engine runs the real policy, then holds the batch until the profiled time for that
+batch size has passed since the batch started. Chunks are real; only their timing is the
+profile's. Every output of such a run says "emulated latency" next to the profile name.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.server.loop import Engine
+
+
+@dataclass
+class EngineOptions:
+    """``--engine.*`` options.
+
+    Attributes:
+        emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
+            ``d_infer(b)`` per batch (the real model must be faster than that).
+    """
+
+    emulate_profile: str | None = None
+
+
+class EmulatedLatencyEngine:
+    """Runs ``engine`` and pads every batch to the profile's latency for its size."""
+
+    def __init__(self, engine: Engine, profile: LatencyProfile, sleep=time.sleep, clock=time.perf_counter) -> None:
+        self.engine = engine
+        self.profile = profile
+        self.sleep = sleep
+        self.clock = clock
+        self.batches = 0
+        self.overruns = 0  # batches where the real model was slower than the profile
+        self.worst_overrun_ms = 0.0
+
+    @property
+    def label(self) -> str:
+        return f"{self.profile.name} (emulated latency)"
+
+    def infer(self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str]) -> np.ndarray:
+        start = self.clock()
+        out = self.engine.infer(observations, tasks)
+        target = self.profile.latency_s(len(observations))
+        remaining = target - (self.clock() - start)
+        self.batches += 1
+        if remaining > 0:
+            self.sleep(remaining)
+        else:
+            self.overruns += 1
+            self.worst_overrun_ms = max(self.worst_overrun_ms, -remaining * 1000.0)
+        return out
