@@ -28,8 +28,13 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'; \
 	touch $(STAMP)
 
-# The main job on an embedded default: a small reference sweep in the simulator (no GPU, no robot).
+# The main job on an embedded default (no GPU, no robot, no download): the real server serving the
+# analytic demo policy with an emulated L40S pi0.5 latency profile to four simulated robots (two
+# fast on the dynamic task, two slow on the static task), 20 s under each of RR, EDF and LA, then a
+# small reference sweep in the simulator.
 demo: setup
+	$(VENV)/bin/lerobot-armory-bench --preset=libero --mix=half-fast --robots=4 \
+	    --schedulers=rr,edf,lookahead@3 --emulate_profile=l40s-pi05 --duration_s=20 --output=out/demo/live.json
 	$(VENV)/bin/lerobot-armory-sweep --profile=demo --out_dir=out/demo
 
 test: setup

@@ -305,7 +305,9 @@ def test_server_cli_fails_with_one_line_on_a_missing_policy(capsys, tmp_path):
         main([f"--policy.path={tmp_path / 'missing'}", "--port=0"])
     assert info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "policy.path" in err[0] and "Traceback" not in err[0]
+    errors = [line for line in err if "error" in line]
+    assert len(errors) == 1 and "policy.path" in errors[0] and errors[0] == err[-1]
+    assert not any("Traceback" in line for line in err)
 
 
 def test_lookahead_serves_live_too(engine):

@@ -51,6 +51,8 @@ class ClientConfig:
         stats_path: write the run's stats JSON here at exit.
         jpeg_quality: send camera images as JPEG of this quality (default: raw bytes).
         give_up_s: stop retrying an unreachable server after this long (0 = never).
+        tls_ca: PEM file of the CA that signed the server's certificate (enables TLS).
+        auth_token_file: file whose first line is this robot's token.
         log_level: debug, info, warning, error.
     """
 
@@ -67,6 +69,8 @@ class ClientConfig:
     stats_path: str | None = None
     jpeg_quality: int | None = None
     give_up_s: float = 0.0
+    tls_ca: str | None = None
+    auth_token_file: str | None = None
     log_level: str = "info"
     backoff: Backoff = field(default_factory=Backoff)
 
@@ -99,6 +103,26 @@ def register_robot_types() -> None:
     import lerobot_armory.robot.piper.config_piper  # noqa: F401
 
 
+def read_credentials(cfg: ClientConfig) -> tuple[bytes | None, str]:
+    """The CA certificate and the token the command line points at."""
+    tls_ca = None
+    if cfg.tls_ca:
+        try:
+            tls_ca = Path(cfg.tls_ca).read_bytes()
+        except OSError as exc:
+            raise ConfigError("tls_ca", f"cannot read {cfg.tls_ca}: {exc}") from None
+    token = ""
+    if cfg.auth_token_file:
+        try:
+            lines = [ln.split("#", 1)[0].strip() for ln in Path(cfg.auth_token_file).read_text().splitlines()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError("auth_token_file", f"cannot read {cfg.auth_token_file}: {exc}") from None
+        token = next((ln.split()[-1] for ln in lines if ln), "")
+        if not token:
+            raise ConfigError("auth_token_file", f"{cfg.auth_token_file} holds no token")
+    return tls_ca, token
+
+
 def default_robot_id(cfg: ClientConfig) -> str:
     return cfg.robot_id or getattr(cfg.robot, "id", None) or f"{cfg.robot.type}-{socket.gethostname()}-{os.getpid()}"
 
@@ -113,6 +137,7 @@ def run_client(cfg: ClientConfig) -> dict[str, Any]:
     fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
     identity = RobotIdentity(default_robot_id(cfg), cfg.fps, cfg.h_min, cfg.h_max, cfg.weight, cfg.tier, cfg.task)
     backoff = Backoff(cfg.backoff.initial_s, cfg.backoff.max_s, cfg.give_up_s)
+    tls_ca, token = read_credentials(cfg)
     client = ArmoryClient(
         cfg.server_address,
         identity,
@@ -121,6 +146,8 @@ def run_client(cfg: ClientConfig) -> dict[str, Any]:
         act=lambda vector: robot.send_action(fmap.to_action(vector)),
         jpeg_quality=cfg.jpeg_quality,
         backoff=backoff,
+        tls_ca=tls_ca,
+        token=token,
     )
     previous = signal.signal(signal.SIGTERM, lambda *_: client.stop())
     robot.connect()

@@ -77,6 +77,7 @@ class ArmoryClient:
         jpeg_quality: JPEG-encode uint8 images on the wire (None: raw bytes).
         backoff: reconnection policy.
         network: factory of an emulated network per connection (benchmarks).
+        tls_ca / token: TLS trust root and auth token (see docs/security.md).
     """
 
     def __init__(
@@ -91,6 +92,8 @@ class ArmoryClient:
         jpeg_quality: int | None = None,
         backoff: Backoff | None = None,
         network: Callable[[], NetworkEmulator] | None = None,
+        tls_ca: bytes | None = None,
+        token: str = "",
     ) -> None:
         self.address = address
         self.identity = identity
@@ -102,6 +105,8 @@ class ArmoryClient:
         self.jpeg_quality = jpeg_quality
         self.backoff = backoff or Backoff()
         self.network = network
+        self.tls_ca = tls_ca
+        self.token = token
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
         self._epoch = 0
@@ -147,7 +152,9 @@ class ArmoryClient:
                 delay = min(delay * 2, self.backoff.max_s)
 
     def _connect_once(self) -> None:
-        conn = Connection(self.address, self.clock, network=self.network() if self.network else None)
+        conn = Connection(
+            self.address, self.clock, network=self.network() if self.network else None, tls_ca=self.tls_ca, token=self.token
+        )
         if not conn.wait_ready(timeout=2.0):
             conn.close()
             raise ConnectionError(f"server {self.address} is unreachable")
@@ -285,6 +292,7 @@ class ArmoryClient:
         with self._lock:
             conn, self.connection = self.connection, None
             self._epoch += 1
+            self.buffer.clear()  # chunks never executed are accounted as unused
         if conn is not None:
             conn.close()
 

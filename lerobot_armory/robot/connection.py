@@ -22,6 +22,7 @@ from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
 SESSION_KEY = "armory-session"
+TOKEN_KEY = "armory-token"
 _CLOSE = object()
 
 
@@ -57,6 +58,8 @@ class Connection:
         clock: the robot's clock (seconds); never assumed synchronised with the server's.
         max_message_bytes: largest message sent or received.
         network: optional emulated network delays (benchmarks); None sends at once.
+        tls_ca: PEM of the CA that signed the server's certificate (TLS); None: plaintext.
+        token: auth token, sent at registration and on the stream.
     """
 
     def __init__(
@@ -65,14 +68,18 @@ class Connection:
         clock: Callable[[], float] = time.monotonic,
         max_message_bytes: int = 16 << 20,
         network: NetworkEmulator | None = None,
+        tls_ca: bytes | None = None,
+        token: str = "",
     ) -> None:
         self.address = address
         self.clock = clock
         self.network = network
-        self.channel = grpc.insecure_channel(
-            address,
-            options=[("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)],
-        )
+        self.token = token
+        options = [("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)]
+        if tls_ca is not None:
+            self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=tls_ca), options=options)
+        else:
+            self.channel = grpc.insecure_channel(address, options=options)
         self.stub = pb_grpc.ArmoryStub(self.channel)
         self.registration: Registration | None = None
         self._outgoing: queue.Queue = queue.Queue()
@@ -112,6 +119,7 @@ class Connection:
             tier=tier,
             features=[pb.TensorSpec(name=n, dtype=d, shape=list(s)) for n, (d, s) in features.items()],
             client_send_time=self.clock(),
+            auth_token=self.token,
         )
         response = self.stub.Register(request, timeout=timeout)
         sync = pb.ClockSync(
@@ -139,7 +147,10 @@ class Connection:
         """Open the stream; callbacks run on a receiver thread."""
         assert self.registration is not None, "register first"
         self._outgoing.put(pb.RobotMessage(clock_sync=self.registration.clock_sync))
-        self._call = self.stub.Stream(self._requests(), metadata=((SESSION_KEY, self.registration.session_id),))
+        metadata = [(SESSION_KEY, self.registration.session_id)]
+        if self.token:
+            metadata.append((TOKEN_KEY, self.token))
+        self._call = self.stub.Stream(self._requests(), metadata=tuple(metadata))
 
         def receive() -> None:
             error = None

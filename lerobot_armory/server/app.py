@@ -19,6 +19,7 @@ import statistics
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,6 +28,9 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, load_profile
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
+from lerobot_armory.server.logs import configure_logging
+from lerobot_armory.server.metrics import ServerMetrics
+from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
 from lerobot_armory.server.fleet import Fleet
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
@@ -53,7 +57,12 @@ class ServerConfig:
         max_message_mb: largest message accepted, MiB.
         status_interval_s: seconds between fleet status lines (0: none).
         log_level: debug, info, warning, error.
+        log_format: ``text`` or ``json`` (one JSON object per line, for log shippers).
         batch_log: append one JSON line per dispatched batch to this file (benchmarks).
+        metrics_port: serve Prometheus metrics on this port (same host as gRPC); unset: off.
+        tls_cert / tls_key: PEM files; with both, the gRPC port speaks TLS only.
+        auth_token_file: robots must present a token from this file (see server/security.py).
+        max_obs_rate_hz: observations per second a robot may send (0: unlimited).
     """
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
@@ -68,7 +77,13 @@ class ServerConfig:
     max_message_mb: float = 16.0
     status_interval_s: float = 1.0
     log_level: str = "info"
+    log_format: str = "text"
     batch_log: str | None = None
+    metrics_port: int | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    auth_token_file: str | None = None
+    max_obs_rate_hz: float = 200.0
 
     def validate(self) -> None:
         if self.max_batch_size < 1:
@@ -83,6 +98,12 @@ class ServerConfig:
             raise ConfigError("profile_reps", f"must be >= 1, got {self.profile_reps}")
         if self.log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
             raise ConfigError("log_level", f"must be debug, info, warning or error, got {self.log_level!r}")
+        if self.log_format not in ("text", "json"):
+            raise ConfigError("log_format", f"must be text or json, got {self.log_format!r}")
+        if self.metrics_port is not None and not 0 <= self.metrics_port <= 65535:
+            raise ConfigError("metrics_port", f"must be in 0..65535, got {self.metrics_port}")
+        if self.max_obs_rate_hz < 0:
+            raise ConfigError("max_obs_rate_hz", f"must be >= 0, got {self.max_obs_rate_hz}")
 
 
 class ArmoryServer:
@@ -104,6 +125,9 @@ class ArmoryServer:
         max_robots: int = 64,
         max_message_bytes: int = 16 << 20,
         clock=time.monotonic,
+        auth: AuthTokens | None = None,
+        tls: tuple[bytes, bytes] | None = None,
+        max_obs_rate_hz: float = 0.0,
     ) -> None:
         self.policy = policy
         self.profile = profile
@@ -111,8 +135,13 @@ class ArmoryServer:
         self.scheduler = scheduler.build(profile, max_batch_size)
         self.fleet = Fleet(clock, max_robots)
         self.batch_log: list[BatchRecord] = []
-        self.loop = ServingLoop(self.fleet, engine, self.scheduler, on_batch=self.batch_log.append)
-        self.service = ArmoryService(self.fleet, policy, max_message_bytes)
+        self.batch_listeners: list[Callable[[BatchRecord], None]] = [self._keep_recent]
+        self.loop = ServingLoop(self.fleet, engine, self.scheduler, on_batch=self._on_batch)
+        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz)
+        self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size)
+        self.batch_listeners.append(self.metrics.on_batch)
+        self._tls = tls
+        self._stop_metrics: Callable[[], None] | None = None
         self._host, self._port = host, port
         self._max_robots, self._max_message_bytes = max_robots, max_message_bytes
         self.grpc: RunningServer | None = None
@@ -128,20 +157,29 @@ class ArmoryServer:
     def address(self) -> str:
         return f"{self._host}:{self.port}"
 
+    def _on_batch(self, record: BatchRecord) -> None:
+        for listener in self.batch_listeners:
+            listener(record)
+
+    def _keep_recent(self, record: BatchRecord) -> None:
+        self.batch_log.append(record)
+        if len(self.batch_log) > 20000:  # bounded: a server runs for weeks
+            del self.batch_log[:10000]
+
     def log_batches_to(self, path: str) -> None:
         """Append every batch as one JSON line to ``path`` (robots, i_start, times)."""
         handle = open(path, "a", buffering=1)  # noqa: SIM115 - closed in stop()
         self._batch_file = handle
+        self.batch_listeners.append(lambda record: handle.write(json.dumps(dataclasses.asdict(record)) + "\n"))
 
-        def write(record: BatchRecord) -> None:
-            self.batch_log.append(record)
-            handle.write(json.dumps(dataclasses.asdict(record)) + "\n")
-
-        self.loop.on_batch = write
+    def serve_metrics(self, port: int) -> int:
+        """Start the Prometheus endpoint on the gRPC host; returns the bound port."""
+        self._stop_metrics = self.metrics.serve(port, self._host)
+        return port
 
     def start(self) -> ArmoryServer:
         self.loop.start()
-        self.grpc = start_grpc_server(self.service, self._host, self._port, self._max_robots, self._max_message_bytes)
+        self.grpc = start_grpc_server(self.service, self._host, self._port, self._max_robots, self._max_message_bytes, self._tls)
         return self
 
     def stop(self, grace_s: float = 2.0) -> None:
@@ -157,6 +195,8 @@ class ArmoryServer:
             self.grpc.server.stop(grace_s).wait()
         if self._batch_file is not None:
             self._batch_file.close()
+        if self._stop_metrics is not None:
+            self._stop_metrics()
 
     def status_line(self) -> str:
         """One line of fleet status (logged every second)."""
@@ -210,7 +250,7 @@ def serve(cfg: ServerConfig) -> None:
     """Build everything, print the summary, serve until a signal."""
     cfg.validate()
     tune_process()
-    logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging(cfg.log_level, cfg.log_format)
     log.info("loading policy %s ...", cfg.policy.path)
     engine = PolicyEngine(cfg.policy)
     serving_engine: Engine = engine
@@ -223,13 +263,17 @@ def serve(cfg: ServerConfig) -> None:
     else:
         profile = resolve_profile(cfg, engine)
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
+    tls = read_tls(cfg.tls_cert, cfg.tls_key)
     server = ArmoryServer(
         serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
-        int(cfg.max_message_mb * (1 << 20)),
+        int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
     )  # fmt: skip
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
     server.start()
+    if cfg.metrics_port is not None:
+        server.serve_metrics(cfg.metrics_port)
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
     print(
         f"lerobot-armory-server listening on {server.address}\n"
@@ -237,6 +281,9 @@ def serve(cfg: ServerConfig) -> None:
         f"  observation features robots must send:\n{features}\n"
         f"  actions: {len(engine.action_names)} dims ({', '.join(engine.action_names)}), chunk size H={engine.chunk_size}\n"
         f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
+        f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
+        f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
+        f"  metrics: {f'http://{cfg.host}:{cfg.metrics_port}/metrics' if cfg.metrics_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}",
         flush=True,
     )

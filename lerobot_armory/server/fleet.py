@@ -14,6 +14,7 @@ import threading
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -108,6 +109,9 @@ class RobotSession:
     reported_starved: int = 0
     reported_index: int | None = None
     index_error: int | None = None  # |mirror's predicted index - robot's reported index| at last report
+    last_chunk_time: float | None = None
+    rate: Any = None  # the session's observation RateLimiter, if limits are on
+    rate_notified: float = 0.0
     first_executed: collections.Counter = field(default_factory=collections.Counter)
 
     @property
@@ -233,6 +237,7 @@ class Fleet:
         if len(session.sent) > 64:
             session.sent.pop(next(iter(session.sent)))
         session.chunks_sent += 1
+        session.last_chunk_time = send_time
 
     def stop(self) -> None:
         with self.cond:

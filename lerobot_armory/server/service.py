@@ -25,11 +25,13 @@ from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
 from lerobot_armory.server.engine import check_features
 from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
+from lerobot_armory.server.security import AuthTokens, RateLimiter
 from lerobot_armory.wire import FeatureSpec, WireError, decode_all
 
 log = logging.getLogger(__name__)
 
 SESSION_KEY = "armory-session"
+TOKEN_KEY = "armory-token"
 SERVICE_NAME = "lerobot_armory.v1.Armory"
 MAX_ROBOT_ID = 128
 MAX_TASK = 4096
@@ -48,15 +50,26 @@ class PolicyInfo:
 class ArmoryService(pb_grpc.ArmoryServicer):
     """Implements ``Register`` and ``Stream`` over a :class:`Fleet`."""
 
-    def __init__(self, fleet: Fleet, policy: PolicyInfo, max_message_bytes: int) -> None:
+    def __init__(
+        self,
+        fleet: Fleet,
+        policy: PolicyInfo,
+        max_message_bytes: int,
+        auth: AuthTokens | None = None,
+        max_obs_rate_hz: float = 0.0,
+    ) -> None:
         self.fleet = fleet
         self.policy = policy
         self.max_message_bytes = max_message_bytes
+        self.auth = auth
+        self.max_obs_rate_hz = max_obs_rate_hz
 
     # ---- Register ----------------------------------------------------------------------------
 
     def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
         recv = self.fleet.clock()
+        if self.auth is not None and not self.auth.check(request.robot_id, request.auth_token):
+            context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token")
         problems = self._check_registration(request)
         if problems:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
@@ -66,6 +79,8 @@ class ArmoryService(pb_grpc.ArmoryServicer):
             session = self.fleet.register(spec, request.task, features)
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
+        if self.max_obs_rate_hz > 0:
+            session.rate = RateLimiter(self.max_obs_rate_hz)
         log.info(
             "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]) task=%r",
             spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, request.task,
@@ -119,7 +134,13 @@ class ArmoryService(pb_grpc.ArmoryServicer):
     # ---- Stream ------------------------------------------------------------------------------
 
     def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:  # noqa: N802
-        session_id = dict(context.invocation_metadata()).get(SESSION_KEY, "")
+        metadata = dict(context.invocation_metadata())
+        session_id = metadata.get(SESSION_KEY, "")
+        if self.auth is not None:
+            with self.fleet.cond:
+                known = self.fleet.sessions.get(session_id)
+            if known is None or not self.auth.check(known.robot_id, metadata.get(TOKEN_KEY, "")):
+                context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token")
         try:
             session = self.fleet.attach(session_id)
         except FleetError as exc:
@@ -166,6 +187,16 @@ class ArmoryService(pb_grpc.ArmoryServicer):
 
     def _observation(self, session: RobotSession, obs: pb.Observation) -> None:
         recv = self.fleet.clock()
+        if session.rate is not None and not session.rate.allow():
+            session.rejected += 1
+            if recv - session.rate_notified > 1.0:  # one notice a second, not one per message
+                session.rate_notified = recv
+                self._notice(
+                    session, pb.Notice.REJECTED_OBSERVATION,
+                    f"observation rate above the server's limit of {self.max_obs_rate_hz:g} Hz: observations dropped",
+                    obs.index,
+                )  # fmt: skip
+            return
         try:
             if not math.isfinite(obs.capture_time):
                 raise WireError("capture_time is not a finite number")
@@ -209,9 +240,14 @@ class RunningServer:
 
 
 def start_grpc_server(
-    service: ArmoryService, host: str, port: int, max_robots: int, max_message_bytes: int
+    service: ArmoryService,
+    host: str,
+    port: int,
+    max_robots: int,
+    max_message_bytes: int,
+    tls: tuple[bytes, bytes] | None = None,
 ) -> RunningServer:
-    """Bind and start the gRPC server (``port=0`` picks a free port)."""
+    """Bind and start the gRPC server (``port=0`` picks a free port; ``tls`` = (key, cert) PEM)."""
     # Each robot stream holds one worker thread for writing (its reader has its own thread).
     pool = futures.ThreadPoolExecutor(max_workers=max_robots + 8, thread_name_prefix="armory-grpc")
     server = grpc.server(
@@ -227,7 +263,10 @@ def start_grpc_server(
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-    bound = server.add_insecure_port(address)
+    if tls is not None:
+        bound = server.add_secure_port(address, grpc.ssl_server_credentials([tls]))
+    else:
+        bound = server.add_insecure_port(address)
     if bound == 0:
         raise ConfigError("port", f"cannot bind {address} (in use or not allowed)")
     server.start()

@@ -1,0 +1,135 @@
+"""Load: many light robots (a 4-float state, no camera) against one server.
+
+:func:`run_load` starts an in-process server with an echo engine and a *separate* process of
+robots (``python -m lerobot_armory.bench.load ADDRESS ROBOTS SECONDS FPS OUT.json``), so that the
+robots' Python threads do not share the server's interpreter: the server is measured, not the
+load generator. Each robot runs the real client loop. Used by the load test and
+``benchmarks/load.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
+from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
+from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.wire import FeatureSpec
+
+FEATURES = {"observation.state": ("float32", (4,))}
+
+
+class EchoEngine:
+    """Chunks whose actions all equal the robot's first state value (a robot can tell its own
+    chunk from another's); optionally slow."""
+
+    def __init__(self, delay_s: float = 0.0) -> None:
+        self.delay_s = delay_s
+
+    def infer(self, observations, tasks) -> np.ndarray:
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        first = np.array([o["observation.state"][0] for o in observations], np.float32)
+        return np.repeat(first[:, None, None], 10, axis=1).repeat(2, axis=2)
+
+
+def echo_server(engine: Any = None, cap: int = 4, scheduler: SchedulerConfig | None = None, **kwargs: Any) -> ArmoryServer:
+    """A started server on a free loopback port with the echo engine and state-only robots."""
+    info = PolicyInfo("echo", [FeatureSpec("observation.state", "float32", (4,))], ["a", "b"], 10)
+    profile = LatencyProfile("echo", tuple(5.0 + k for k in range(cap)))
+    return ArmoryServer(engine or EchoEngine(), info, profile, scheduler or LookaheadConfig(), cap, port=0, **kwargs).start()
+
+
+def rss_mb() -> float:
+    """This process's resident memory, MiB."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def run_load(robots: int, seconds: float, fps: float = 10.0) -> dict[str, Any]:
+    """``robots`` light robots against one Lookahead server (cap 8); returns the figures."""
+    server = echo_server(cap=8, max_robots=robots + 8)
+    out_path = os.path.join(tempfile.mkdtemp(), "load.json")
+    rss_start = rss_mb()
+    gen = subprocess.Popen(
+        [sys.executable, "-m", "lerobot_armory.bench.load", server.address, str(robots), str(seconds), str(fps), out_path],
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])},
+    )
+    samples = []
+    while gen.poll() is None:
+        samples.append(rss_mb())
+        time.sleep(0.5)
+    rss_end = rss_mb()
+    if gen.returncode != 0:
+        server.stop(0.5)
+        raise RuntimeError(f"load generator failed with exit code {gen.returncode}")
+    with open(out_path) as f:
+        data = json.load(f)
+    stats = server.loop.stats
+    wall = sorted(stats.decision_ms)
+    cpu = sorted(stats.decision_cpu_ms)
+    server.stop(0.5)
+
+    def p99(xs: list[float]) -> float:
+        return xs[int(0.99 * (len(xs) - 1))] if xs else 0.0
+
+    return {
+        "errors": data["errors"],
+        "stats": data["stats"],
+        "rss_start_mb": rss_start,
+        "rss_end_mb": rss_end,
+        "rss_peak_mb": max(samples, default=rss_end),
+        "decision_p99_ms": p99(wall),
+        "decision_cpu_p99_ms": p99(cpu),
+        "batches": stats.batches,
+        "batch_sizes": dict(stats.batch_sizes),
+    }
+
+
+def generate(address: str, robots: int, seconds: float, fps: float, out: str) -> None:
+    clients = []
+    for k in range(robots):
+        state = np.array([float(k), 0, 0, 0], np.float32)
+        clients.append(
+            ArmoryClient(
+                address, RobotIdentity(f"load{k:03d}", fps=fps, h_min=2, h_max=8), FEATURES,
+                observe=lambda s=state: {"observation.state": s}, act=lambda a: None, backoff=Backoff(0.2, 1.0, 20.0),
+            )  # fmt: skip
+        )
+    for c in clients:
+        c.connect()
+    errors: list[str] = []
+
+    def run(c: ArmoryClient) -> None:
+        try:
+            c.run(seconds)
+        except Exception as exc:  # reported in the output
+            errors.append(f"{c.identity.robot_id}: {exc}")
+
+    threads = [threading.Thread(target=run, args=(c,)) for c in clients]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for c in clients:
+        c.close()  # retires still-buffered chunks as unused, so every chunk is accounted for
+    with open(out, "w") as f:
+        json.dump({"errors": errors, "stats": [c.stats() for c in clients]}, f)
+
+
+if __name__ == "__main__":
+    generate(sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4]), sys.argv[5])

@@ -1,0 +1,97 @@
+"""Prometheus metrics of the server (``--metrics_port``).
+
+Per-robot values are read from the fleet when Prometheus scrapes (a custom collector), so the
+hot paths pay nothing for them; per-batch histograms are fed by the serving loop's batch
+listener. Names follow Prometheus conventions: ``armory_`` prefix, base units in the name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+from prometheus_client import CollectorRegistry, Histogram, start_http_server
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+
+from lerobot_armory.server.fleet import Fleet
+from lerobot_armory.server.loop import BatchRecord, LoopStats
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
+DECISION_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05)
+
+
+class FleetCollector(Collector):
+    """Per-robot and fleet-wide values, computed at scrape time under the fleet lock."""
+
+    def __init__(self, fleet: Fleet, stats: LoopStats) -> None:
+        self.fleet = fleet
+        self.stats = stats
+
+    def collect(self) -> Iterator:
+        labels = ["robot_id", "tier"]
+        starvation = GaugeMetricFamily("armory_robot_starvation_ratio", "Starved / all ticks, from the robot's execution reports", labels=labels)
+        executed = CounterMetricFamily("armory_robot_executed_steps", "Steps the robot executed (reported)", labels=labels)
+        starved = CounterMetricFamily("armory_robot_starved_steps", "Ticks the robot starved (reported)", labels=labels)
+        served = CounterMetricFamily("armory_robot_chunks_served", "Chunks sent to the robot", labels=labels)
+        rejected = CounterMetricFamily("armory_robot_observations_rejected", "Observations refused (malformed, rate)", labels=labels)
+        obs_age = GaugeMetricFamily("armory_robot_observation_age_seconds", "Age of the latest observation held for the robot", labels=labels)
+        chunk_age = GaugeMetricFamily("armory_robot_last_chunk_age_seconds", "Time since the robot's last chunk was sent", labels=labels)
+        uplink = GaugeMetricFamily("armory_robot_uplink_delay_seconds", "Estimated robot-to-server delay", labels=labels)
+        downlink = GaugeMetricFamily("armory_robot_downlink_delay_seconds", "Estimated server-to-robot delay", labels=labels)
+        weight = GaugeMetricFamily("armory_robot_weight", "Scheduling weight from the registration", labels=labels)
+        with self.fleet.cond:
+            now = self.fleet.clock()
+            sessions = self.fleet.active()
+            for s in sessions:
+                lv = [s.robot_id, s.spec.tier]
+                starvation.add_metric(lv, s.reported_starvation_pct / 100.0)
+                executed.add_metric(lv, s.reported_executed)
+                starved.add_metric(lv, s.reported_starved)
+                served.add_metric(lv, s.chunks_sent)
+                rejected.add_metric(lv, s.rejected)
+                obs_age.add_metric(lv, now - s.mirror.obs_recv if s.mirror.obs_index is not None else float("nan"))
+                chunk_age.add_metric(lv, now - s.last_chunk_time if s.last_chunk_time is not None else float("nan"))
+                uplink.add_metric(lv, s.mirror.estimator.one_way_s)
+                downlink.add_metric(lv, s.mirror.estimator.one_way_s)
+                weight.add_metric(lv, s.spec.weight)
+            connected = len(sessions)
+        yield from (starvation, executed, starved, served, rejected, obs_age, chunk_age, uplink, downlink, weight)
+        yield GaugeMetricFamily("armory_robots_connected", "Robots with an open stream", value=connected)
+        yield CounterMetricFamily("armory_device_busy_seconds", "Time the device spent on batches", value=self.stats.busy_s)
+        yield CounterMetricFamily(
+            "armory_device_idle_with_work_seconds", "Time the device sat idle while a useful request waited", value=self.stats.idle_with_work_s
+        )
+        yield CounterMetricFamily("armory_batches_failed", "Batches whose inference raised", value=self.stats.failed_batches)
+
+
+class ServerMetrics:
+    """The registry, its histograms, and the batch listener that feeds them."""
+
+    def __init__(self, fleet: Fleet, stats: LoopStats, max_batch_size: int) -> None:
+        self.registry = CollectorRegistry()
+        self.registry.register(FleetCollector(fleet, stats))
+        self.batch_size = Histogram(
+            "armory_batch_size", "Robots per dispatched batch", buckets=tuple(range(1, max_batch_size + 1)), registry=self.registry
+        )
+        self.inference = Histogram(
+            "armory_inference_seconds", "Batch inference time by batch size", ["batch_size"], buckets=LATENCY_BUCKETS, registry=self.registry
+        )
+        self.decision = Histogram(
+            "armory_scheduler_decision_seconds", "Time the scheduler took to pick a batch", buckets=DECISION_BUCKETS, registry=self.registry
+        )
+
+    def on_batch(self, record: BatchRecord) -> None:
+        size = len(record.robots)
+        self.batch_size.observe(size)
+        self.inference.labels(batch_size=str(size)).observe(record.t_end - record.t_start)
+        self.decision.observe(record.decision_ms / 1000.0)
+
+    def serve(self, port: int, host: str) -> Callable[[], None]:
+        """Start the HTTP endpoint; returns a function that stops it."""
+        server, thread = start_http_server(port, addr=host, registry=self.registry)
+
+        def stop() -> None:
+            server.shutdown()
+            thread.join(timeout=5)
+
+        return stop

@@ -1,0 +1,94 @@
+"""Authentication tokens, TLS material and per-robot rate limits.
+
+Tokens come from ``--auth_token_file``: one token per line is a fleet token any robot may use;
+``ROBOT_ID TOKEN`` binds a token to one robot id. Blank lines and ``#`` comments are ignored.
+Comparisons are constant-time; tokens are never logged.
+"""
+
+from __future__ import annotations
+
+import hmac
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot_armory.errors import ConfigError
+
+
+@dataclass
+class AuthTokens:
+    """Fleet-wide and per-robot tokens."""
+
+    fleet: list[str] = field(default_factory=list)
+    per_robot: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, path: str, field_name: str = "auth_token_file") -> AuthTokens:
+        try:
+            text = Path(path).read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(field_name, f"cannot read {path}: {exc}") from None
+        tokens = cls()
+        for n, raw in enumerate(text.splitlines(), start=1):
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            parts = line.split()
+            if len(parts) == 1:
+                tokens.fleet.append(parts[0])
+            elif len(parts) == 2:
+                tokens.per_robot[parts[0]] = parts[1]
+            else:
+                raise ConfigError(field_name, f"{path}:{n}: expected 'TOKEN' or 'ROBOT_ID TOKEN'")
+        if not tokens.fleet and not tokens.per_robot:
+            raise ConfigError(field_name, f"{path} holds no token")
+        for t in [*tokens.fleet, *tokens.per_robot.values()]:
+            if len(t) < 16:
+                raise ConfigError(field_name, f"{path}: tokens must be at least 16 characters")
+        return tokens
+
+    def check(self, robot_id: str, token: str) -> bool:
+        """True if ``token`` is valid for ``robot_id`` (constant-time comparisons)."""
+        ok = False
+        given = token.encode()
+        for t in self.fleet:
+            ok |= hmac.compare_digest(t.encode(), given)
+        bound = self.per_robot.get(robot_id)
+        if bound is not None:
+            ok |= hmac.compare_digest(bound.encode(), given)
+        return ok
+
+
+def read_tls(cert: str | None, key: str | None) -> tuple[bytes, bytes] | None:
+    """(key, certificate chain) PEM bytes for the server, or None without TLS."""
+    if not cert and not key:
+        return None
+    if not (cert and key):
+        raise ConfigError("tls_cert", "TLS needs both --tls_cert and --tls_key")
+    try:
+        return Path(key).read_bytes(), Path(cert).read_bytes()
+    except OSError as exc:
+        raise ConfigError("tls_cert", f"cannot read the TLS files: {exc}") from None
+
+
+class RateLimiter:
+    """Token bucket: ``rate_hz`` sustained, bursts up to ``burst`` messages."""
+
+    def __init__(self, rate_hz: float, burst: float | None = None, clock=time.monotonic) -> None:
+        self.rate = rate_hz
+        self.capacity = burst if burst is not None else max(10.0, rate_hz)
+        self.tokens = self.capacity
+        self.clock = clock
+        self.updated = clock()
+        self._lock = threading.Lock()
+
+    def allow(self) -> bool:
+        with self._lock:
+            now = self.clock()
+            self.tokens = min(self.capacity, self.tokens + (now - self.updated) * self.rate)
+            self.updated = now
+            if self.tokens >= 1.0:
+                self.tokens -= 1.0
+                return True
+            return False
