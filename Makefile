@@ -45,6 +45,9 @@ bench: setup
 	$(PY) benchmarks/decision_time.py
 	$(PY) benchmarks/engine_efficiency.py
 	$(PY) benchmarks/serving_overhead.py
+	$(PY) benchmarks/load.py 64 30
+	$(VENV)/bin/lerobot-armory-bench --preset=libero --mix=half-fast --robots=4 \
+	    --schedulers=rr,edf,lookahead@3 --emulate_profile=l40s-pi05 --duration_s=20
 
 # The full reference sweep of SPEC §5 (about 15 minutes on 2 cores).
 sweep: setup

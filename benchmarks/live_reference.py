@@ -53,7 +53,8 @@ def main() -> None:
     command = "python benchmarks/live_reference.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     (out / "live.json").write_text(json.dumps({"command": command, "runs": runs}, indent=1) + "\n")
     fields = ["preset", "mix", "robots", "label", "seed", "max_batch_size", "latency_profile", "duration_s", "cpu_busy_pct",
-              "fast_starvation_pct", "fast_sim_starvation_pct", "slow_starvation_pct", "slow_sim_starvation_pct",
+              "batch_overhead_ms", "fast_starvation_pct", "fast_sim_starvation_pct", "fast_sim_ideal_starvation_pct",
+              "slow_starvation_pct", "slow_sim_starvation_pct", "slow_sim_ideal_starvation_pct",
               "fast_successes_per_min", "slow_successes_per_min", "mean_batch_size"]  # fmt: skip
     with open(out / "live.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields)
@@ -67,6 +68,8 @@ def main() -> None:
                 row[f"{tier}_successes_per_min"] = "" if t is None else round(t["successes_per_min"], 2)
                 sim = r["sim"].get(tier)
                 row[f"{tier}_sim_starvation_pct"] = "" if sim is None else round(sim, 2)
+                ideal = r.get("sim_ideal", {}).get(tier)
+                row[f"{tier}_sim_ideal_starvation_pct"] = "" if ideal is None else round(ideal, 2)
             row["mean_batch_size"] = round(sum(k * v for k, v in sizes.items()) / max(1, sum(sizes.values())), 3)
             w.writerow(row)
     from lerobot_armory.bench.plots import plot_live

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline
 from lerobot_armory.schedulers.base import Scheduler, check_batch
 from lerobot_armory.sim.network import LogNormalDelay
@@ -110,6 +111,9 @@ class FleetSimulator:
         duration_s: simulated seconds.
         uplink / downlink: one-way delay models, drawn per request.
         seed: seeds the network draws, tick phases and clock offsets.
+        true_latency: how long batches really take, when that differs from the profile the
+            scheduler plans with (e.g. a live server's measured per-batch overhead added);
+            default: the scheduler's profile.
     """
 
     def __init__(
@@ -120,6 +124,7 @@ class FleetSimulator:
         uplink: LogNormalDelay,
         downlink: LogNormalDelay,
         seed: int = 0,
+        true_latency: LatencyProfile | None = None,
     ) -> None:
         if not specs:
             raise ConfigError("robots", "the fleet is empty")
@@ -133,6 +138,7 @@ class FleetSimulator:
         self.uplink = uplink
         self.downlink = downlink
         self.rng = np.random.default_rng(seed)
+        self.true_latency = true_latency
 
     def run(self) -> SimResult:
         """Run the whole duration and return the measurements."""
@@ -176,6 +182,8 @@ class FleetSimulator:
         decision_s: list[float] = []
         index_error: list[int] = []
         d_infer = self.scheduler.d_infer
+        if self.true_latency is not None:
+            d_infer = self.true_latency.table_s(self.scheduler.max_batch_size)
 
         def sync(t: float) -> None:
             """Deliver to the mirrors everything that reached the server by time t."""
