@@ -86,7 +86,7 @@ def main() -> None:
     bad = []
     for r in runs:
         if r["saturated"]:
-            bad.append(f"{r['mix']} N={r['robots']} {r['label']}: CPU saturated ({r['cpu_busy_pct']:.0f}%)")
+            bad.append(f"{r['mix']} N={r['robots']} {r['label']}: machine saturated ({r['machine_busy_pct']:.0f}% busy; other processes were running)")
         for tier, t in r["tiers"].items():
             gap = abs(t["starvation_pct"] - r["sim"][tier])
             if gap > FIDELITY_PP:
