@@ -4,7 +4,7 @@ Importing this package registers the built-in schedulers with :class:`SchedulerC
 scheduler is one module plus an import line here.
 """
 
-from lerobot_armory.schedulers import edf, lookahead, rr  # noqa: F401  (registration side effect)
+from lerobot_armory.schedulers import edf, lookahead, rollout, rr  # noqa: F401  (registration side effect)
 from lerobot_armory.schedulers.base import (
     Scheduler,
     SchedulerConfig,

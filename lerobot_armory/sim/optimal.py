@@ -3,7 +3,9 @@
 What is optimised. A deterministic :class:`Episode` fixes everything a schedule cannot change:
 the robots (SPEC §1 specs, weights included), the latency profile ``d_infer(b)``, a jitter-free
 network (every one-way delay is exactly ``net_s``, so the mirror is exact), each robot's tick
-phase (all 0 by default: a synchronous cold start with empty queues) and a horizon ``T``. A
+phase (all 0 by default: a synchronous cold start with empty queues), a horizon ``T`` and an
+optional warm-up (decisions before ``warmup_s`` are EDF's for everybody and only later ticks are
+scored, to start the scored window from a fleet in its running rhythm). A
 *schedule* is the sequence of batches dispatched at the instants the device becomes free, under
 the same rules every online scheduler obeys (SPEC §3): a batch is a non-empty set of at most
 ``b`` distinct *useful* robots, and the device is **work-conserving**, i.e. it dispatches
@@ -33,6 +35,12 @@ out first, every unexpanded node contributes its admissible bound, so the root v
 proven **upper bound**, and the best schedule found is a lower bound; :class:`OptimumResult`
 says which of the two happened.
 
+How long a horizon can be solved exactly depends on the load: an underloaded fleet's optimum
+meets the bound (nobody starves after the first chunks) and 5 s is solved in well under a
+second; an overloaded one (all-fast libero fleets from N = 3) is exponential in the horizon and
+only ~1-2.5 s finish in tens of seconds. ``lerobot_armory.sim.frontier`` therefore tries 5 s
+and falls back to the longest shorter horizon it can solve, and reports which.
+
 Every value the search reports can be checked: :func:`play` drives the real
 :class:`~lerobot_armory.mirror.RobotMirror` / :class:`~lerobot_armory.mirror.RobotTimeline`
 objects with any scheduler on the same episode, and :class:`ReplayScheduler` replays the
@@ -43,7 +51,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -51,6 +59,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline, advance, tick_of
 from lerobot_armory.schedulers.base import Scheduler, check_batch
+from lerobot_armory.schedulers.edf import EarliestDeadlineScheduler
 from lerobot_armory.sim.presets import fleet_specs, get_preset
 
 # Same tolerance as the mirror's tick mapping: an observation captured exactly ``net_s`` before
@@ -76,6 +85,10 @@ class Episode:
         horizon_s: the episode covers ticks strictly before this time.
         net_s: every one-way delay (uplink and downlink), seconds; no jitter.
         phases_s: time of each robot's tick 0 (default: all 0, a synchronous start).
+        warmup_s: decisions before this time are EDF's, for every schedule alike, and only ticks
+            from this time on are scored: the scored window ``[warmup_s, horizon_s)`` then starts
+            from a fleet already in its running rhythm instead of the cold start (0: score from
+            the cold start).
     """
 
     specs: tuple[RobotSpec, ...]
@@ -83,6 +96,7 @@ class Episode:
     horizon_s: float
     net_s: float
     phases_s: tuple[float, ...] = ()
+    warmup_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.specs:
@@ -93,6 +107,8 @@ class Episode:
             raise ConfigError("latency_profile", "d_infer must be positive for every batch size")
         if not (math.isfinite(self.horizon_s) and self.horizon_s > 0):
             raise ConfigError("horizon_s", f"must be > 0, got {self.horizon_s}")
+        if not (math.isfinite(self.warmup_s) and 0 <= self.warmup_s < self.horizon_s):
+            raise ConfigError("warmup_s", f"must be in [0, horizon_s), got {self.warmup_s}")
         if not (math.isfinite(self.net_s) and self.net_s >= 0):
             raise ConfigError("net_median_ms", f"must be >= 0, got {self.net_s * 1000}")
         if not self.phases_s:
@@ -112,6 +128,10 @@ class Episode:
         """Ticks of robot ``j`` that happen before the horizon."""
         return max(0, math.ceil((self.horizon_s - self.phases_s[j]) * self.specs[j].fps - _EPS))
 
+    def warm_tick(self, j: int) -> int:
+        """First tick of robot ``j`` that is scored (the first at or after ``warmup_s``)."""
+        return max(0, math.ceil((self.warmup_s - self.phases_s[j]) * self.specs[j].fps - _EPS))
+
     def obs_tick(self, j: int, t: float) -> int:
         """Tick whose observation is the latest one the server holds at ``t`` (-1: none yet)."""
         return math.floor((t - self.net_s - self.phases_s[j]) * self.specs[j].fps + _EPS)
@@ -129,8 +149,8 @@ class Episode:
         return min(self.obs_arrival(j, self.obs_tick(j, t) + 1) for j in range(len(self.specs)))
 
     def max_weighted_s(self) -> float:
-        """Weighted executed time if no robot ever starved (the trivial ceiling)."""
-        return sum(s.weight * self.n_ticks(j) / s.fps for j, s in enumerate(self.specs))
+        """Weighted executed time of the scored window if no robot ever starved."""
+        return sum(s.weight * (self.n_ticks(j) - self.warm_tick(j)) / s.fps for j, s in enumerate(self.specs))
 
 
 def episode_for(
@@ -142,11 +162,13 @@ def episode_for(
     latency_profile: str | LatencyProfile | None = None,
     max_batch_size: int | None = None,
     net_median_ms: float | None = None,
+    warmup_s: float = 0.0,
 ) -> Episode:
     """The deterministic episode of a preset fleet (SPEC §5 timing, σ = 0, synchronous start).
 
     The network delay is the preset's median without jitter; the batch cap and latency profile
-    default to the preset's.
+    default to the preset's. ``horizon_s`` is the scored length: the episode ends at
+    ``warmup_s + horizon_s``.
     """
     p = get_preset(preset)
     profile = latency_profile if isinstance(latency_profile, LatencyProfile) else load_profile(latency_profile or p.latency_profile)
@@ -155,7 +177,11 @@ def episode_for(
         raise ConfigError("max_batch_size", f"must be >= 1, got {cap}")
     median = p.net_median_ms if net_median_ms is None else net_median_ms
     return Episode(
-        tuple(fleet_specs(p, mix, robots, fast_weight)), tuple(profile.table_s(cap)), horizon_s, median / 1000.0
+        tuple(fleet_specs(p, mix, robots, fast_weight)),
+        tuple(profile.table_s(cap)),
+        warmup_s + horizon_s,
+        median / 1000.0,
+        warmup_s=warmup_s,
     )
 
 
@@ -168,9 +194,12 @@ class EpisodeResult:
     """What one schedule achieved on an episode.
 
     Attributes:
-        executed_steps / ticks: per robot, steps executed and ticks before the horizon.
-        weighted_executed_s: SPEC §2 reward summed over the episode.
-        batches: robot indices of every dispatched batch, in order.
+        executed_steps / ticks: per robot, steps executed and ticks in the scored window.
+        weighted_executed_s: SPEC §2 reward summed over the scored window.
+        batches: robot indices of every dispatched batch, in order (warm-up included).
+        warmup_decisions: how many of ``batches`` were the warm-up's (EDF's).
+        warmup_weighted_s: weighted executed time before the scored window (the same for every
+            schedule of the episode).
     """
 
     episode: Episode
@@ -178,6 +207,8 @@ class EpisodeResult:
     ticks: list[int]
     weighted_executed_s: float
     batches: list[tuple[int, ...]] = field(default_factory=list)
+    warmup_decisions: int = 0
+    warmup_weighted_s: float = 0.0
 
     def starvation_pct(self, j: int) -> float:
         """Starved ticks of robot ``j`` in % of its ticks."""
@@ -196,13 +227,14 @@ def play(episode: Episode, scheduler: Scheduler) -> EpisodeResult:
     chunk ``(î_j, h_max, t_done + d_action)``) without randomness: delays are exact, so the
     mirror's delay estimate is exact from the start (one registration exchange) and needs no
     execution reports. ``FleetSimulator`` with ``net_sigma = 0`` and the same phases gives the
-    same executed steps (checked in the tests).
+    same executed steps (checked in the tests). Decisions before ``episode.warmup_s`` are EDF's.
     """
     ep = episode
     n = len(ep.specs)
     m = ep.net_s
     if scheduler.max_batch_size != ep.max_batch_size:
         raise ConfigError("max_batch_size", f"scheduler cap {scheduler.max_batch_size} != episode cap {ep.max_batch_size}")
+    warm = _ColdEdf(ep)
     truth = [RobotTimeline(s.fps, ep.phases_s[j]) for j, s in enumerate(ep.specs)]
     mirrors = []
     for s in ep.specs:
@@ -210,21 +242,32 @@ def play(episode: Episode, scheduler: Scheduler) -> EpisodeResult:
         est.add_exchange(-1.0, -1.0 + m, -1.0 + m, -1.0 + 2 * m)  # offset 0, one-way exactly m
         mirrors.append(RobotMirror(s, est))
     position = {id(r): j for j, r in enumerate(mirrors)}
+    warm_ticks = [ep.warm_tick(j) for j in range(n)]
+    warm_index: list[int | None] = [None] * n
+
+    def run_truth(j: int, k: int) -> None:
+        # Ticks before the scored window only depend on warm-up decisions: note the index there.
+        if warm_index[j] is None and k >= warm_ticks[j]:
+            truth[j].run_to(warm_ticks[j])
+            warm_index[j] = truth[j].index
+        truth[j].run_to(k)
+
     fed = [-1] * n
     batches: list[tuple[int, ...]] = []
-    name = type(scheduler).__name__
+    warmup_decisions = 0
     t = 0.0
     while t < ep.horizon_s:
         for j, s in enumerate(ep.specs):
             k = ep.obs_tick(j, t)
             if k > fed[j]:
-                truth[j].run_to(k)
+                run_truth(j, k)
                 fed[j] = k
                 capture = ep.phases_s[j] + k / s.fps
                 mirrors[j].on_observation(truth[j].index, capture, ep.obs_arrival(j, k))
         if any(r.is_useful() for r in mirrors):
-            batch = scheduler.select(mirrors, t)
-            check_batch(batch, scheduler.max_batch_size, name)
+            policy = warm if t < ep.warmup_s else scheduler
+            batch = policy.select(mirrors, t)
+            check_batch(batch, policy.max_batch_size, type(policy).__name__)
             t_done = t + ep.d_infer_s[len(batch) - 1]
             chosen = []
             for r in batch:
@@ -233,15 +276,24 @@ def play(episode: Episode, scheduler: Scheduler) -> EpisodeResult:
                 truth[j].add_chunk(Chunk(chunk.chunk_id, chunk.i_start, chunk.h, t_done + m))
                 chosen.append(j)
             batches.append(tuple(chosen))
+            warmup_decisions += policy is warm
             t = t_done
         else:
             t = ep.next_observation(t)
     ticks = [ep.n_ticks(j) for j in range(n)]
     for j in range(n):
-        truth[j].run_to(ticks[j])
-    executed = [tl.index for tl in truth]
+        run_truth(j, ticks[j])
+    start = [w if w is not None else 0 for w in warm_index]
+    executed = [tl.index - start[j] for j, tl in enumerate(truth)]
     value = sum(s.weight * executed[j] / s.fps for j, s in enumerate(ep.specs))
-    return EpisodeResult(ep, executed, ticks, value, batches)
+    before = sum(s.weight * start[j] / s.fps for j, s in enumerate(ep.specs))
+    scored = [ticks[j] - warm_ticks[j] for j in range(n)]
+    return EpisodeResult(ep, executed, scored, value, batches, warmup_decisions, before)
+
+
+def _ColdEdf(ep: Episode) -> Scheduler:  # noqa: N802 - reads like the class it builds
+    """EDF with the episode's batch cap (the warm-up policy; also a cheap incumbent)."""
+    return EarliestDeadlineScheduler(LatencyProfile("episode", tuple(1000 * d for d in ep.d_infer_s)), ep.max_batch_size)
 
 
 class ReplayScheduler(Scheduler):
@@ -325,28 +377,44 @@ def _minus(s: int, e: int, covered: list[tuple[int, int]]) -> list[tuple[int, in
     return parts
 
 
-@lru_cache(maxsize=1 << 20)
+@lru_cache(maxsize=1 << 19)
 def _run(state: RobotState, ticks: int, hm: int) -> tuple[int, RobotState]:
     """Run ``ticks`` ticks of a robot in ``state`` (via advance()): (executed steps, new state)."""
     chunks, since = state
     if since == NO_OBS[1]:
         return 0, ((), FREE)  # first observation: index 0, never served
     done = advance(0, chunks, ticks)
-    moved = canonical([(s - done, e - done, a - ticks) for s, e, a in chunks])
+    moved = canonical([(s - done, e - done, a - ticks) for s, e, a in chunks]) if ticks or done else chunks
     if since != FREE:
         since = FREE if since + done >= hm else since + done
     return done, (moved, since)
 
 
-@lru_cache(maxsize=1 << 20)
+@lru_cache(maxsize=1 << 19)
 def _executed(chunks: tuple[tuple[int, int, int], ...], ticks: int) -> int:
     return advance(0, chunks, ticks) if ticks > 0 else 0
 
 
-@lru_cache(maxsize=1 << 20)
-def _serve(state: RobotState, h: int, arrival: int) -> RobotState:
-    chunks, _ = state
-    return canonical([*chunks, (0, h, arrival)]), 0
+@lru_cache(maxsize=1 << 19)
+def _served(moved: RobotState, done: int, h: int, arrival: int, hm: int) -> RobotState:
+    """State after a move of ``done`` steps for a robot that was served at the move's start.
+
+    The chunk starts at the index held before the move (relative: ``-done``) and arrives at
+    ``arrival`` (relative to the tick after the move); it cannot arrive during the move (the
+    move ends at the latest observation, before any chunk of this batch lands), so serving then
+    moving equals moving then adding the chunk.
+    """
+    chunks, _ = moved
+    return canonical([*chunks, (-done, h - done, arrival)]), (FREE if done >= hm else done)
+
+
+@lru_cache(maxsize=4096)
+def _count_vectors(sizes: tuple[int, ...], cap: int) -> tuple[tuple[int, ...], ...]:
+    """How many robots to take from each group: every vector with 1 <= sum <= cap."""
+    out: list[tuple[int, ...]] = [()]
+    for size in sizes:
+        out = [(*v, c) for v in out for c in range(min(size, cap - sum(v)) + 1)]
+    return tuple(v for v in out if sum(v) > 0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,14 +423,14 @@ def _serve(state: RobotState, h: int, arrival: int) -> RobotState:
 
 @dataclass
 class OptimumResult:
-    """Outcome of :func:`solve`.
+    """Outcome of :func:`solve` (values are weighted executed seconds of the scored window).
 
     Attributes:
         value: the optimum if ``exact``; otherwise the best value found (a lower bound).
         upper_bound: a proven upper bound on the optimum (== ``value`` when exact).
         exact: True when the search finished (the value is the work-conserving optimum).
-        plan: robot indices of every batch of a schedule achieving ``value`` (replayable with
-            :class:`ReplayScheduler`), or None when the best value came from the incumbent and
+        plan: robot indices of every batch after the warm-up of a schedule achieving ``value``
+            (replayable with :class:`ReplayScheduler`), or None when the best value came from the incumbent and
             no plan was handed in.
         nodes: decision nodes expanded.
         seconds: wall time of the search.
@@ -401,49 +469,49 @@ class _Search:
         self.deadline = time.perf_counter() + time_limit_s
         self.cut = False  # the budget ran out: some nodes were bounded, not searched
         self.best_found = -math.inf
+        self._timing: dict[int, tuple] = {}
 
     # ---- per-decision helpers ------------------------------------------------------------------
 
-    def ticks(self, t: float) -> list[int]:
-        return [self.ep.obs_tick(j, t) for j in range(self.n)]
+    def timing(self, t: float) -> tuple[list[int], list[int], bool]:
+        """At decision time ``t``: each robot's latest observed tick (capped at the horizon: later
+        ticks earn nothing), the first tick a batch of one dispatched at ``t`` could reach, and
+        whether ``t`` is terminal (no chunk dispatched from now on can land before the horizon,
+        so no choice matters any more)."""
+        key = round(t * 1e9)
+        hit = self._timing.get(key)
+        if hit is None:
+            ep = self.ep
+            ks = [min(ep.obs_tick(j, t), self.nt[j]) for j in range(self.n)]
+            t1 = t + ep.d_infer_s[0]
+            first = [min(ep.arrival_tick(j, t1), self.nt[j]) for j in range(self.n)]
+            terminal = t >= ep.horizon_s or all(first[j] >= self.nt[j] for j in range(self.n))
+            hit = (ks, first, terminal)
+            self._timing[key] = hit
+        return hit
 
-    def move(self, states: list[RobotState], ks: list[int], t2: float) -> tuple[list[RobotState], list[int], float]:
-        """Advance every robot to its latest observation at ``t2``: (states, ticks, reward gained)."""
-        out, ks2, gain = [], [], 0.0
+    def move(self, states: list[RobotState], ks: list[int], ks2: list[int]) -> tuple[list[RobotState], list[int], float]:
+        """Advance every robot from ticks ``ks`` to ``ks2``: (states, executed steps, reward)."""
+        out, dones, gain = [], [], 0.0
         for j, st in enumerate(states):
-            # Ticks at or after the horizon earn nothing (t2 may lie past it).
-            k2 = min(self.ep.obs_tick(j, t2), self.nt[j])
-            if k2 > ks[j] and k2 >= 0:
-                # A robot's first observation finds it at index 0 (no chunk yet): nothing ran.
-                done, st = _run(st, k2 - max(ks[j], 0), self.hm[j])
+            if ks2[j] > ks[j] and ks2[j] >= 0:
+                done, st = _run(st, ks2[j] - max(ks[j], 0), self.hm[j])
                 gain += self.wt[j] * done
-                ks2.append(k2)
             else:
-                ks2.append(ks[j])
+                done = 0
             out.append(st)
-        return out, ks2, gain
-
-    def terminal(self, t: float) -> bool:
-        """No chunk dispatched at ``t`` or later can arrive before the horizon: choices are moot."""
-        if t >= self.ep.horizon_s:
-            return True
-        t_done = t + self.ep.d_infer_s[0]
-        return all(self.ep.arrival_tick(j, t_done) >= self.nt[j] for j in range(self.n))
+            dones.append(done)
+        return out, dones, gain
 
     def final(self, states: list[RobotState], ks: list[int]) -> float:
         return sum(
             self.wt[j] * _executed(st[0], self.nt[j] - max(ks[j], 0)) for j, st in enumerate(states) if st != NO_OBS
         )
 
-    def bound(self, states: list[RobotState], ks: list[int], t: float) -> float:
-        """Admissible: current queue until the first possible new arrival, every tick after it."""
-        t_done = t + self.ep.d_infer_s[0]
-        total = 0.0
-        for j, st in enumerate(states):
-            k = max(ks[j], 0)
-            first = min(self.ep.arrival_tick(j, t_done), self.nt[j])
-            total += self.wt[j] * (_executed(st[0], first - k) + self.nt[j] - first)
-        return total
+    def robot_bound(self, j: int, st: RobotState, k: int, first: int) -> float:
+        """Admissible for one robot: its queue until ``first`` (the earliest tick a new chunk could
+        land), then every tick until the horizon."""
+        return self.wt[j] * (_executed(st[0], first - max(k, 0)) + self.nt[j] - first)
 
     def key(self, t: float, states: list[RobotState]) -> tuple:
         return (round(t * 1e9), tuple(sorted(zip(self.cls, states, strict=True))))
@@ -451,30 +519,43 @@ class _Search:
     def useful(self, states: list[RobotState]) -> list[int]:
         return [j for j, st in enumerate(states) if st[1] == FREE]
 
-    def batches(self, states: list[RobotState], useful: list[int]) -> Iterator[tuple[int, ...]]:
+    def batches(self, states: list[RobotState], useful: list[int]) -> list[tuple[int, ...]]:
         """Every batch up to symmetry: counts per class of interchangeable useful robots."""
         groups: dict[tuple, list[int]] = {}
         for j in useful:
             groups.setdefault((self.cls[j], states[j]), []).append(j)
         members = list(groups.values())
-        cap = self.ep.max_batch_size
+        out = []
+        for counts in _count_vectors(tuple(len(m) for m in members), self.ep.max_batch_size):
+            batch: list[int] = []
+            for m, c in zip(members, counts, strict=True):
+                batch += m[:c]
+            out.append(tuple(sorted(batch)))
+        return out
 
-        def rec(g: int, left: int, chosen: list[int]) -> Iterator[tuple[int, ...]]:
-            if g == len(members):
-                if chosen:
-                    yield tuple(sorted(chosen))
-                return
-            for c in range(min(left, len(members[g])) + 1):
-                yield from rec(g + 1, left - c, chosen + members[g][:c])
+    def after(self, states: list[RobotState], ks: list[int], t: float, size: int):
+        """What every child of batch size ``size`` shares: the next decision time, every robot
+        moved there unserved, the reward on the way, the new ticks, and each robot's bound."""
+        t2 = t + self.ep.d_infer_s[size - 1]
+        ks2, first2, terminal2 = self.timing(t2)
+        moved, dones, gain = self.move(states, ks, ks2)
+        arrivals = [self.ep.arrival_tick(j, t2) - max(ks2[j], 0) for j in range(self.n)]
+        bounds = None
+        if not terminal2:
+            bounds = [self.robot_bound(j, moved[j], ks2[j], first2[j]) for j in range(self.n)]
+            bounds.append(sum(bounds))  # bounds[-1]: the fleet's bound if nobody were served
+        return t2, ks2, first2, terminal2, moved, dones, gain, arrivals, bounds
 
-        yield from rec(0, cap, [])
+    def served_state(self, j: int, moved: list[RobotState], dones: list[int], arrivals: list[int]) -> RobotState:
+        return _served(moved[j], dones[j], self.h[j], arrivals[j], self.hm[j])
 
     def child(self, states: list[RobotState], ks: list[int], t: float, batch: tuple[int, ...]):
-        t_done = t + self.ep.d_infer_s[len(batch) - 1]
-        served = list(states)
+        """(next time, next states, next ticks, reward on the way) after dispatching ``batch``."""
+        t2, ks2, _, _, moved, dones, gain, arrivals, _ = self.after(states, ks, t, len(batch))
+        nxt = list(moved)
         for j in batch:
-            served[j] = _serve(states[j], self.h[j], self.ep.arrival_tick(j, t_done) - max(ks[j], 0))
-        return (t_done, *self.move(served, ks, t_done))
+            nxt[j] = self.served_state(j, moved, dones, arrivals)
+        return t2, nxt, ks2, gain
 
     # ---- the recursion ---------------------------------------------------------------------
 
@@ -485,41 +566,74 @@ class _Search:
         already collected on the path (only to track the best complete schedule found).
         """
         ep = self.ep
+        gained = 0.0
         while True:  # idle jumps: nobody useful, wait for the next observation
-            if self.terminal(t):
+            _, first, terminal = self.timing(t)
+            if terminal:
                 v = self.final(states, ks)
-                self.best_found = max(self.best_found, acc + v)
-                return v, True
+                self.best_found = max(self.best_found, acc + gained + v)
+                return gained + v, True
             useful = self.useful(states)
             if useful:
                 break
             t2 = ep.next_observation(t)
-            states, ks, g = self.move(states, ks, t2)
-            acc += g
-            alpha -= g
-            v, exact = self.value(t2, states, ks, alpha, acc)
-            return g + v, exact
+            ks2 = self.timing(t2)[0]
+            states, _, g = self.move(states, ks, ks2)
+            ks = ks2
+            t = t2
+            gained += g
+        alpha -= gained
+        acc += gained
+        v, exact = self.decide(t, states, ks, alpha, acc, first)
+        return gained + v, exact
+
+    def decide(
+        self, t: float, states: list[RobotState], ks: list[int], alpha: float, acc: float, first: list[int]
+    ) -> tuple[float, bool]:
         key = self.key(t, states)
         hit = self.memo.get(key)
         if hit is not None and (hit[1] or hit[0] <= alpha):
             if hit[1]:
                 self.best_found = max(self.best_found, acc + hit[0])
             return hit[0], hit[1]
-        if self.cut or self.nodes >= self.node_limit or (self.nodes & 1023 == 0 and time.perf_counter() > self.deadline):
+        if self.cut or self.nodes >= self.node_limit or (self.nodes & 255 == 0 and time.perf_counter() > self.deadline):
             self.cut = True
-            return self.bound(states, ks, t), False
+            return sum(self.robot_bound(j, st, ks[j], first[j]) for j, st in enumerate(states)), False
         self.nodes += 1
+        useful = self.useful(states)
+        shared = {}
+        delta: dict[tuple[int, int], float] = {}  # (size, robot): bound change when served
         kids = []
         for batch in self.batches(states, useful):
-            t2, st2, ks2, g = self.child(states, ks, t, batch)
-            kids.append((g + self.bound(st2, ks2, t2) if not self.terminal(t2) else g + self.final(st2, ks2), g, batch, t2, st2, ks2))
+            size = len(batch)
+            if size not in shared:
+                shared[size] = self.after(states, ks, t, size)
+            t2, ks2, first2, terminal2, moved, dones, gain, arrivals, bounds = shared[size]
+            if terminal2:
+                nxt = list(moved)
+                for j in batch:
+                    nxt[j] = self.served_state(j, moved, dones, arrivals)
+                ub = gain + self.final(nxt, ks2)
+            else:
+                ub = gain + bounds[-1]
+                for j in batch:
+                    d = delta.get((size, j))
+                    if d is None:
+                        served = self.served_state(j, moved, dones, arrivals)
+                        d = delta[(size, j)] = self.robot_bound(j, served, ks2[j], first2[j]) - bounds[j]
+                    ub += d
+            kids.append((ub, size, batch))
         kids.sort(key=lambda c: -c[0])
         best_exact, best_batch, top = -math.inf, None, -math.inf
-        for ub, g, batch, t2, st2, ks2 in kids:
+        for ub, size, batch in kids:
             floor = max(alpha, best_exact)
             if ub <= floor:
                 top = max(top, ub)  # cannot matter: its bound is all we claim about it
                 continue
+            t2, ks2, _, _, moved, dones, g, arrivals, _ = shared[size]
+            st2 = list(moved)
+            for j in batch:
+                st2[j] = self.served_state(j, moved, dones, arrivals)
             v, exact = self.value(t2, st2, ks2, floor - g, acc + g)
             total = g + v
             top = max(top, total)
@@ -531,20 +645,35 @@ class _Search:
         self.memo[key] = (value, exact, action)
         return value, exact
 
-    def plan(self) -> list[tuple[int, ...]]:
-        """Follow the memo's best batches from the start (only valid after an exact solve)."""
-        ep = self.ep
+    def start(self, warmup: Sequence[tuple[int, ...]]) -> tuple[float, list[RobotState], list[int], float]:
+        """Replay the warm-up's batches from the cold start (t = 0, no observation yet): the time,
+        states and ticks of the first decision that is the schedule's own, and the reward so far."""
+        n = self.n
         t = 0.0
-        states = [NO_OBS] * self.n
-        ks = [-1] * self.n
-        states, ks, _ = self.move(states, ks, t)
+        ks = self.timing(t)[0]
+        states, _, acc = self.move([NO_OBS] * n, [-1] * n, ks)
+        for batch in warmup:
+            while not self.useful(states):  # the device idles until an observation lands
+                t2 = self.ep.next_observation(t)
+                ks2 = self.timing(t2)[0]
+                states, _, g = self.move(states, ks, ks2)
+                t, ks, acc = t2, ks2, acc + g
+            t, states, ks, g = self.child(states, ks, t, batch)
+            acc += g
+        return t, states, ks, acc
+
+    def plan(self, warmup: Sequence[tuple[int, ...]]) -> list[tuple[int, ...]]:
+        """Follow the memo's best batches from the end of the warm-up (only after an exact solve)."""
+        ep = self.ep
+        t, states, ks, _ = self.start(warmup)
         out: list[tuple[int, ...]] = []
-        while not self.terminal(t):
+        while not self.timing(t)[2]:
             useful = self.useful(states)
             if not useful:
                 t2 = ep.next_observation(t)
-                states, ks, _ = self.move(states, ks, t2)
-                t = t2
+                ks2 = self.timing(t2)[0]
+                states, _, _ = self.move(states, ks, ks2)
+                t, ks = t2, ks2
                 continue
             entry = self.memo.get(self.key(t, states))
             if entry is None or entry[2] is None:
@@ -555,10 +684,8 @@ class _Search:
                 if (self.cls[j], states[j]) in wanted:
                     wanted.remove((self.cls[j], states[j]))
                     batch.append(j)
-            batch_t = tuple(batch)
-            out.append(batch_t)
-            t, states, ks, _ = self.child(states, ks, t, batch_t)
-        # Decisions after the last one that matters still happen in a real run; any batch does.
+            out.append(tuple(batch))
+            t, states, ks, _ = self.child(states, ks, t, tuple(batch))
         return out
 
 
@@ -574,18 +701,25 @@ def solve(
     Args:
         incumbent: a value some schedule is known to reach on this episode (e.g. the best online
             scheduler's); it prunes the search and is the lower bound if the budget runs out.
-        incumbent_plan: that schedule's batches, returned as the plan when nothing beats it.
+        incumbent_plan: that schedule's batches after the warm-up, returned as the plan when
+            nothing beats it.
         node_limit / time_limit_s: search budget; when it runs out the result carries a proven
             upper bound instead of the exact optimum.
     """
     start = time.perf_counter()
     search = _Search(episode, node_limit, time_limit_s)
-    states, ks, _ = search.move([NO_OBS] * search.n, [-1] * search.n, 0.0)
-    # Work conservation from t = 0: nobody holds an observation before the first one arrives.
-    value, exact = search.value(0.0, states, ks, incumbent - 1e-9, 0.0)
-    found = max(search.best_found, incumbent)
+    # The warm-up is EDF's and the same for every schedule: replay it, then search. The search
+    # counts reward from t = 0; ``before`` (the reward of the ticks before the scored window)
+    # converts between the two.
+    warm = play(episode, _ColdEdf(episode))
+    warmup = warm.batches[: warm.warmup_decisions]
+    before = warm.warmup_weighted_s
+    t, states, ks, acc = search.start(warmup)
+    value, exact = search.value(t, states, ks, incumbent + before - acc - 1e-9, acc)
+    value += acc - before
+    found = max(search.best_found - before, incumbent)
     if exact:
-        best, upper, plan = value, value, search.plan()
+        best, upper, plan = value, value, search.plan(warmup)
     elif value <= incumbent + 1e-9:
         # Every schedule is bounded by the incumbent's value: the incumbent is optimal.
         best, upper, exact = incumbent, incumbent, True
