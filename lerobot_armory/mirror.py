@@ -436,12 +436,7 @@ class RobotMirror:
         Not useful when there is no observation, when it is the one served last, or when the
         robot executed fewer than ``h_min`` steps since the last served observation.
         """
-        if self.obs_index is None:
-            return False
-        if self.last_served_index is None:
-            return True
-        steps = self.obs_index - self.last_served_index
-        return steps > 0 and steps >= self.spec.h_min
+        return request_is_useful(self.obs_index, self.last_served_index, self.spec.h_min)
 
     def timeline(self) -> RobotTimeline:
         """A fresh timeline starting at the latest observation (index î_j, at its tick)."""
@@ -471,6 +466,17 @@ class RobotMirror:
         tl.run_to(start)
         end = tl.ticks_before(now + window_s)
         return WindowView(self, now, tl.index, tl.tick_time(start), tl.tick_chunks(start), end - start)
+
+
+def request_is_useful(obs_index: int | None, last_served_index: int | None, h_min: int) -> bool:
+    """SPEC §3's usefulness rule, in one place: an observation exists, it is not the one served
+    last, and at least ``h_min`` steps were executed since the last served observation."""
+    if obs_index is None:
+        return False
+    if last_served_index is None:
+        return True
+    steps = obs_index - last_served_index
+    return steps > 0 and steps >= h_min
 
 
 def reward(specs: Sequence[RobotSpec], executed_steps: Sequence[int]) -> float:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance
+from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance, request_is_useful
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
 
 SCORES = ("marginal", "total")
@@ -70,13 +70,8 @@ class _Robot:
         return max(mirror.obs_index, advance(self.view.index, chunks, tick))
 
     def useful_at(self, obs_index: int | None, last_served: int | None) -> bool:
-        """SPEC §3 usefulness for a predicted observation (same rule as RobotMirror.is_useful)."""
-        if obs_index is None:
-            return False
-        if last_served is None:
-            return True
-        steps = obs_index - last_served
-        return steps > 0 and steps >= self.h_min
+        """SPEC §3 usefulness for a predicted observation (the mirror's rule)."""
+        return request_is_useful(obs_index, last_served, self.h_min)
 
 
 class LookaheadScheduler(Scheduler):
