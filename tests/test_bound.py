@@ -1,0 +1,57 @@
+"""The Lagrangian device-pricing upper bound (lerobot_armory.sim.bound)."""
+
+from __future__ import annotations
+
+import pytest
+
+from lerobot_armory.latency import load_profile
+from lerobot_armory.schedulers import make_scheduler_config
+from lerobot_armory.sim.bound import device_time, lagrangian_bound, robot_value
+from lerobot_armory.sim.optimal import episode_for, play, solve
+
+PROFILE = load_profile("l40s-pi05")
+
+
+def test_one_robot_bound_by_hand():
+    # A lone libero robot (see test_frontier's hand case): its first chunk can land at 80.5 ms
+    # at best, so ticks 0 and 1 starve whatever the price; at price 0 chunks are free and it never
+    # starves again: 18 of 20 ticks -> 0.9 robot-s, which is also the exact optimum.
+    ep = episode_for("libero", "one-fast", 1, 1.0)
+    assert robot_value(ep, 0, 0.0) == pytest.approx(0.9)
+    b = lagrangian_bound(ep)
+    assert b.upper_bound == pytest.approx(0.9, abs=1e-6)
+    # Any positive price only lowers V_j: the dual minimum is at (or next to) 0 here.
+    assert robot_value(ep, 0, 1.0) < 0.9
+
+
+@pytest.mark.parametrize(
+    "preset,mix,robots,horizon",
+    [("libero", "one-fast", 3, 2.0), ("libero", "all-fast", 3, 1.0), ("piper", "half-fast", 4, 1.0)],
+)
+def test_bound_is_above_the_exact_optimum(preset, mix, robots, horizon):
+    ep = episode_for(preset, mix, robots, horizon)
+    exact = solve(ep, time_limit_s=60)
+    assert exact.exact
+    assert lagrangian_bound(ep).upper_bound >= exact.value - 1e-9
+
+
+def test_bound_is_above_every_scheduler_and_below_the_ceiling_when_overloaded():
+    # Six fast libero robots overload the device: the bound must say so (well below every tick
+    # executed) while staying above what every scheduler achieves.
+    ep = episode_for("libero", "all-fast", 6, 3.0)
+    b = lagrangian_bound(ep)
+    assert b.upper_bound < 0.85 * ep.max_weighted_s()
+    assert b.price > 0
+    for name in ("rr", "edf", "lookahead", "rollout"):
+        value = play(ep, make_scheduler_config(name).build(PROFILE, ep.max_batch_size)).weighted_executed_s
+        assert value <= b.upper_bound + 1e-9
+    # Tighter than the branch-and-bound's own bound after a short search.
+    cut = solve(ep, node_limit=2000)
+    assert not cut.exact and b.upper_bound < cut.upper_bound
+
+
+def test_device_time_and_warmup_guard():
+    ep = episode_for("libero", "one-fast", 2, 1.0)
+    assert device_time(ep) == pytest.approx(1.0 - 2 * 0.00375)
+    with pytest.raises(ValueError, match="warmup"):
+        lagrangian_bound(episode_for("libero", "one-fast", 2, 1.0, warmup_s=0.5))
