@@ -39,7 +39,9 @@ How long a horizon can be solved exactly depends on the load: an underloaded fle
 meets the bound (nobody starves after the first chunks) and 5 s is solved in well under a
 second; an overloaded one (all-fast libero fleets from N = 3) is exponential in the horizon and
 only ~1-2.5 s finish in tens of seconds. ``lerobot_armory.sim.frontier`` therefore tries 5 s
-and falls back to the longest shorter horizon it can solve, and reports which.
+and falls back to the longest shorter horizon it can solve, and reports which; at 5 s it brackets
+the optimum with :mod:`lerobot_armory.sim.bound`'s Lagrangian upper bound, which holds for any
+schedule and is much tighter than this search's own bound when the fleet is overloaded.
 
 Every value the search reports can be checked: :func:`play` drives the real
 :class:`~lerobot_armory.mirror.RobotMirror` / :class:`~lerobot_armory.mirror.RobotTimeline`
