@@ -139,35 +139,27 @@ def lagrangian_bound(ep: Episode, tolerance: float = 2e-3, max_evaluations: int 
     classes: dict[tuple, list[int]] = {}
     for j, s in enumerate(ep.specs):
         classes.setdefault((s.fps, s.h_max, s.weight, ep.phases_s[j]), []).append(j)
-    evaluations = 0
+    tried: dict[float, float] = {}  # price -> dual value; every one is a valid bound
 
     def dual(price: float) -> float:
-        nonlocal evaluations
-        evaluations += 1
-        return price * tau + sum(len(m) * robot_value(ep, m[0], price) for m in classes.values())
+        tried[price] = price * tau + sum(len(m) * robot_value(ep, m[0], price) for m in classes.values())
+        return tried[price]
 
     # Above this price no chunk pays for itself (it adds at most h_max steps).
     min_share = min(d / b for b, d in enumerate(ep.d_infer_s, start=1))
-    hi = max(s.weight / s.fps * s.h_max for s in ep.specs) / min_share
-    lo = 0.0
-    best_price, best = 0.0, dual(0.0)
+    lo, hi = 0.0, max(s.weight / s.fps * s.h_max for s in ep.specs) / min_share
+    dual(lo)
     g = (math.sqrt(5) - 1) / 2
     a, b = lo + (1 - g) * (hi - lo), lo + g * (hi - lo)
     fa, fb = dual(a), dual(b)
-    for price, f in ((a, fa), (b, fb)):
-        if f < best:
-            best_price, best = price, f
-    while hi - lo > tolerance * max(1.0, hi) and evaluations < max_evaluations:
+    while hi - lo > tolerance * max(1.0, hi) and len(tried) < max_evaluations:
         if fa <= fb:
             hi, b, fb = b, a, fa
             a = lo + (1 - g) * (hi - lo)
             fa = dual(a)
-            if fa < best:
-                best_price, best = a, fa
         else:
             lo, a, fa = a, b, fb
             b = lo + g * (hi - lo)
             fb = dual(b)
-            if fb < best:
-                best_price, best = b, fb
-    return BoundResult(best, best_price, evaluations, time.perf_counter() - start)
+    best_price = min(tried, key=tried.__getitem__)
+    return BoundResult(tried[best_price], best_price, len(tried), time.perf_counter() - start)
