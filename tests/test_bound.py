@@ -55,3 +55,69 @@ def test_device_time_and_warmup_guard():
     assert device_time(ep) == pytest.approx(1.0 - 2 * 0.00375)
     with pytest.raises(ValueError, match="warmup"):
         lagrangian_bound(episode_for("libero", "one-fast", 2, 1.0, warmup_s=0.5))
+
+
+# ---- per-slot device prices (the time-priced bound) ---------------------------------------------
+
+
+def test_cheapest_window_matches_a_fine_scan():
+    # The window integral is piecewise linear in its start: the breakpoints must find the same
+    # minimum as a dense scan (and never a smaller one).
+    import numpy as np
+
+    from lerobot_armory.sim.bound import DevicePrices
+
+    rng = np.random.default_rng(0)
+    prices = DevicePrices(rng.uniform(0, 3, size=200), 0.005)
+    for _ in range(50):
+        lo = float(rng.uniform(0, 0.8))
+        hi = lo + float(rng.uniform(0, 0.05))
+        d = float(rng.uniform(0.05, 0.2))
+        cost, s = prices.cheapest(lo, hi, d)
+        assert lo - 1e-12 <= s <= hi + 1e-12
+        assert cost == pytest.approx(prices.integral(s + d) - prices.integral(s))
+        scan = min(prices.integral(x + d) - prices.integral(x) for x in np.linspace(lo, hi, 400))
+        assert cost <= scan + 1e-9
+
+
+def test_plan_load_adds_up_to_the_chunks_device_shares():
+    from lerobot_armory.sim.bound import DevicePrices, robot_plan
+
+    ep = episode_for("libero", "all-fast", 4, 2.0)
+    prices = DevicePrices.flat(1.0, ep)
+    value, plan = robot_plan(ep, 0, prices)
+    assert value == pytest.approx(robot_value(ep, 0, 1.0))
+    assert plan, "at price 1 a chunk still pays for itself"
+    fine = DevicePrices([0.0] * 400, 0.005)
+    assert float(fine.load(plan, 3).sum()) * 0.005 == pytest.approx(3 * sum(d / b for _, d, b in plan))
+    # The plan's chunks run one after the other (the robot waits for its previous batch).
+    for (s1, d1, _), (s2, _, _) in zip(plan, plan[1:]):
+        assert s2 >= s1 + d1 - 0.005 - 1e-9
+
+
+@pytest.mark.parametrize(
+    "preset,mix,robots,horizon",
+    [("libero", "all-fast", 3, 1.0), ("libero", "all-fast", 4, 1.5), ("piper", "half-fast", 4, 1.0)],
+)
+def test_time_priced_bound_is_between_the_optimum_and_the_flat_bound(preset, mix, robots, horizon):
+    from lerobot_armory.sim.bound import time_priced_bound
+
+    ep = episode_for(preset, mix, robots, horizon)
+    exact = solve(ep, time_limit_s=60)
+    assert exact.exact
+    flat = lagrangian_bound(ep)
+    tp = time_priced_bound(ep, exact.value, flat, iterations=15)
+    assert exact.value - 1e-9 <= tp.upper_bound <= flat.upper_bound + 1e-12
+
+
+def test_time_priced_bound_is_tighter_when_overloaded():
+    from lerobot_armory.sim.bound import time_priced_bound
+
+    # Six fast libero robots: one flat price lets every robot dispatch the instant its
+    # observation lands; per-slot prices charge those contested instants.
+    ep = episode_for("libero", "all-fast", 6, 3.0)
+    flat = lagrangian_bound(ep)
+    edf = play(ep, make_scheduler_config("edf").build(PROFILE, ep.max_batch_size)).weighted_executed_s
+    tp = time_priced_bound(ep, edf, flat, iterations=25)
+    assert tp.upper_bound < flat.upper_bound - 0.1
+    assert tp.upper_bound >= edf

@@ -40,7 +40,10 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 from lerobot_armory.sim.optimal import FREE, Episode, _run, canonical
 
@@ -66,59 +69,180 @@ class BoundResult:
     seconds: float
 
 
-def robot_value(ep: Episode, j: int, price: float) -> float:
-    """``V_j(λ)``: robot ``j``'s best ``w_j·executed - λ·Σ shares`` alone, from the cold start.
+class DevicePrices:
+    """``λ(t)``: a price per device-second, constant on consecutive slots of ``slot_s`` from 0.
 
-    Exact dynamic program over ticks. The state is the robot's queue relative to its index at
+    A flat price is one slot; the time-indexed bound has one price per few milliseconds. Zero
+    after the last slot (no chunk that lands before the horizon runs there).
+    """
+
+    def __init__(self, values: Sequence[float], slot_s: float) -> None:
+        self.values = np.maximum(np.asarray(values, dtype=float), 0.0)
+        self.slot_s = float(slot_s)
+        self._cum = np.concatenate(([0.0], np.cumsum(self.values) * self.slot_s))
+        self._memo: dict[tuple[float, float, float], tuple[float, float]] = {}
+
+    @classmethod
+    def flat(cls, price: float, ep: Episode) -> DevicePrices:
+        """``λ`` on the device window ``[net, horizon - net]``, the single-price relaxation."""
+        slot = ep.net_s if ep.net_s > 0 else ep.horizon_s
+        n = math.ceil(ep.horizon_s / slot - 1e-9)
+        values = [price if ep.net_s - 1e-9 <= i * slot and (i + 1) * slot <= ep.horizon_s - ep.net_s + 1e-9 else 0.0 for i in range(n)]
+        return cls(values, slot)
+
+    def integral(self, t: float) -> float:
+        """``∫_0^t λ``."""
+        if t <= 0:
+            return 0.0
+        i = min(int(t / self.slot_s), len(self.values))
+        rest = self.values[i] * (t - i * self.slot_s) if i < len(self.values) else 0.0
+        return float(self._cum[i] + rest)
+
+    def total(self) -> float:
+        """``∫ λ``: the dual's capacity term (one device-second per second)."""
+        return float(self._cum[-1])
+
+    def cheapest(self, lo: float, hi: float, d: float) -> tuple[float, float]:
+        """``min`` over ``s`` in ``[lo, hi]`` of ``∫_s^{s+d} λ`` and the ``s`` that attains it.
+
+        The integral is piecewise linear in ``s``, with breaks where ``s`` or ``s + d`` crosses a
+        slot boundary, so its minimum is at one of those or an end.
+        """
+        key = (lo, hi, d)
+        hit = self._memo.get(key)
+        if hit is not None:
+            return hit
+        g = self.slot_s
+        points = {lo, hi}
+        for shift in (0.0, d):
+            u = math.ceil((lo + shift) / g) * g
+            while u - shift < hi:
+                points.add(u - shift)
+                u += g
+        best = min((self.integral(s + d) - self.integral(s), s) for s in points)
+        self._memo[key] = best
+        return best
+
+    def load(self, plan: Iterable[tuple[float, float, int]], times: int = 1) -> np.ndarray:
+        """Device share per slot (device-seconds / slot) of ``times`` copies of a robot's plan."""
+        out = np.zeros(len(self.values))
+        g = self.slot_s
+        for s, d, b in plan:
+            first, last = int(s / g), min(int((s + d) / g), len(out) - 1)
+            for i in range(first, last + 1):
+                out[i] += (min(s + d, (i + 1) * g) - max(s, i * g)) / b
+        return out * times / g
+
+
+class RobotProgram:
+    """Robot ``j``'s exact dynamic program alone under device prices: ``V_j(λ)`` from any state.
+
+    A chunk made in a batch of ``b`` and run over ``[s, s + d(b))`` costs ``∫λ / b`` over that
+    window. The program runs over ticks. Its state is the robot's queue relative to its index at
     the tick (the exact search's canonical form, so the transition is ``advance()``'s) and the
     time its last chunk's batch completes: one device runs batches one after the other, so a
-    robot's next chunk is dispatched no earlier than that, from the latest observation then.
+    robot's next chunk is dispatched no earlier than that. A chunk made from observation ``k`` is
+    dispatched at some ``s`` between that observation's arrival and the next one's; the program
+    may pick, per landing tick, the cheapest window and the earliest completion of that range
+    (both only loosen the relaxation). Values are memoised per state.
     """
-    spec = ep.specs[j]
-    wt = spec.weight / spec.fps
-    nt = ep.n_ticks(j)
-    h = spec.h_max
-    shares = [price * d / b for b, d in enumerate(ep.d_infer_s, start=1)]
-    arrive = [ep.obs_arrival(j, k) for k in range(nt + 1)]
-    memo: dict[tuple[int, tuple, float], float] = {}
 
-    def value(k: int, queue: tuple, busy: float) -> float:
-        if k >= nt:
-            return 0.0
-        if busy <= arrive[k]:
+    def __init__(self, ep: Episode, j: int, prices: DevicePrices) -> None:
+        self.ep, self.j, self.prices = ep, j, prices
+        spec = ep.specs[j]
+        self.wt = spec.weight / spec.fps
+        self.nt = ep.n_ticks(j)
+        self.h = spec.h_max
+        self.arrive = [ep.obs_arrival(j, k) for k in range(self.nt + 1)]
+        self.tick_s = 1.0 / spec.fps
+        self.memo: dict[tuple[int, tuple, float], tuple[float, tuple | None]] = {}
+
+    def _options(self, k: int, busy: float) -> list[tuple[int, float, float, float, int]]:
+        """``(landing tick, cost, completion, s, b)`` of every undominated chunk from obs ``k``."""
+        ep, j = self.ep, self.j
+        lo, hi = max(self.arrive[k], busy), self.arrive[k + 1]
+        found = []
+        for b, d in enumerate(ep.d_infer_s, start=1):
+            a0 = ep.arrival_tick(j, lo + d)
+            # Dispatching later in [lo, hi) lands one tick later past this instant.
+            cut = min(hi, ep.phases_s[j] + a0 * self.tick_s - d - ep.net_s)
+            segments = [(a0, lo, max(lo, cut))]
+            if cut < hi:
+                segments.append((a0 + 1, cut, hi))
+            for a, s_lo, s_hi in segments:
+                if a < self.nt:
+                    cost, s = self.prices.cheapest(s_lo, s_hi, d)
+                    found.append((a, cost / b, s_lo + d, s, b))
+        # Keep an option only if it is cheaper than every one landing no later and completing
+        # no later (an earlier arrival never executes fewer steps).
+        found.sort(key=lambda o: (o[0], o[2], o[1]))
+        kept: list[tuple[int, float, float, float, int]] = []
+        for o in found:
+            if all(o[1] < p[1] for p in kept if p[2] <= o[2]):
+                kept.append(o)
+        return kept
+
+    def _key(self, k: int, queue: tuple, busy: float) -> tuple[int, tuple, float]:
+        if busy <= self.arrive[k]:
             busy = -math.inf  # the device is free for this robot's next chunk
         else:
             # Rounded *down* to the grain: the relaxation may only get looser, and the memo
             # stays small (completion times are sums of latencies, nearly all distinct).
             busy = math.floor(busy / _GRAIN_S) * _GRAIN_S
+        return (k, queue, busy)
+
+    def value(self, k: int, queue: tuple, busy: float) -> float:
+        """Best ``w_j·executed - Σ cost`` from tick ``k`` on (``queue`` relative to the index
+        before tick ``k``; no chunk dispatched before ``busy``)."""
+        limit = sys.getrecursionlimit()
+        sys.setrecursionlimit(max(limit, 4 * self.nt + 1000))
+        try:
+            return self._value(*self._key(k, queue, busy))
+        finally:
+            sys.setrecursionlimit(limit)
+
+    def _value(self, k: int, queue: tuple, busy: float) -> float:
+        if k >= self.nt:
+            return 0.0
         key = (k, queue, busy)
-        hit = memo.get(key)
+        hit = self.memo.get(key)
         if hit is not None:
-            return hit
-        choices: list[tuple[tuple, float, float]] = [(queue, 0.0, busy)]
-        if busy < arrive[k + 1]:  # observation k is the latest one at some free instant
-            start = max(arrive[k], busy)
-            seen: dict[int, float] = {}
-            for b, d in enumerate(ep.d_infer_s):
-                a = ep.arrival_tick(j, start + d)
-                # Same arrival tick, same coverage: only the cheapest share and earliest
-                # completion matter (a bigger batch is never both earlier and cheaper here).
-                if a < nt and (a not in seen or shares[b] < seen[a]):
-                    seen[a] = shares[b]
-                    choices.append((canonical([*queue, (0, h, a - k)]), shares[b], start + d))
-        best = -math.inf
-        for q, cost, done_at in choices:
+            return hit[0]
+        choices: list[tuple[tuple, float, float, tuple | None]] = [(queue, 0.0, busy, None)]
+        if busy < self.arrive[k + 1]:  # observation k is the latest one at some free instant
+            for a, cost, done_at, s, b in self._options(k, busy):
+                chunk = (s, self.ep.d_infer_s[b - 1], b)
+                choices.append((canonical([*queue, (0, self.h, a - k)]), cost, done_at, chunk))
+        best, best_next = -math.inf, None
+        for q, cost, done_at, chunk in choices:
             done, (q2, _) = _run((q, FREE), 1, 1)
-            best = max(best, wt * done - cost + value(k + 1, q2, done_at))
-        memo[key] = best
+            v = self.wt * done - cost + self._value(*self._key(k + 1, q2, done_at))
+            if v > best:
+                best, best_next = v, (chunk, q2, done_at)
+        self.memo[key] = (best, best_next)
         return best
 
-    limit = sys.getrecursionlimit()
-    sys.setrecursionlimit(max(limit, 4 * nt + 1000))
-    try:
-        return value(0, (), -math.inf)
-    finally:
-        sys.setrecursionlimit(limit)
+    def plan(self) -> tuple[float, list[tuple[float, float, int]]]:
+        """``V_j`` from the cold start and a plan attaining it: ``(s, d, b)`` per chunk bought."""
+        total = self.value(0, (), -math.inf)
+        plan: list[tuple[float, float, int]] = []
+        k, queue, busy = 0, (), -math.inf
+        while k < self.nt:
+            chunk, queue, busy = self.memo[self._key(k, queue, busy)][1]
+            if chunk is not None:
+                plan.append(chunk)
+            k += 1
+        return total, plan
+
+
+def robot_plan(ep: Episode, j: int, prices: DevicePrices) -> tuple[float, list[tuple[float, float, int]]]:
+    """``V_j(λ)`` from the cold start and a plan attaining it (see :class:`RobotProgram`)."""
+    return RobotProgram(ep, j, prices).plan()
+
+
+def robot_value(ep: Episode, j: int, price: float) -> float:
+    """``V_j(λ)`` for one flat price ``λ`` (see :func:`robot_plan`)."""
+    return robot_plan(ep, j, DevicePrices.flat(price, ep))[0]
 
 
 def device_time(ep: Episode) -> float:
@@ -135,10 +259,7 @@ def lagrangian_bound(ep: Episode, tolerance: float = 2e-3, max_evaluations: int 
         raise ValueError("lagrangian_bound scores the whole episode; use warmup_s = 0")
     start = time.perf_counter()
     tau = device_time(ep)
-    # Identical robots (same spec apart from the id, same phase) have the same V_j.
-    classes: dict[tuple, list[int]] = {}
-    for j, s in enumerate(ep.specs):
-        classes.setdefault((s.fps, s.h_max, s.weight, ep.phases_s[j]), []).append(j)
+    classes = _classes(ep)
     tried: dict[float, float] = {}  # price -> dual value; every one is a valid bound
 
     def dual(price: float) -> float:
@@ -163,3 +284,68 @@ def lagrangian_bound(ep: Episode, tolerance: float = 2e-3, max_evaluations: int 
             fb = dual(b)
     best_price = min(tried, key=tried.__getitem__)
     return BoundResult(tried[best_price], best_price, len(tried), time.perf_counter() - start)
+
+
+def time_priced_bound(
+    ep: Episode,
+    lower: float,
+    start: BoundResult | None = None,
+    slot_s: float = _GRAIN_S,
+    iterations: int = 200,
+    patience: int = 6,
+    progress: bool = False,
+) -> BoundResult:
+    """A tighter bound: one device price per ``slot_s`` instead of one for the whole horizon.
+
+    The device runs at most one batch at a time, so at every instant the shares ``1/b`` of the
+    chunks being computed add up to at most 1. Dualising that constraint per slot charges each
+    chunk ``∫λ/b`` over its own run window and adds ``∫λ``; for every price curve ``λ >= 0`` the
+    result bounds every schedule, exactly as the flat price does (which is the special case of one
+    price on ``[net, horizon - net]``, the starting point). Unlike one flat price, per-slot prices
+    can charge the instants every robot wants (right after an observation arrives) more than the
+    ones nobody wants: that is the batch synchronisation the flat bound gives away.
+
+    Projected subgradient descent with Polyak's step towards ``lower`` (a schedule's value,
+    e.g. the best one found), halving the step after ``patience`` iterations without progress;
+    every iterate is a valid bound, the least is returned (``price`` is the flat price it started
+    from). Still a relaxation: a chunk may claim a share ``1/b`` of a batch whose other robots run
+    at other instants, so staggered "fluid" batches remain possible.
+    """
+    if ep.warmup_s:
+        raise ValueError("time_priced_bound scores the whole episode; use warmup_s = 0")
+    t0 = time.perf_counter()
+    start = start or lagrangian_bound(ep)
+    n = math.ceil(ep.horizon_s / slot_s - 1e-9)
+    mid = (np.arange(n) + 0.5) * slot_s
+    values = np.where((mid > ep.net_s) & (mid < ep.horizon_s - ep.net_s), start.price, 0.0)
+    classes = _classes(ep)
+    best, step, stall = start.upper_bound, 1.0, 0
+    for it in range(iterations):
+        prices = DevicePrices(values, slot_s)
+        total, load = prices.total(), np.zeros(n)
+        for members in classes.values():
+            v, plan = robot_plan(ep, members[0], prices)
+            total += len(members) * v
+            load += prices.load(plan, len(members))
+        if total < best - 1e-12:
+            best, stall = total, 0
+        else:
+            stall += 1
+            if stall >= patience:  # Held-Karp: halve the step after a stall
+                step, stall = step / 2, 0
+        if progress:
+            print(f"  time-priced bound: iteration {it + 1}/{iterations}: {total:.4f} (best {best:.4f})", file=sys.stderr)
+        grad = (1.0 - load) * slot_s  # d(dual)/d(price of each slot)
+        norm = float(grad @ grad)
+        if norm == 0 or best - lower <= 1e-9 or step < 1e-3:
+            break  # prices balance the device exactly / the bound is met / the steps vanished
+        values = np.maximum(values - step * (total - lower) / norm * grad, 0.0)
+    return BoundResult(best, start.price, start.evaluations + it + 1, time.perf_counter() - t0)
+
+
+def _classes(ep: Episode) -> dict[tuple, list[int]]:
+    """Identical robots (same spec apart from the id, same phase) have the same ``V_j``."""
+    classes: dict[tuple, list[int]] = {}
+    for j, s in enumerate(ep.specs):
+        classes.setdefault((s.fps, s.h_max, s.weight, ep.phases_s[j]), []).append(j)
+    return classes

@@ -42,7 +42,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.bound import lagrangian_bound
+from lerobot_armory.sim.bound import lagrangian_bound, time_priced_bound
 from lerobot_armory.sim.optimal import Episode, EpisodeResult, episode_for, play, solve
 from lerobot_armory.sim.presets import MIXES, get_preset
 from lerobot_armory.sim.run import SimConfig, run_label, simulate
@@ -86,7 +86,8 @@ class FrontierProfile:
         pareto_robots / pareto_seeds / pareto_duration_s / pareto_la_weights / pareto_new_weights:
             the N = 10 tier trade-off.
         lagrangian: where the exact search does not finish at ``horizon_s``, also compute the
-            Lagrangian upper bound there (seconds to a minute per fleet) for the full-horizon bracket.
+            Lagrangian upper bounds there (flat price: seconds; per-slot prices: one to three
+            minutes per fleet) for the full-horizon bracket.
     """
 
     presets: tuple[str, ...]
@@ -242,8 +243,11 @@ def optimum_job(job: dict[str, Any]) -> dict[str, Any]:
         }
         if prof.lagrangian:
             lag = lagrangian_bound(ep)
+            # Per-slot prices from the flat one's optimum, aimed at the best schedule found.
+            timed = time_priced_bound(ep, res.value, lag)
             bracket["bracket_lagrangian_upper"] = lag.upper_bound
-            bracket["bracket_upper"] = min(res.upper_bound, lag.upper_bound)
+            bracket["bracket_time_priced_upper"] = timed.upper_bound
+            bracket["bracket_upper"] = min(res.upper_bound, lag.upper_bound, timed.upper_bound)
     final = (prof.horizon_s, played, res) if res.exact else None
     if final is None:
         for horizon in prof.ladder_s:
@@ -296,7 +300,7 @@ def _try_row(horizon: float, res: Any) -> dict[str, Any]:
 OPT_FIELDS = [
     "preset", "mix", "robots", "horizon_s", "exact", "optimum", "upper_bound", "ceiling", "scheduler",
     "value", "fraction", "bracket_horizon_s", "bracket_lower", "bracket_bb_upper", "bracket_lagrangian_upper",
-    "bracket_upper", "bracket_value", "bracket_fraction", "nodes",
+    "bracket_time_priced_upper", "bracket_upper", "bracket_value", "bracket_fraction", "nodes",
 ]  # fmt: skip
 
 
@@ -349,16 +353,16 @@ def optimum_markdown(results: list[dict[str, Any]], labels: Sequence[str]) -> st
     if brackets:
         text += (
             "\n\nFull horizon where the exact search did not finish: the optimum lies between the best "
-            "schedule found and the tighter proven upper bound (branch-and-bound's, or the Lagrangian "
-            "device-pricing bound of `lerobot_armory.sim.bound`). Each scheduler as % of the upper bound "
+            "schedule found and the tightest proven upper bound (branch-and-bound's, or the Lagrangian "
+            "device-pricing bounds of `lerobot_armory.sim.bound`: one flat price, or one price per 5 ms slot). Each scheduler as % of the upper bound "
             "(a lower bound on its fraction of the optimum) · and the new scheduler as % of the best schedule found:\n\n"
         )
         text += (
-            "| preset | mix | N | horizon | best found | B&B bound | Lagrangian bound | gap | "
+            "| preset | mix | N | horizon | best found | B&B bound | flat-price bound | slot-price bound | gap | "
             + " | ".join(labels)
             + f" | {labels[-1]} / best found |\n"
         )
-        text += "|" + "---|" * (9 + len(labels)) + "\n"
+        text += "|" + "---|" * (10 + len(labels)) + "\n"
         for r in sorted(brackets, key=lambda r: (r["preset"], MIXES.index(r["mix"]), r["robots"])):
             lo, hi = r["bracket_lower"], r["bracket_upper"]
             vals = r.get("bracket_values", {})
@@ -367,6 +371,7 @@ def optimum_markdown(results: list[dict[str, Any]], labels: Sequence[str]) -> st
             text += (
                 f"| {r['preset']} | {r['mix']} | {r['robots']} | {r['bracket_horizon_s']:g} s | {lo:.2f} | "
                 f"{r.get('bracket_bb_upper', hi):.2f} | {r.get('bracket_lagrangian_upper', float('nan')):.2f} | "
+                f"{r.get('bracket_time_priced_upper', float('nan')):.2f} | "
                 f"{100 * (hi - lo) / hi:.1f} % | " + " | ".join(cells) + f" | {new} |\n"
             )
     return text
