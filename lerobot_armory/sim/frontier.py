@@ -128,7 +128,7 @@ PROFILES: dict[str, FrontierProfile] = {
         pareto_seeds=3,
         pareto_duration_s=120.0,
         pareto_la_weights=(1.0, 2.0, 3.0, 4.0, 5.0),
-        pareto_new_weights=(1.0, 1.5, 1.75, 2.0, 2.25, 2.5, 3.0, 3.5, 4.0, 5.0),
+        pareto_new_weights=(1.0, 1.5, 1.75, 2.0, 2.1, 2.25, 2.5, 3.0, 3.5, 4.0, 5.0),
         lagrangian=True,
     ),
     # benchmarks/frontier.py: every small fleet with small budgets, the N = 10 check with fewer
