@@ -252,3 +252,23 @@ def test_frontier_rejects_bad_options(tmp_path):
     with pytest.raises(SystemExit) as info:
         frontier_main([f"--out_dir={tmp_path}", "--parts=nope"])
     assert info.value.code == 2
+
+
+def test_frontier_brackets_the_full_horizon_with_both_lagrangian_bounds(monkeypatch):
+    # A search budget far too small for an overloaded fleet: the row must carry the bracket,
+    # best found <= every bound, the bracket's upper end the tightest of the three, and every
+    # scheduler's value inside it.
+    from dataclasses import replace
+
+    from lerobot_armory.sim import frontier
+
+    tiny = replace(frontier.PROFILES["quick"], horizon_s=1.0, ladder_s=(), first_budget_s=0.001, lagrangian=True)
+    monkeypatch.setitem(frontier.PROFILES, "tiny", tiny)
+    row = frontier.optimum_job({"profile": "tiny", "preset": "libero", "mix": "all-fast", "robots": 4})
+    lo, hi = row["bracket_lower"], row["bracket_upper"]
+    assert hi == min(row["bracket_bb_upper"], row["bracket_lagrangian_upper"], row["bracket_time_priced_upper"])
+    assert row["bracket_time_priced_upper"] <= row["bracket_lagrangian_upper"] + 1e-12
+    assert lo <= hi
+    assert all(v <= hi + 1e-9 for v in row["bracket_values"].values())
+    md = frontier.optimum_markdown([row], list(row["values"]))
+    assert "slot-price bound" in md and f"{row['bracket_time_priced_upper']:.2f}" in md

@@ -16,23 +16,30 @@ with a price ``λ`` per device-second:
              ≤ Σ_j [w_j·exec_j(S) - λ·cost_j(S)] + λ·τ
              ≤ Σ_j V_j(λ) + λ·τ              for every λ >= 0 and every schedule S,
 
-where ``V_j(λ)`` is the best robot ``j`` could do *alone*, buying chunks at its observations (a
-chunk bought in a batch of ``b`` costs ``λ·d(b)/b``; it is dispatched as soon as both its
-observation has reached the server and the batch of the robot's previous chunk has completed,
-from the latest observation at that instant, and lands ``d(b)`` plus the downlink later). Every
-real schedule projects onto such a plan of equal or better value: the device runs one batch at a
-time, so a robot's next batch starts after its previous one completed, and a real batch starts
-at or after that instant with the latest observation, so its chunk lands no earlier in the
-relaxation; by induction the relaxed robot's index is never behind, and an earlier arrival never
-lowers executed steps (the transition follows the union of arrived chunks). The usefulness rule (``h_min``) is dropped in the relaxation
-because it is not monotone under that projection, and the batch-synchronisation (robots of a
-batch share its dispatch instant) is dropped too: that is what the bound gives away.
+where ``V_j(λ)`` is the best robot ``j`` could do *alone*, buying chunks at its observations: a
+chunk made from observation ``k`` in a batch of ``b`` is dispatched at some instant ``s`` after
+that observation reached the server and before the next one did (later, the real batch would
+use the newer one), and no earlier than the completion of the robot's previous chunk's batch (one
+device runs one batch at a time); it costs ``λ·d(b)/b`` and lands ``d(b)`` plus the downlink
+after ``s``. The chunks robot ``j`` receives in any real schedule form such a plan, with the same
+observations, instants and batch sizes, hence the same executed steps and cost. For each
+observation and landing tick the dynamic program keeps the cheapest cost and the earliest
+completion over the instants that land there, which can only add value (an earlier arrival or
+an earlier free device never executes fewer steps: the transition follows the union of arrived
+chunks). The usefulness rule (``h_min``) is dropped, and so is the batch synchronisation (robots
+of a batch share its dispatch instant and batch size): that is what the bound gives away.
 
 Each ``V_j`` is a small exact dynamic program over the robot's ticks, on the same canonical
 queue states and the same :func:`~lerobot_armory.mirror.advance` transition as the exact
 search; ``min_λ`` of the convex dual is found by golden-section search (any ``λ`` gives a valid
 bound, so an imprecise minimum only loosens it). The bound holds for *every* schedule,
 including ones that idle on purpose, so it also bounds the work-conserving optimum.
+
+Per-slot prices (:func:`time_priced_bound`). The single constraint can be split in time: at every
+instant the shares ``1/b`` of the chunks being computed add up to at most 1. A price ``λ(t)`` per
+5 ms slot charges each chunk ``∫λ/b`` over its own run window, and the dual adds ``∫λ``. The flat
+price is the special case, and per-slot prices can charge the instants every robot wants (just
+after the observations land) more than the others, which recovers part of the synchronisation.
 """
 
 from __future__ import annotations
