@@ -97,7 +97,7 @@ def test_plan_load_adds_up_to_the_chunks_device_shares():
 
 @pytest.mark.parametrize(
     "preset,mix,robots,horizon",
-    [("libero", "all-fast", 3, 1.0), ("libero", "all-fast", 4, 1.5), ("piper", "half-fast", 4, 1.0)],
+    [("libero", "all-fast", 4, 1.0), ("libero", "half-fast", 4, 1.0), ("piper", "all-fast", 4, 1.0)],
 )
 def test_time_priced_bound_is_between_the_optimum_and_the_flat_bound(preset, mix, robots, horizon):
     from lerobot_armory.sim.bound import time_priced_bound
