@@ -79,8 +79,9 @@ class BoundResult:
 class DevicePrices:
     """``λ(t)``: a price per device-second, constant on consecutive slots of ``slot_s`` from 0.
 
-    A flat price is one slot; the time-indexed bound has one price per few milliseconds. Zero
-    after the last slot (no chunk that lands before the horizon runs there).
+    The flat price is one value on every slot of the device window (:meth:`flat`); the
+    time-priced bound has one price per 5 ms slot. Zero after the last slot (no chunk that lands
+    before the horizon runs there).
     """
 
     def __init__(self, values: Sequence[float], slot_s: float) -> None:
@@ -131,7 +132,8 @@ class DevicePrices:
         return best
 
     def load(self, plan: Iterable[tuple[float, float, int]], times: int = 1) -> np.ndarray:
-        """Device share per slot (device-seconds / slot) of ``times`` copies of a robot's plan."""
+        """Mean device share in each slot (1 = the device fully used) of ``times`` copies of a
+        robot's plan, each chunk counting ``1/b`` while it runs."""
         out = np.zeros(len(self.values))
         g = self.slot_s
         for s, d, b in plan:
