@@ -7,9 +7,17 @@ import pytest
 from lerobot_armory.latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.bound import device_time, lagrangian_bound, robot_value
-from lerobot_armory.sim.optimal import episode_for, play, solve
+from lerobot_armory.sim.optimal import Episode, episode_for, play, solve
 
 PROFILE = load_profile("l40s-pi05")
+
+
+def solved(preset: str, mix: str, robots: int, horizon: float) -> tuple[Episode, float]:
+    """An episode small enough for the exact search, and its optimum (which must be exact)."""
+    ep = episode_for(preset, mix, robots, horizon)
+    exact = solve(ep, time_limit_s=60)
+    assert exact.exact
+    return ep, exact.value
 
 
 def test_one_robot_bound_by_hand():
@@ -29,10 +37,8 @@ def test_one_robot_bound_by_hand():
     [("libero", "one-fast", 3, 2.0), ("libero", "all-fast", 3, 1.0), ("piper", "half-fast", 4, 1.0)],
 )
 def test_bound_is_above_the_exact_optimum(preset, mix, robots, horizon):
-    ep = episode_for(preset, mix, robots, horizon)
-    exact = solve(ep, time_limit_s=60)
-    assert exact.exact
-    assert lagrangian_bound(ep).upper_bound >= exact.value - 1e-9
+    ep, optimum = solved(preset, mix, robots, horizon)
+    assert lagrangian_bound(ep).upper_bound >= optimum - 1e-9
 
 
 def test_bound_is_above_every_scheduler_and_below_the_ceiling_when_overloaded():
@@ -102,12 +108,10 @@ def test_plan_load_adds_up_to_the_chunks_device_shares():
 def test_time_priced_bound_is_between_the_optimum_and_the_flat_bound(preset, mix, robots, horizon):
     from lerobot_armory.sim.bound import time_priced_bound
 
-    ep = episode_for(preset, mix, robots, horizon)
-    exact = solve(ep, time_limit_s=60)
-    assert exact.exact
+    ep, optimum = solved(preset, mix, robots, horizon)
     flat = lagrangian_bound(ep)
-    tp = time_priced_bound(ep, exact.value, flat, iterations=15)
-    assert exact.value - 1e-9 <= tp.upper_bound <= flat.upper_bound + 1e-12
+    tp = time_priced_bound(ep, optimum, flat, iterations=15)
+    assert optimum - 1e-9 <= tp.upper_bound <= flat.upper_bound + 1e-12
 
 
 def test_time_priced_bound_is_tighter_when_overloaded():
