@@ -53,10 +53,11 @@ bench: setup
 sweep: setup
 	$(VENV)/bin/lerobot-armory-sweep --profile=full --out_dir=docs/results
 
-# Regenerate the committed protobuf/gRPC modules from lerobot_armory/proto/armory.proto.
+# Regenerate the committed protobuf messages from lerobot_armory/proto/armory.proto (the gRPC
+# binding, lerobot_armory/proto/armory_grpc.py, is written by hand: see its docstring).
 proto: setup
 	$(PY) -m pip install --quiet -e '.[dev]'
-	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. --grpc_python_out=. lerobot_armory/proto/armory.proto
+	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. lerobot_armory/proto/armory.proto
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

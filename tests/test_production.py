@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from lerobot_armory.bench.load import EchoEngine as QuickEngine
 from lerobot_armory.bench.load import echo_server, run_load
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.proto.armory_grpc import ArmoryStub
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
@@ -120,7 +120,7 @@ def test_tokens_are_required_on_register_and_stream(tokens):
         # a stream presenting a session without the token is refused
         conn = Connection(server.address, token="fleet-token-0123456789abcdef")
         reg = conn.register("r3", FEATURES, fps=20, h_min=1, h_max=5)
-        call = pb_grpc.ArmoryStub(conn.channel).Stream(iter([]), metadata=(("armory-session", reg.session_id),))
+        call = ArmoryStub(conn.channel).Stream(iter([]), metadata=(("armory-session", reg.session_id),))
         with pytest.raises(grpc.RpcError) as info:
             list(call)
         assert info.value.code() == grpc.StatusCode.UNAUTHENTICATED
@@ -369,7 +369,7 @@ def fuzz_server():
 @settings(max_examples=600, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 @given(request=registrations)
 def test_fuzz_registrations(fuzz_server, request):
-    stub = pb_grpc.ArmoryStub(grpc.insecure_channel(fuzz_server.address))
+    stub = ArmoryStub(grpc.insecure_channel(fuzz_server.address))
     try:
         stub.Register(request, timeout=5)
     except grpc.RpcError as exc:

@@ -12,7 +12,7 @@ import pytest
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.proto.armory_grpc import METHODS, SERVICE, ArmoryStub, add_armory_to_server
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
@@ -87,6 +87,28 @@ def wait_for(cond, timeout=10.0, step=0.02):
             return True
         time.sleep(step)
     return False
+
+
+def test_grpc_binding_matches_the_proto_service():
+    """The hand-written binding serves exactly the RPCs armory.proto declares, with its types."""
+    service = pb.DESCRIPTOR.services_by_name["Armory"]
+    assert service.full_name == SERVICE
+    declared = {
+        m.name: (m.client_streaming, m.server_streaming, m.input_type.full_name, m.output_type.full_name)
+        for m in service.methods
+    }
+    bound = {n: (cs, ss, req.DESCRIPTOR.full_name, resp.DESCRIPTOR.full_name) for n, (cs, ss, req, resp) in METHODS.items()}
+    assert bound == declared
+
+
+def test_binding_a_servicer_without_every_rpc_fails_at_once():
+    class OnlyRegister:
+        def Register(self, request, context):  # noqa: N802 - the RPC's name
+            return pb.RegisterResponse()
+
+    server = grpc.server(None)
+    with pytest.raises(TypeError, match="'Stream'"):
+        add_armory_to_server(OnlyRegister(), server)
 
 
 def test_batches_form_and_each_robot_gets_its_own_chunk(server, engine):
@@ -201,7 +223,7 @@ def test_duplicate_robot_id_and_stream_without_registration(server, engine):
         conn.register("twin", features(engine), fps=20, h_min=1, h_max=5)
     assert info.value.code() == grpc.StatusCode.ALREADY_EXISTS
     # A stream with no (or a made-up) session is refused before any observation is read.
-    stub = pb_grpc.ArmoryStub(conn.channel)
+    stub = ArmoryStub(conn.channel)
     call = stub.Stream(iter([pb.RobotMessage(observation=pb.Observation(index=0))]), metadata=(("armory-session", "made-up"),))
     with pytest.raises(grpc.RpcError) as info:
         list(call)

@@ -18,7 +18,7 @@ import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.netem import NetworkEmulator
-from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.proto.armory_grpc import ArmoryStub
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
 SESSION_KEY = "armory-session"
@@ -80,7 +80,7 @@ class Connection:
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=tls_ca), options=options)
         else:
             self.channel = grpc.insecure_channel(address, options=options)
-        self.stub = pb_grpc.ArmoryStub(self.channel)
+        self.stub = ArmoryStub(self.channel)
         self.registration: Registration | None = None
         self._outgoing: queue.Queue = queue.Queue()
         self._call = None

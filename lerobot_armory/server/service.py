@@ -22,7 +22,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto import armory_pb2_grpc as pb_grpc
+from lerobot_armory.proto.armory_grpc import add_armory_to_server
 from lerobot_armory.server.engine import check_features
 from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
 from lerobot_armory.server.security import AuthTokens, RateLimiter
@@ -47,7 +47,7 @@ class PolicyInfo:
     chunk_size: int
 
 
-class ArmoryService(pb_grpc.ArmoryServicer):
+class ArmoryService:
     """Implements ``Register`` and ``Stream`` over a :class:`Fleet`."""
 
     def __init__(
@@ -259,7 +259,7 @@ def start_grpc_server(
             ("grpc.so_reuseport", 0),
         ],
     )
-    pb_grpc.add_ArmoryServicer_to_server(service, server)
+    add_armory_to_server(service, server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
