@@ -97,7 +97,10 @@ def test_grpc_binding_matches_the_proto_service():
         m.name: (m.client_streaming, m.server_streaming, m.input_type.full_name, m.output_type.full_name)
         for m in service.methods
     }
-    bound = {n: (cs, ss, req.DESCRIPTOR.full_name, resp.DESCRIPTOR.full_name) for n, (cs, ss, req, resp) in METHODS.items()}
+    bound = {
+        name: (cs, ss, req.DESCRIPTOR.full_name, resp.DESCRIPTOR.full_name)
+        for name, (cs, ss, req, resp) in METHODS.items()
+    }
     assert bound == declared
 
 
