@@ -188,25 +188,57 @@ def test_rollout_is_registered_and_validates():
     assert isinstance(cfg, RolloutConfig) and cfg.type == "rollout"
     sched = cfg.build(PROFILE, 3)
     assert isinstance(sched, RolloutScheduler) and (sched.window_s, sched.tail, sched.candidates) == (0.8, "due", 2)
-    for kwargs, field in [({"window_s": 0}, "scheduler.window_s"), ({"tail": "x"}, "scheduler.tail"), ({"candidates": 0}, "scheduler.candidates")]:
+    bad = [({"window_s": 0}, "scheduler.window_s"), ({"tail": "x"}, "scheduler.tail"), ({"candidates": 0}, "scheduler.candidates")]
+    for kwargs, field in [*bad, ({"order": "x"}, "scheduler.order")]:
         with pytest.raises(ConfigError) as info:
             make_scheduler_config("rollout", **kwargs).build(PROFILE, 3)
         assert info.value.field == field
 
 
-@pytest.mark.parametrize("preset, mix, n", [("libero", "one-fast", 10), ("piper", "half-fast", 6), ("libero", "all-fast", 3)])
-def test_rollout_contract_and_determinism(preset, mix, n):
+@pytest.mark.parametrize(
+    "preset, mix, n, order",
+    [
+        ("libero", "one-fast", 10, "deadline"),
+        ("piper", "half-fast", 6, "deadline"),
+        ("libero", "all-fast", 3, "deadline"),
+        ("piper", "one-fast", 10, "gain"),
+    ],
+)
+def test_rollout_contract_and_determinism(preset, mix, n, order):
     specs = fleet_specs(get_preset(preset), mix, n, fast_weight=2.0)
     cap = get_preset(preset).default_batch_cap(mix)
     net = LogNormalDelay(0.00375, 0.3)
     runs = []
     for _ in range(2):
-        sched = make_scheduler_config("rollout").build(PROFILE, cap)
+        sched = make_scheduler_config("rollout", order=order).build(PROFILE, cap)
         # FleetSimulator calls check_batch on every decision (non-empty, <= cap, distinct, useful).
         res = FleetSimulator(specs, sched, 8.0, net, net, seed=1).run()
         runs.append(([r.executed_steps for r in res.robots], dict(res.batch_sizes)))
         assert set(res.batch_sizes) <= set(range(1, cap + 1))
     assert runs[0] == runs[1]
+
+
+def test_rollout_gain_order_ranks_by_weighted_coverage_gain():
+    """libero timing at t = 0, b = 3: a full batch lands at 142.4 + 3.75 ms; a chunk covers until
+    h / fps - 3.75 ms (slow 0.5 s, fast 0.3 s). EDF serves the robot dry longest first; ``gain``
+    serves the one whose queue a new chunk extends most, weighted, and a robot whose queue already
+    reaches past the new chunk's end last."""
+    from types import SimpleNamespace
+
+    def robot(k: int, h: int, dry: float, weight: float = 1.0):
+        return SimpleNamespace(k=k, h=h, fps=20.0, wpt=weight / 20.0, one_way=0.00375, deadline=dry, ready=-1.0)
+
+    def ranked(order: str, robots) -> list[int]:
+        sched = RolloutScheduler(PROFILE, 3, order=order)
+        sched._order = sorted(robots, key=lambda r: (r.deadline, r.k))
+        return [r.k for r in sched._useful_at(0.0, {}, {})]
+
+    # gains: slow 0.5 - 0.00375 - 0.14615 = 0.35 s; fast 0.3 - 0.15 = 0.15 s (x3 = 0.45 s); covered: 0
+    fleet = [robot(0, 6, -0.2), robot(1, 10, -0.1), robot(2, 10, 0.6)]
+    assert ranked("deadline", fleet) == [0, 1, 2]
+    assert ranked("gain", fleet) == [1, 0, 2]
+    fleet[0] = robot(0, 6, -0.2, weight=3.0)
+    assert ranked("gain", fleet) == [0, 1, 2]
 
 
 def test_rollout_select_is_repeatable_on_one_state():

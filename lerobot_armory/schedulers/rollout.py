@@ -23,6 +23,14 @@ once it cannot), and it decides which robots are useful later. Rollout measures 
      dispatching batches of this size", so a small first batch is charged for the throughput it
      would cost if repeated. (Scoring a small first batch followed by full batches is what made
      an early version pick small batches at every decision and lose throughput under overload.)
+   Who is first in a later batch (``order``): earliest deadline (``deadline``, EDF, the
+   default), or the largest weighted *coverage gain* (``gain``): how much longer the robot's
+   queue would last if a full batch dispatched now served it, times its weight. ``gain`` is
+   what Lookahead maximises, in closed form; it skips a robot whose queue already reaches past
+   what a new chunk would cover, and it makes the rollout's later batches honour the weights,
+   where EDF's ignore them. Measured at N = 10 (``docs/results/frontier/README.md``): it moves
+   the fast/slow trade-off of piper one-fast past EDF's point, and does not help the libero
+   fleets, so it is an option, not the default.
 3. **Score.** The fleet's weighted executed robot time in the window (SPEC §2 reward, each
    robot's own weight). The best candidate is dispatched; ties go to the smaller batch.
 
@@ -53,6 +61,7 @@ from lerobot_armory.mirror import RobotMirror, TickChunk, reach
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
 
 TAILS = ("auto", "due", "same")
+ORDERS = ("deadline", "gain")
 
 # A robot's queue inside a rollout: (coverage end at tick 0, pending (arrival tick, end) sorted).
 Queue = tuple[int, tuple[tuple[int, int], ...]]
@@ -188,6 +197,8 @@ class RolloutScheduler(Scheduler):
             decision.
         tail: base policy after the first batch: ``due``, ``same`` or ``auto`` (by load).
         candidates: first batches rolled out per decision (at most).
+        order: who comes first in the base policy's batches: ``deadline`` (EDF) or ``gain``
+            (weighted coverage gain, see the module docstring).
     """
 
     def __init__(
@@ -197,6 +208,7 @@ class RolloutScheduler(Scheduler):
         window_s: float = 1.0,
         tail: str = "auto",
         candidates: int = 4,
+        order: str = "deadline",
     ) -> None:
         super().__init__(profile, max_batch_size)
         if not window_s > 0:
@@ -205,9 +217,12 @@ class RolloutScheduler(Scheduler):
             raise ConfigError("scheduler.tail", f"must be one of {', '.join(TAILS)}, got {tail!r}")
         if candidates < 1:
             raise ConfigError("scheduler.candidates", f"must be >= 1, got {candidates}")
+        if order not in ORDERS:
+            raise ConfigError("scheduler.order", f"must be one of {', '.join(ORDERS)}, got {order!r}")
         self.window_s = window_s
         self.tail = tail
         self.candidates = candidates
+        self.order = order
 
     # ---- the decision ----------------------------------------------------------------------
 
@@ -341,12 +356,22 @@ class RolloutScheduler(Scheduler):
         return min(ready.get(r.k, r.ready) for r in self._order) + 2e-9
 
     def _useful_at(self, t: float, ready: dict[int, float], deadline: dict[int, float]) -> list[_Robot]:
-        """Robots useful at epoch ``t``, earliest deadline first."""
-        out = [
-            (deadline.get(r.k, r.deadline), r.k, r) for r in self._order if ready.get(r.k, r.ready) <= t
-        ]
-        out.sort(key=lambda c: (c[0], c[1]))
-        return [c[2] for c in out]
+        """Robots useful at epoch ``t``, in the base policy's ``order``."""
+        if self.order == "gain":
+            # A full batch dispatched at t lands at t + d(b) + one-way; the chunk covers until
+            # its observation (about one-way before t) plus h. What it adds is the part past
+            # both the landing and the robot's current coverage end (its deadline).
+            lands = t + self.d_infer[self.max_batch_size - 1]
+            keyed = []
+            for r in self._order:
+                if ready.get(r.k, r.ready) <= t:
+                    dry = deadline.get(r.k, r.deadline)
+                    gain = t - r.one_way + r.h / r.fps - max(dry, lands + r.one_way)
+                    keyed.append((-r.wpt * r.fps * max(gain, 0.0), r.k, r))
+        else:
+            keyed = [(deadline.get(r.k, r.deadline), r.k, r) for r in self._order if ready.get(r.k, r.ready) <= t]
+        keyed.sort(key=lambda c: (c[0], c[1]))
+        return [c[2] for c in keyed]
 
 
 @SchedulerConfig.register_subclass("rollout")
@@ -358,11 +383,13 @@ class RolloutConfig(SchedulerConfig):
         window_s: simulate batches and score executed time until this long after the decision.
         tail: base policy after the first batch: ``auto`` (by load), ``due`` or ``same``.
         candidates: first batches rolled out per decision (at most).
+        order: base policy's order within its batches: ``deadline`` (EDF) or ``gain``.
     """
 
     window_s: float = 1.0
     tail: str = "auto"
     candidates: int = 4
+    order: str = "deadline"
 
     def build(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
-        return RolloutScheduler(profile, max_batch_size, self.window_s, self.tail, self.candidates)
+        return RolloutScheduler(profile, max_batch_size, self.window_s, self.tail, self.candidates, self.order)
