@@ -120,6 +120,9 @@ def make_robot(channel, tmp_path, make_fake):  # after make_fake: robots disconn
         kwargs.setdefault("can_port", channel)
         kwargs.setdefault("can_bustype", "virtual")
         kwargs.setdefault("calibration_dir", tmp_path / "calibration")
+        # connect() returns at the first feedback frame; the long wait only matters when the
+        # 2-core CI machine is busy and the fake arm's first frames are late.
+        kwargs.setdefault("feedback_timeout_s", 10.0)
         robot = Piper(PiperConfig(**kwargs))
         robots.append(robot)
         return robot
@@ -277,8 +280,15 @@ def test_arm_follows_the_commands(make_fake, make_robot):
     target = action(joint_1=30.0, joint_3=-20.0, gripper=50.0)
     deadline = time.monotonic() + 3.0
     while time.monotonic() < deadline:
-        robot.send_action(target)
-        obs = robot.get_observation()
+        try:
+            robot.send_action(target)
+            obs = robot.get_observation()
+        except PiperNoFeedbackError:
+            # The SDK's rate counter reads 0 for any 0.1 s window without a frame; on a busy
+            # 2-core machine the fake arm's thread can miss one. Refusing to move then is the
+            # adapter's job (tested below); here only the convergence is asserted.
+            time.sleep(1 / 30)
+            continue
         if obs == pytest.approx(target, abs=1e-6):
             break
         time.sleep(1 / 30)
