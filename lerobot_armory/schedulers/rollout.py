@@ -305,8 +305,9 @@ class RolloutScheduler(Scheduler):
                 break
             if deadline.get(r.k, r.deadline) < t + d[len(out)] + d[0] + r.one_way:
                 out.append(r)
-            else:
-                break
+            elif self.order == "deadline":
+                break  # sorted by deadline: nobody later is due either
+            # order=gain: ``ranked`` is not sorted by deadline, so a later robot may still be due
         return out or ranked[:1]
 
     # ---- one rollout -----------------------------------------------------------------------
