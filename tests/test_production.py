@@ -233,8 +233,11 @@ def test_robot_killed_mid_stream_is_dropped_and_delays_nobody():
         pusher.join()
         good.close()
         around = [t for t in chunk_times if t_kill - 0.5 < t < t_kill + 1.0]
-        # one batch takes ~20 ms; the steady robot's chunks keep coming at its own pace
-        assert gaps(around) < 0.25, f"steady robot waited {gaps(around):.3f} s around the kill"
+        # One batch takes ~20 ms, so the steady robot normally sees gaps of a few tens of ms. A
+        # server that waited on the dead robot would stall until gRPC or the stale-session timer
+        # (30 s) noticed: seconds. The limit sits between the two with room for the scheduling
+        # hiccups of a loaded 2-core machine (0.55 s was seen once with other jobs running).
+        assert gaps(around) < 1.0, f"steady robot waited {gaps(around):.3f} s around the kill"
     finally:
         server.stop(0.5)
 
