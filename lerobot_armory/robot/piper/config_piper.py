@@ -79,6 +79,10 @@ class PiperConfig(RobotConfig):
         feedback_timeout_s: how long ``connect()`` then waits for the first joint and gripper
             feedback; if none arrives it logs a warning and ``get_observation``/``send_action``
             raise until it does.
+        feedback_grace_s: how long a feedback stream may read no frames before it counts as lost
+            and nothing more is sent. piper_sdk's rate reads 0 for any 0.1 s window without a
+            frame, which a stalled Python process can cause while the arm is fine; with the
+            default a stopped arm is noticed within about 0.5 s. 0: trust the SDK's window alone.
     """
 
     can_port: str = "can0"
@@ -90,6 +94,7 @@ class PiperConfig(RobotConfig):
     disable_on_disconnect: bool = False
     enable_timeout_s: float = 5.0
     feedback_timeout_s: float = 1.0
+    feedback_grace_s: float = 0.3
 
     def __post_init__(self) -> None:
         super().__post_init__()  # LeRobot checks camera width/height/fps
@@ -119,6 +124,11 @@ class PiperConfig(RobotConfig):
         if not _finite_number(self.feedback_timeout_s) or self.feedback_timeout_s < 0:
             raise ConfigError(
                 "robot.feedback_timeout_s", f"must be a non-negative number of seconds, got {self.feedback_timeout_s!r}"
+            )
+        if not _finite_number(self.feedback_grace_s) or not 0 <= self.feedback_grace_s <= 2.0:
+            # More than a couple of seconds would clamp targets against a badly stale position.
+            raise ConfigError(
+                "robot.feedback_grace_s", f"must be a number of seconds within [0, 2], got {self.feedback_grace_s!r}"
             )
 
     @staticmethod

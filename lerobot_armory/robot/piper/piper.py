@@ -8,8 +8,10 @@ Safety behaviour, in one place:
 
 - ``connect()`` asks the arm to enable until it reports all six joint drivers enabled, or gives
   up after ``enable_timeout_s`` and releases everything it opened.
-- Nothing is sent to the motors while the arm's feedback is missing (never arrived, or stopped:
-  piper_sdk's feedback rate reads 0 within ~0.2 s of the last frame).
+- Nothing is sent to the motors while the arm's feedback is missing: it never arrived, or
+  piper_sdk's feedback rate has read 0 for longer than ``feedback_grace_s`` (the rate reads 0
+  for any 0.1 s window without a frame, so a stopped arm is noticed within about
+  ``0.2 s + feedback_grace_s``; the grace keeps one late frame from halting a healthy arm).
 - Every target is clamped to the documented joint limits and gripper range, then to
   ``present ± max_relative_target``.
 - ``disconnect()`` is idempotent and safe after a failed ``connect()`` (the client calls it in a
@@ -23,7 +25,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import cached_property
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -137,6 +139,9 @@ class Piper(Robot):
         # Serialises send_action against disconnect so no frame goes out once disconnect began.
         self._lock = threading.RLock()
         self._closing = False
+        # Feedback freshness: when each stream last read a non-zero rate, on an injectable clock.
+        self._clock: Callable[[], float] = time.monotonic
+        self._feedback_seen: dict[str, float] = {}
 
     # ------------------------------------------------------------------ features
 
@@ -296,13 +301,28 @@ class Piper(Robot):
             time.sleep(FEEDBACK_POLL_S)
 
     def _missing_feedback(self) -> list[str]:
-        """Which feedback streams are silent (the SDK reports Hz == 0 until the first frame)."""
+        """Which feedback streams are silent: never seen, or no frames for ``feedback_grace_s``.
+
+        The SDK's rate (``Hz``) is 0 until the first frame and for any 0.1 s window without one.
+        A real arm streams at ~200 Hz, but a Python process stalled ~0.1 s (GIL, GC, a busy
+        machine) can see one empty window while the arm is fine; refusing to move then would
+        halt a healthy robot. So a stream counts as lost only once its rate has read 0 for
+        longer than the grace, measured from the last read that saw frames.
+        """
         arm = self._require_arm()
+        now = self._clock()
+        rates = {
+            "joint": arm.GetArmJointMsgs().Hz,  # 0 unless all three joint frames arrive
+            "gripper": arm.GetArmGripperMsgs().Hz,
+        }
         missing = []
-        if arm.GetArmJointMsgs().Hz <= 0:  # 0 unless all three joint frames arrive
-            missing.append("joint")
-        if arm.GetArmGripperMsgs().Hz <= 0:
-            missing.append("gripper")
+        for stream, hz in rates.items():
+            if hz > 0:
+                self._feedback_seen[stream] = now
+                continue
+            seen = self._feedback_seen.get(stream)
+            if seen is None or now - seen > self.config.feedback_grace_s:
+                missing.append(stream)
         return missing
 
     def _require_arm(self) -> C_PiperInterface_V2:
@@ -424,6 +444,7 @@ class Piper(Robot):
                         self._close_port(arm)
                 finally:
                     self._arm = None
+                    self._feedback_seen.clear()  # a new connection must see fresh frames again
                     self._connected = False
                     self._closing = False
                     if self._port_claimed:
