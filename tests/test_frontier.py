@@ -196,21 +196,22 @@ def test_rollout_is_registered_and_validates():
 
 
 @pytest.mark.parametrize(
-    "preset, mix, n, order",
+    "preset, mix, n, knobs",
     [
-        ("libero", "one-fast", 10, "deadline"),
-        ("piper", "half-fast", 6, "deadline"),
-        ("libero", "all-fast", 3, "deadline"),
-        ("piper", "one-fast", 10, "gain"),
+        ("libero", "one-fast", 10, {}),
+        ("piper", "half-fast", 6, {}),
+        ("libero", "all-fast", 3, {}),
+        ("piper", "one-fast", 10, {"order": "gain"}),
+        ("piper", "one-fast", 10, {"keep_plan": True}),
     ],
 )
-def test_rollout_contract_and_determinism(preset, mix, n, order):
+def test_rollout_contract_and_determinism(preset, mix, n, knobs):
     specs = fleet_specs(get_preset(preset), mix, n, fast_weight=2.0)
     cap = get_preset(preset).default_batch_cap(mix)
     net = LogNormalDelay(0.00375, 0.3)
     runs = []
     for _ in range(2):
-        sched = make_scheduler_config("rollout", order=order).build(PROFILE, cap)
+        sched = make_scheduler_config("rollout", **knobs).build(PROFILE, cap)
         # FleetSimulator calls check_batch on every decision (non-empty, <= cap, distinct, useful).
         res = FleetSimulator(specs, sched, 8.0, net, net, seed=1).run()
         runs.append(([r.executed_steps for r in res.robots], dict(res.batch_sizes)))
@@ -239,6 +240,52 @@ def test_rollout_gain_order_ranks_by_weighted_coverage_gain():
     assert ranked("gain", fleet) == [1, 0, 2]
     fleet[0] = robot(0, 6, -0.2, weight=3.0)
     assert ranked("gain", fleet) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("preset, mix, n", [("piper", "all-fast", 6), ("libero", "half-fast", 5)])
+def test_rollout_kept_plan_only_overrides_when_it_scores_as_well(preset, mix, n):
+    """A shadow scheduler without a kept plan decides on every same state: the two differ only at
+    decisions the kept plan won (counted in ``plans_kept``), and that happens."""
+    ep = episode_for(preset, mix, n, 3.0, fast_weight=3.0)
+    plain = build("rollout", ep)
+    keeper = build("rollout", ep, keep_plan=True)
+    differ = []
+
+    class Shadowed(RolloutScheduler):
+        def select(self, robots, now):
+            before = keeper.plans_kept
+            fresh = plain.select(robots, now)
+            picked = keeper.select(robots, now)
+            if picked != fresh:
+                differ.append(keeper.plans_kept - before)
+            return picked
+
+    play(ep, Shadowed(PROFILE, ep.max_batch_size))
+    assert differ, "the kept plan never changed a decision"
+    assert differ == [1] * len(differ)
+    assert keeper.plans_kept == len(differ)
+
+
+def test_rollout_kept_plan_skips_robots_that_left():
+    ep = episode_for("libero", "half-fast", 4, 1.0)
+    keeper = build("rollout", ep, keep_plan=True)
+    seen: list[int] = []
+    named: list[bool] = []  # whether the plan kept at each decision named the robot that left
+
+    class Shrinking(RolloutScheduler):
+        def select(self, robots, now):
+            # Robot 0 leaves after the first decision: the kept plan may name it, it must not
+            # come back in a batch.
+            present = robots if not seen else robots[1:]
+            named.append(any(ep.specs[0].robot_id in ids for ids in keeper._plan))
+            batch = keeper.select(present, now)
+            assert all(any(r is p for p in present) for r in batch)
+            seen.append(len(batch))
+            return batch
+
+    play(ep, Shrinking(PROFILE, ep.max_batch_size))
+    assert len(seen) > 3
+    assert any(named[1:]), "the kept plan never named the robot that left: the test shows nothing"
 
 
 def test_rollout_select_is_repeatable_on_one_state():

@@ -33,6 +33,13 @@ once it cannot), and it decides which robots are useful later. Rollout measures 
    fleets, so it is an option, not the default.
 3. **Score.** The fleet's weighted executed robot time in the window (SPEC §2 reward, each
    robot's own weight). The best candidate is dispatched; ties go to the smaller batch.
+4. **Kept plan** (``keep_plan``, off by default). The winning rollout's later batches are kept,
+   by robot id, and the next decision rolls them out once more as one extra candidate (robots
+   gone or not useful by then are left out); the kept plan wins ties. Without it, re-deciding
+   at every batch can leave a good plan halfway for one that only looks as good. Measured at
+   N = 10 (``docs/results/frontier/README.md``): it moves piper one-fast's fast/slow trade-off
+   by about 0.2–0.4 pp past the default's, does nothing measurable for libero one-fast, and
+   costs one more rollout per decision, so it is an option.
 
 Decisions depend on nothing but the mirror state, so they are deterministic and the same on
 every machine; the cost is bounded by ``candidates`` × the window's epochs (SPEC budget:
@@ -199,6 +206,7 @@ class RolloutScheduler(Scheduler):
         candidates: first batches rolled out per decision (at most).
         order: who comes first in the base policy's batches: ``deadline`` (EDF) or ``gain``
             (weighted coverage gain, see the module docstring).
+        keep_plan: also roll out the plan kept from the last decision (module docstring, 4).
     """
 
     def __init__(
@@ -209,6 +217,7 @@ class RolloutScheduler(Scheduler):
         tail: str = "auto",
         candidates: int = 4,
         order: str = "deadline",
+        keep_plan: bool = False,
     ) -> None:
         super().__init__(profile, max_batch_size)
         if not window_s > 0:
@@ -223,6 +232,11 @@ class RolloutScheduler(Scheduler):
         self.tail = tail
         self.candidates = candidates
         self.order = order
+        self.keep_plan = keep_plan
+        # The later batches of the rollout that won the last decision, by robot id: the next
+        # decision rolls them out again as one more candidate (see select).
+        self._plan: list[tuple[str, ...]] = []
+        self.plans_kept = 0  # decisions where the kept plan's batch beat every fresh candidate's
 
     # ---- the decision ----------------------------------------------------------------------
 
@@ -233,6 +247,8 @@ class RolloutScheduler(Scheduler):
             return []
         self._order = sorted(pool, key=lambda r: (r.deadline, r.k))
         self._by_k = {r.k: r for r in pool}
+        if self.keep_plan:
+            self._by_id = {r.mirror.spec.robot_id: r for r in pool}
         ranked = [r for r in self._order if r.useful]
         b = min(self.max_batch_size, len(useful))
         firsts = self._first_batches(useful, ranked, now, b)
@@ -244,14 +260,37 @@ class RolloutScheduler(Scheduler):
             tail = "same" if due_now > b else "due"
         best: list[_Robot] | None = None
         best_score = -math.inf
+        best_plan: list[tuple[str, ...]] = []
         for first in firsts:
-            score = self._rollout(pool, first, now, tail)
+            score, plan = self._rollout(pool, first, now, tail)
             # Strictly better only: earlier candidates (smaller batches first among equals, see
             # _first_batches) win ties.
             if score > best_score + 1e-9:
-                best, best_score = first, score
+                best, best_score, best_plan = first, score, plan
+        if self.keep_plan and self._plan:
+            # The plan kept from the last decision, replayed from where it stands: it wins ties,
+            # so a decision never drops a plan for one that the rollout does not score higher
+            # (rollout's improvement property: without it, re-deciding at every batch can
+            # abandon a good plan halfway and end below the base policy).
+            kept = self._scripted(self._plan[0], now)
+            if kept:
+                score, plan = self._rollout(pool, kept, now, tail, self._plan[1:])
+                if score >= best_score - 1e-9:
+                    self.plans_kept += best is None or {r.k for r in kept} != {r.k for r in best}
+                    best, best_score, best_plan = kept, score, plan
         assert best is not None
+        self._plan = best_plan
         return [r.mirror for r in best]
+
+    def _scripted(self, ids: tuple[str, ...], t: float, ready: dict[int, float] | None = None) -> list[_Robot]:
+        """The robots of a planned batch that are still here and useful at ``t``."""
+        by_id = self._by_id
+        out = []
+        for rid in ids:
+            r = by_id.get(rid)
+            if r is not None and (ready or {}).get(r.k, r.ready) <= t:
+                out.append(r)
+        return out
 
     def _first_batches(self, useful: list[_Robot], ranked: list[_Robot], now: float, b: int) -> list[list[_Robot]]:
         """Candidate first batches, best first by Lookahead's score, at most ``candidates``."""
@@ -312,9 +351,13 @@ class RolloutScheduler(Scheduler):
 
     # ---- one rollout -----------------------------------------------------------------------
 
-    def _rollout(self, pool: list[_Robot], first: list[_Robot], now: float, tail: str) -> float:
-        """Weighted executed time the window gains by dispatching ``first`` and then following
-        the base policy ``tail`` (``due`` or ``same``) until the end of the window."""
+    def _rollout(
+        self, pool: list[_Robot], first: list[_Robot], now: float, tail: str, script: Sequence[tuple[str, ...]] = ()
+    ) -> tuple[float, list[tuple[str, ...]]]:
+        """Weighted executed time the window gains by dispatching ``first``, then the batches of
+        ``script`` (robot ids; those not useful by then are left out), then following the base
+        policy ``tail`` (``due`` or ``same``) until the end of the window. Also returns the
+        batches after ``first`` that it dispatched, by robot id."""
         d = self.d_infer
         end = now + self.window_s
         cap = self.max_batch_size
@@ -323,6 +366,8 @@ class RolloutScheduler(Scheduler):
         deadline: dict[int, float] = {}
         batch = first
         t = now
+        later: list[tuple[str, ...]] = []
+        step = 0
         while True:
             t_done = t + d[len(batch) - 1]
             for r in batch:
@@ -344,13 +389,20 @@ class RolloutScheduler(Scheduler):
                 ranked = self._useful_at(t, ready, deadline)
                 if not ranked:
                     break
-            batch = self._due(ranked, t, deadline, cap) if tail == "due" else ranked[: len(first)]
+            batch = []
+            while step < len(script) and not batch:
+                batch = self._scripted(script[step], t, ready)
+                step += 1
+            if not batch:
+                batch = self._due(ranked, t, deadline, cap) if tail == "due" else ranked[: len(first)]
+            if self.keep_plan:
+                later.append(tuple(r.mirror.spec.robot_id for r in batch))
         score = 0.0
         by_k = self._by_k
         for k, q in queues.items():
             r = by_k[k]
             score += r.wpt * (index_at(r.index, q, r.ticks) - r.index - r.base)
-        return score
+        return score, later
 
     def _next_useful(self, ready: dict[int, float]) -> float:
         """Earliest time at which some robot is useful again."""
@@ -385,12 +437,17 @@ class RolloutConfig(SchedulerConfig):
         tail: base policy after the first batch: ``auto`` (by load), ``due`` or ``same``.
         candidates: first batches rolled out per decision (at most).
         order: base policy's order within its batches: ``deadline`` (EDF) or ``gain``.
+        keep_plan: keep the winning rollout's later batches and roll them out again at the next
+            decision as one more candidate.
     """
 
     window_s: float = 1.0
     tail: str = "auto"
     candidates: int = 4
     order: str = "deadline"
+    keep_plan: bool = False
 
     def build(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
-        return RolloutScheduler(profile, max_batch_size, self.window_s, self.tail, self.candidates, self.order)
+        return RolloutScheduler(
+            profile, max_batch_size, self.window_s, self.tail, self.candidates, self.order, self.keep_plan
+        )
