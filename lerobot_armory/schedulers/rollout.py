@@ -267,6 +267,7 @@ class RolloutScheduler(Scheduler):
             # _first_batches) win ties.
             if score > best_score + 1e-9:
                 best, best_score, best_plan = first, score, plan
+        assert best is not None
         if self.keep_plan and self._plan:
             # The plan kept from the last decision, replayed from where it stands: it wins ties,
             # so a decision never drops a plan for one that the rollout does not score higher
@@ -276,19 +277,19 @@ class RolloutScheduler(Scheduler):
             if kept:
                 score, plan = self._rollout(pool, kept, now, tail, self._plan[1:])
                 if score >= best_score - 1e-9:
-                    self.plans_kept += best is None or {r.k for r in kept} != {r.k for r in best}
+                    self.plans_kept += {r.k for r in kept} != {r.k for r in best}
                     best, best_score, best_plan = kept, score, plan
-        assert best is not None
         self._plan = best_plan
         return [r.mirror for r in best]
 
     def _scripted(self, ids: tuple[str, ...], t: float, ready: dict[int, float] | None = None) -> list[_Robot]:
         """The robots of a planned batch that are still here and useful at ``t``."""
         by_id = self._by_id
+        ready = ready or {}
         out = []
         for rid in ids:
             r = by_id.get(rid)
-            if r is not None and (ready or {}).get(r.k, r.ready) <= t:
+            if r is not None and ready.get(r.k, r.ready) <= t:
                 out.append(r)
         return out
 
