@@ -227,12 +227,15 @@ def test_rollout_gain_order_ranks_by_weighted_coverage_gain():
     from types import SimpleNamespace
 
     def robot(k: int, h: int, dry: float, weight: float = 1.0):
-        return SimpleNamespace(k=k, h=h, fps=20.0, wpt=weight / 20.0, one_way=0.00375, deadline=dry, ready=-1.0)
+        return SimpleNamespace(
+            k=k, i=k, h=h, fps=20.0, weight=weight, one_way=0.00375, span=h / 20.0 - 0.00375, deadline=dry, ready=-1.0
+        )
 
     def ranked(order: str, robots) -> list[int]:
         sched = RolloutScheduler(PROFILE, 3, order=order)
         sched._order = sorted(robots, key=lambda r: (r.deadline, r.k))
-        return [r.k for r in sched._useful_at(0.0, {}, {})]
+        by_i = sorted(robots, key=lambda r: r.i)
+        return [r.k for r in sched._useful_at(0.0, [r.ready for r in by_i], [r.deadline for r in by_i])]
 
     # gains: slow 0.5 - 0.00375 - 0.14615 = 0.35 s; fast 0.3 - 0.15 = 0.15 s (x3 = 0.45 s); covered: 0
     fleet = [robot(0, 6, -0.2), robot(1, 10, -0.1), robot(2, 10, 0.6)]

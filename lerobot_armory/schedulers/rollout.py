@@ -135,7 +135,7 @@ class _Robot:
 
     __slots__ = (
         "k", "mirror", "index", "queue", "origin", "fps", "one_way", "h", "hm", "wpt", "last", "obs",
-        "ticks", "useful", "deadline", "base", "ready", "gains",
+        "ticks", "useful", "deadline", "base", "ready", "gains", "i", "span", "weight",
     )  # fmt: skip
 
     def __init__(self, k: int, mirror: RobotMirror, now: float, horizon_s: float) -> None:
@@ -167,6 +167,11 @@ class _Robot:
             target = (self.last if self.last is not None else self.index) + self.hm
             self.ready = self.useful_from(tick_reaching(self.index, self.queue, target))
         self.gains: list[float] = []
+        self.i = -1  # position in the decision's pool: the rollout's per-robot lists use it
+        # For the gain order: a chunk from an observation captured one-way before t covers
+        # until t + span.
+        self.span = self.h / self.fps - self.one_way
+        self.weight = spec.weight
 
     def useful_from(self, tick: int) -> float:
         """Server time from which the observation of ``tick`` is held (inf for tick -1: never)."""
@@ -245,8 +250,13 @@ class RolloutScheduler(Scheduler):
         useful = [r for r in pool if r.useful]
         if not useful:
             return []
+        for i, r in enumerate(pool):
+            r.i = i
         self._order = sorted(pool, key=lambda r: (r.deadline, r.k))
         self._by_k = {r.k: r for r in pool}
+        # Each rollout starts from copies of these (lists by pool position: cheaper than dicts).
+        self._ready0 = [r.ready for r in pool]
+        self._deadline0 = [r.deadline for r in pool]
         if self.keep_plan:
             self._by_id = {r.mirror.spec.robot_id: r for r in pool}
         ranked = [r for r in self._order if r.useful]
@@ -282,14 +292,14 @@ class RolloutScheduler(Scheduler):
         self._plan = best_plan
         return [r.mirror for r in best]
 
-    def _scripted(self, ids: tuple[str, ...], t: float, ready: dict[int, float] | None = None) -> list[_Robot]:
+    def _scripted(self, ids: tuple[str, ...], t: float, ready: list[float] | None = None) -> list[_Robot]:
         """The robots of a planned batch that are still here and useful at ``t``."""
         by_id = self._by_id
-        ready = ready or {}
+        ready = self._ready0 if ready is None else ready
         out = []
         for rid in ids:
             r = by_id.get(rid)
-            if r is not None and ready.get(r.k, r.ready) <= t:
+            if r is not None and ready[r.i] <= t:
                 out.append(r)
         return out
 
@@ -317,7 +327,7 @@ class RolloutScheduler(Scheduler):
         # batches look like), Lookahead's own choice, its best single robot and pair, EDF's full
         # batch, then Lookahead's other batches by its score.
         by_score = [top for _, top in sorted(by_size, key=lambda c: -c[0])]
-        ordered = [self._due(ranked, now, {}, b), by_score[0], by_size[0][1]]
+        ordered = [self._due(ranked, now, self._deadline0, b), by_score[0], by_size[0][1]]
         if b > 1:
             ordered.append(by_size[1][1])
         ordered.append(ranked[:b])
@@ -335,7 +345,7 @@ class RolloutScheduler(Scheduler):
         out.sort(key=len)
         return out
 
-    def _due(self, ranked: list[_Robot], t: float, deadline: dict[int, float], cap: int) -> list[_Robot]:
+    def _due(self, ranked: list[_Robot], t: float, deadline: list[float], cap: int) -> list[_Robot]:
         """EDF, but only the robots that run dry before a chunk of the *next* batch could reach
         them (at best ``d_infer(s) + d_infer(1) + d_action`` from now); at least the first."""
         d = self.d_infer
@@ -343,7 +353,7 @@ class RolloutScheduler(Scheduler):
         for r in ranked:
             if len(out) == cap:
                 break
-            if deadline.get(r.k, r.deadline) < t + d[len(out)] + d[0] + r.one_way:
+            if deadline[r.i] < t + d[len(out)] + d[0] + r.one_way:
                 out.append(r)
             elif self.order == "deadline":
                 break  # sorted by deadline: nobody later is due either
@@ -363,8 +373,8 @@ class RolloutScheduler(Scheduler):
         end = now + self.window_s
         cap = self.max_batch_size
         queues: dict[int, Queue] = {}
-        ready: dict[int, float] = {}  # time from which a served robot is useful again
-        deadline: dict[int, float] = {}
+        ready = self._ready0[:]  # time from which each robot is useful (again), by pool position
+        deadline = self._deadline0[:]
         batch = first
         t = now
         later: list[tuple[str, ...]] = []
@@ -376,8 +386,8 @@ class RolloutScheduler(Scheduler):
                 obs = r.obs_at(t, q)
                 q = _with(q, r.arrival(t_done), obs + r.h)
                 queues[r.k] = q
-                deadline[r.k] = r.origin + dry_tick(r.index, q) / r.fps
-                ready[r.k] = r.useful_from(tick_reaching(r.index, q, obs + r.hm))
+                deadline[r.i] = r.origin + dry_tick(r.index, q) / r.fps
+                ready[r.i] = r.useful_from(tick_reaching(r.index, q, obs + r.hm))
             t = t_done
             if t >= end:
                 break
@@ -405,11 +415,11 @@ class RolloutScheduler(Scheduler):
             score += r.wpt * (index_at(r.index, q, r.ticks) - r.index - r.base)
         return score, later
 
-    def _next_useful(self, ready: dict[int, float]) -> float:
+    def _next_useful(self, ready: list[float]) -> float:
         """Earliest time at which some robot is useful again."""
-        return min(ready.get(r.k, r.ready) for r in self._order) + 2e-9
+        return min(ready) + 2e-9
 
-    def _useful_at(self, t: float, ready: dict[int, float], deadline: dict[int, float]) -> list[_Robot]:
+    def _useful_at(self, t: float, ready: list[float], deadline: list[float]) -> list[_Robot]:
         """Robots useful at epoch ``t``, in the base policy's ``order``."""
         if self.order == "gain":
             # A full batch dispatched at t lands at t + d(b) + one-way; the chunk covers until
@@ -418,12 +428,13 @@ class RolloutScheduler(Scheduler):
             lands = t + self.d_infer[self.max_batch_size - 1]
             keyed = []
             for r in self._order:
-                if ready.get(r.k, r.ready) <= t:
-                    dry = deadline.get(r.k, r.deadline)
-                    gain = t - r.one_way + r.h / r.fps - max(dry, lands + r.one_way)
-                    keyed.append((-r.wpt * r.fps * max(gain, 0.0), r.k, r))
+                i = r.i
+                if ready[i] <= t:
+                    dry, landed = deadline[i], lands + r.one_way
+                    gain = t + r.span - (dry if dry > landed else landed)
+                    keyed.append((-r.weight * gain if gain > 0 else 0.0, r.k, r))
         else:
-            keyed = [(deadline.get(r.k, r.deadline), r.k, r) for r in self._order if ready.get(r.k, r.ready) <= t]
+            keyed = [(deadline[r.i], r.k, r) for r in self._order if ready[r.i] <= t]
         keyed.sort(key=lambda c: (c[0], c[1]))
         return [c[2] for c in keyed]
 
