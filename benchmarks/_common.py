@@ -9,9 +9,9 @@ from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.run import SimConfig, simulate
 
 
-def sim(scheduler: str, **kwargs: object) -> dict:
-    """One simulated run (seed 0) of ``scheduler`` with ``SimConfig`` overrides."""
-    cfg = SimConfig(scheduler=make_scheduler_config(scheduler), **kwargs).resolved()  # type: ignore[arg-type]
+def sim(scheduler: str, options: dict[str, object] | None = None, **kwargs: object) -> dict:
+    """One simulated run (seed 0) of ``scheduler`` (with scheduler ``options``) and ``SimConfig`` overrides."""
+    cfg = SimConfig(scheduler=make_scheduler_config(scheduler, **(options or {})), **kwargs).resolved()  # type: ignore[arg-type]
     return simulate(cfg, seed=0)
 
 
