@@ -91,14 +91,18 @@ def index_at(index: int, queue: Queue, tick: int) -> int:
     tick while its coverage lasts; an arrival extends the coverage (equals ``advance``)."""
     end, pending = queue
     x, at = index, 0
+    # min() spelled as conditionals: these loops are the rollout's hot path.
     for a, e in pending:
         if a > tick:
             break
-        x = min(end, x + a - at)
+        x += a - at
+        if x > end:
+            x = end
         at = a
         if e > end:
             end = e
-    return min(end, x + tick - at)
+    x += tick - at
+    return x if x < end else end
 
 
 def dry_tick(index: int, queue: Queue) -> int:
@@ -107,7 +111,9 @@ def dry_tick(index: int, queue: Queue) -> int:
     end, pending = queue
     x, at = index, 0
     for a, e in pending:
-        x = min(end, x + a - at)
+        x += a - at
+        if x > end:
+            x = end
         at = a
         if e > end:
             end = e
@@ -123,7 +129,9 @@ def tick_reaching(index: int, queue: Queue, target: int) -> int:
     for a, e in pending:
         if end >= target and x + a - at >= target:
             return at + target - x
-        x = min(end, x + a - at)
+        x += a - at
+        if x > end:
+            x = end
         at = a
         if e > end:
             end = e
@@ -186,7 +194,8 @@ class _Robot:
         tick = self.obs_tick(t)
         if tick < 0:
             return self.obs
-        return max(self.obs, index_at(self.index, queue, tick))
+        x = index_at(self.index, queue, tick)
+        return x if x > self.obs else self.obs
 
     def arrival(self, t_done: float) -> int:
         """Tick from which a chunk finished at ``t_done`` is usable."""
@@ -435,7 +444,7 @@ class RolloutScheduler(Scheduler):
                     keyed.append((-r.weight * gain if gain > 0 else 0.0, r.k, r))
         else:
             keyed = [(deadline[r.i], r.k, r) for r in self._order if ready[r.i] <= t]
-        keyed.sort(key=lambda c: (c[0], c[1]))
+        keyed.sort()  # by key, then robot index (unique: the robots themselves are never compared)
         return [c[2] for c in keyed]
 
 
