@@ -28,9 +28,11 @@ once it cannot), and it decides which robots are useful later. Rollout measures 
    queue would last if a full batch dispatched now served it, times its weight. ``gain`` is
    what Lookahead maximises, in closed form; it skips a robot whose queue already reaches past
    what a new chunk would cover, and it makes the rollout's later batches honour the weights,
-   where EDF's ignore them. Measured at N = 10 (``docs/results/frontier/README.md``): it moves
-   the fast/slow trade-off of piper one-fast past EDF's point, and does not help the libero
-   fleets, so it is an option, not the default.
+   where EDF's ignore them. Measured at N = 10 on 48 paired seeds
+   (``docs/results/frontier/README.md``): with ``tail=same`` it beats EDF on both tiers, at
+   some weight, in all four one-fast / half-fast fleets of both presets, where the default
+   wins only the half-fast ones. It is an option, not the default, because it is worse on the
+   small fleets against the offline optimum (6 of 30 rows under 95 %, the default 4).
 3. **Score.** The fleet's weighted executed robot time in the window (SPEC §2 reward, each
    robot's own weight). The best candidate is dispatched; ties go to the smaller batch.
 4. **Kept plan** (``keep_plan``, off by default). The winning rollout's later batches are kept,
