@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import random
 
 import numpy as np
@@ -354,3 +355,18 @@ def test_frontier_brackets_the_full_horizon_with_both_lagrangian_bounds(monkeypa
     assert all(v <= hi + 1e-9 for v in row["bracket_values"].values())
     md = frontier.optimum_markdown([row], list(row["values"]))
     assert "slot-price bound" in md and f"{row['bracket_time_priced_upper']:.2f}" in md
+
+
+def test_rollout_episode_end_clips_the_window_for_the_offline_diagnostic():
+    """Off (inf) by default, so live decisions never see it. Told the end of a 1 s cold-start
+    episode, Rollout stops trading the last ticks for ones past the end: in libero all-fast N=5
+    it goes from 89.6 % of the optimum to 95.5 %."""
+    ep = episode_for("libero", "all-fast", 5, 1.0)
+    plain = build("rollout", ep)
+    assert plain.episode_end_s == math.inf
+    told = build("rollout", ep)
+    told.episode_end_s = ep.horizon_s
+    registered, ended = play(ep, plain), play(ep, told)
+    optimum = solve(ep).value
+    assert registered.weighted_executed_s < ended.weighted_executed_s <= optimum + 1e-9
+    assert ended.weighted_executed_s >= 0.95 * optimum

@@ -253,11 +253,19 @@ class RolloutScheduler(Scheduler):
         # decision rolls them out again as one more candidate (see select).
         self._plan: list[tuple[str, ...]] = []
         self.plans_kept = 0  # decisions where the kept plan's batch beat every fresh candidate's
+        # Clock time after which nothing counts. An *offline diagnostic*, never a live setting
+        # (a live fleet has no end): it tells how much of a gap to a finite-horizon optimum
+        # comes from the end of the episode, which only the optimum can plan for
+        # (benchmarks/end_effect.py).
+        self.episode_end_s = math.inf
+        self._window = window_s
 
     # ---- the decision ----------------------------------------------------------------------
 
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
-        pool = [_Robot(k, r, now, self.window_s) for k, r in enumerate(robots) if r.obs_index is not None]
+        # Offline diagnostic only (see episode_end_s): nothing after the episode's end is scored.
+        self._window = min(self.window_s, max(1e-3, self.episode_end_s - now))
+        pool = [_Robot(k, r, now, self._window) for k, r in enumerate(robots) if r.obs_index is not None]
         useful = [r for r in pool if r.useful]
         if not useful:
             return []
@@ -381,7 +389,7 @@ class RolloutScheduler(Scheduler):
         policy ``tail`` (``due`` or ``same``) until the end of the window. Also returns the
         batches after ``first`` that it dispatched, by robot id."""
         d = self.d_infer
-        end = now + self.window_s
+        end = now + self._window
         cap = self.max_batch_size
         queues: dict[int, Queue] = {}
         ready = self._ready0[:]  # time from which each robot is useful (again), by pool position
