@@ -65,6 +65,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=48)
     ap.add_argument("--duration_s", type=float, default=120.0)
     ap.add_argument("--out", help="also write the tables to this markdown file")
+    ap.add_argument("--plot", help="also draw each fleet's trade-off (fast vs slow tier) to this PNG")
     args = ap.parse_args()
 
     who = [("EDF", "edf", {}, 1.0)]
@@ -120,7 +121,64 @@ def main() -> None:
     if args.out:
         Path(args.out).write_text("# N = 10 per-tier starvation against EDF, paired seeds\n\n" + text)
         print(f"wrote {args.out}")
+    if args.plot:
+        plot(runs, who, Path(args.plot))
+        print(f"wrote {args.plot}")
     targets.finish()
+
+
+ZOOM_PP = (5.0, 8.0)  # fast, slow: how far from EDF a point may be and still set a panel's zoom
+
+
+def plot(runs: dict[tuple, np.ndarray], who: list[tuple[str, str, dict[str, str], float]], out: Path) -> None:
+    """One panel per fleet: EDF's point, each setting's weight curve (mean fast / slow starvation),
+    the 95 % half-widths of the paired differences as error bars, significant wins filled. Each
+    panel is zoomed on the points within ZOOM_PP of EDF (the others are off the panel)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, grid = plt.subplots(2, 2, figsize=(11.5, 9.5))
+    colors = ["tab:red", "tab:purple", "tab:blue", "tab:orange"]
+    for ax, (preset, mix) in zip(grid.flat, FLEETS, strict=True):
+        edf = runs[(preset, mix, "EDF", 1.0)]
+        ef, es = edf[:, 0].mean(), edf[:, 1].mean()
+        near = [(ef, es)]
+        for color, (label, _, weights) in zip(colors, SETTINGS, strict=False):
+            xs, ys = [], []
+            for w in weights:
+                r = runs[(preset, mix, label, w)]
+                (df, hf), (ds, hs) = interval(r[:, 0] - edf[:, 0]), interval(r[:, 1] - edf[:, 1])
+                x, y = ef + df, es + ds
+                xs.append(x)
+                ys.append(y)
+                significant = df + hf < 0 and ds + hs <= 0
+                ax.errorbar(x, y, xerr=hf, yerr=hs, fmt="o", ms=5, color=color, mfc=color if significant else "white", lw=0.8)
+                ax.annotate(f"{w:g}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7, color=color)
+            ax.plot(xs, ys, "-", color=color, lw=0.8, label=f"{label} (w)")
+            near.extend((x, y) for x, y in zip(xs, ys, strict=True) if abs(x - ef) <= ZOOM_PP[0] and abs(y - es) <= ZOOM_PP[1])
+        ax.plot(ef, es, "D", color="black", ms=8, label="EDF")
+        ax.axvline(ef, color="black", lw=0.6, ls=":")
+        ax.axhline(es, color="black", lw=0.6, ls=":")
+        px = max(0.5, 0.1 * (max(x for x, _ in near) - min(x for x, _ in near)))
+        py = max(0.3, 0.1 * (max(y for _, y in near) - min(y for _, y in near)))
+        ax.set_xlim(min(x for x, _ in near) - px, max(x for x, _ in near) + px)
+        ax.set_ylim(min(y for _, y in near) - py, max(y for _, y in near) + py)
+        lo_x, lo_y = ax.get_xlim()[0], ax.get_ylim()[0]
+        ax.fill_between([lo_x, ef], lo_y, es, color="tab:green", alpha=0.08, label="beats EDF on both")
+        ax.set_title(f"{preset}, {mix}, N=10", fontsize=9)
+        ax.set_xlabel("fast-tier starvation %")
+        ax.set_ylabel("slow-tier starvation %")
+        ax.grid(alpha=0.3)
+    grid.flat[0].legend(fontsize=7)
+    fig.suptitle(
+        "N=10, paired seeds: filled = significant win on both tiers (95 % half-widths as bars);\n"
+        f"zoomed to within {ZOOM_PP[0]:g} pp (fast) / {ZOOM_PP[1]:g} pp (slow) of EDF"
+    )
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
