@@ -272,7 +272,6 @@ class RolloutScheduler(Scheduler):
         for i, r in enumerate(pool):
             r.i = i
         self._order = sorted(pool, key=lambda r: (r.deadline, r.k))
-        self._by_k = {r.k: r for r in pool}
         # Each rollout starts from copies of these (lists by pool position: cheaper than dicts).
         self._ready0 = [r.ready for r in pool]
         self._deadline0 = [r.deadline for r in pool]
@@ -391,7 +390,7 @@ class RolloutScheduler(Scheduler):
         d = self.d_infer
         end = now + self._window
         cap = self.max_batch_size
-        queues: dict[int, Queue] = {}
+        queues: dict[int, Queue] = {}  # served robots' queues, by pool position
         ready = self._ready0[:]  # time from which each robot is useful (again), by pool position
         deadline = self._deadline0[:]
         batch = first
@@ -401,10 +400,10 @@ class RolloutScheduler(Scheduler):
         while True:
             t_done = t + d[len(batch) - 1]
             for r in batch:
-                q = queues.get(r.k, r.queue)
+                q = queues.get(r.i, r.queue)
                 obs = r.obs_at(t, q)
                 q = _with(q, r.arrival(t_done), obs + r.h)
-                queues[r.k] = q
+                queues[r.i] = q
                 deadline[r.i] = r.origin + dry_tick(r.index, q) / r.fps
                 ready[r.i] = r.useful_from(tick_reaching(r.index, q, obs + r.hm))
             t = t_done
@@ -428,9 +427,8 @@ class RolloutScheduler(Scheduler):
             if self.keep_plan:
                 later.append(tuple(r.mirror.spec.robot_id for r in batch))
         score = 0.0
-        by_k = self._by_k
-        for k, q in queues.items():
-            r = by_k[k]
+        for i, q in queues.items():
+            r = pool[i]
             score += r.wpt * (index_at(r.index, q, r.ticks) - r.index - r.base)
         return score, later
 
