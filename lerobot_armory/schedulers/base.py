@@ -22,6 +22,7 @@ selects it on every command line.
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -47,6 +48,15 @@ class Scheduler(abc.ABC):
         self.max_batch_size = max_batch_size
         # d_infer(b) in seconds, index b-1: looked up on every decision.
         self.d_infer = profile.table_s(max_batch_size)
+        # Clock time after which nothing counts (inf: a live fleet has no end). Only a finite
+        # offline episode sets it (``lerobot_armory.sim.optimal.play(..., tell_end=True)``): the
+        # finite-horizon optimum plans for its end, and a scheduler that scores a window
+        # (Lookahead, Rollout) can be told the same fact so the comparison is like for like.
+        self.episode_end_s = math.inf
+
+    def window_until(self, now: float, window_s: float) -> float:
+        """Length of a scoring window of ``window_s`` from ``now``, clipped at ``episode_end_s``."""
+        return min(window_s, max(1e-3, self.episode_end_s - now))
 
     @abc.abstractmethod
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:

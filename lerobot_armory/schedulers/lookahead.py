@@ -104,7 +104,8 @@ class LookaheadScheduler(Scheduler):
         # The literal score needs the whole fleet's window reward; the marginal one only the
         # candidates' gains, so only candidates (and, at depth > 1, robots that may become
         # useful) are rolled out.
-        pool = [_Robot(r.window_view(now, self.window_s)) for r in robots if r.obs_index is not None]
+        window = self.window_until(now, self.window_s)  # window_s live (no episode end)
+        pool = [_Robot(r.window_view(now, window)) for r in robots if r.obs_index is not None]
         base_total = sum(r.base * r.weight_per_tick for r in pool) if self.score == "total" else 0.0
         self._give_up_at = time.perf_counter() + self.time_budget_s
         self._base_total = base_total

@@ -222,8 +222,12 @@ class EpisodeResult:
         return sum(rows) / len(rows) if rows else float("nan")
 
 
-def play(episode: Episode, scheduler: Scheduler) -> EpisodeResult:
+def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> EpisodeResult:
     """Run ``scheduler`` on ``episode`` with the real mirror and ground-truth timeline classes.
+
+    ``tell_end`` sets ``scheduler.episode_end_s`` to the horizon: the scheduler then knows what
+    the finite-horizon optimum knows, that nothing after the end counts (Lookahead and Rollout
+    clip their scoring window there; RR and EDF do not look ahead). Off by default, as live.
 
     This is the simulator's event loop (SPEC §3 work conservation, latest observation per robot,
     chunk ``(î_j, h_max, t_done + d_action)``) without randomness: delays are exact, so the
@@ -236,6 +240,8 @@ def play(episode: Episode, scheduler: Scheduler) -> EpisodeResult:
     m = ep.net_s
     if scheduler.max_batch_size != ep.max_batch_size:
         raise ConfigError("max_batch_size", f"scheduler cap {scheduler.max_batch_size} != episode cap {ep.max_batch_size}")
+    if tell_end:
+        scheduler.episode_end_s = ep.horizon_s
     warm = _ColdEdf(ep)
     truth = [RobotTimeline(s.fps, ep.phases_s[j]) for j, s in enumerate(ep.specs)]
     mirrors = []
