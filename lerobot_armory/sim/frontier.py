@@ -131,27 +131,6 @@ PROFILES: dict[str, FrontierProfile] = {
         pareto_new_weights=(1.0, 1.5, 1.75, 2.0, 2.1, 2.25, 2.5, 3.0, 3.5, 4.0, 5.0),
         lagrangian=True,
     ),
-    # benchmarks/frontier.py: every small fleet with small budgets, the N = 10 check with fewer
-    # seeds and shorter runs (a few minutes on 2 cores).
-    "bench": FrontierProfile(
-        presets=("libero", "piper"),
-        mixes=MIXES,
-        small_sizes=(2, 3, 4, 5, 6),
-        horizon_s=5.0,
-        ladder_s=(1.0, 1.5),
-        first_budget_s=3.0,
-        ladder_budget_s=20.0,
-        table_weights=(1.0,),
-        fleet_sizes=(),
-        fleet_seeds=1,
-        fleet_duration_s=60.0,
-        fleet_weights=(1.0,),
-        pareto_robots=10,
-        pareto_seeds=2,
-        pareto_duration_s=60.0,
-        pareto_la_weights=(),
-        pareto_new_weights=(1.0, 1.5, 1.75, 2.0, 2.25, 2.5, 3.0, 4.0),
-    ),
     "quick": FrontierProfile(
         presets=("libero", "piper"),
         mixes=("one-fast",),
