@@ -240,8 +240,8 @@ def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> Epis
     m = ep.net_s
     if scheduler.max_batch_size != ep.max_batch_size:
         raise ConfigError("max_batch_size", f"scheduler cap {scheduler.max_batch_size} != episode cap {ep.max_batch_size}")
-    if tell_end:
-        scheduler.episode_end_s = ep.horizon_s
+    # Set either way: a scheduler object told the end of one episode must not keep it for the next.
+    scheduler.episode_end_s = ep.horizon_s if tell_end else math.inf
     warm = _ColdEdf(ep)
     truth = [RobotTimeline(s.fps, ep.phases_s[j]) for j, s in enumerate(ep.specs)]
     mirrors = []
