@@ -36,13 +36,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Targets, sim  # noqa: E402
+from _common import Targets, play_episode, sim  # noqa: E402
 
-from lerobot_armory.latency import load_profile  # noqa: E402
-from lerobot_armory.schedulers import make_scheduler_config  # noqa: E402
 from lerobot_armory.sim.frontier import NEW  # noqa: E402
-from lerobot_armory.sim.optimal import episode_for, play, solve  # noqa: E402
-from lerobot_armory.sim.presets import MIXES, get_preset  # noqa: E402
+from lerobot_armory.sim.optimal import episode_for, solve  # noqa: E402
+from lerobot_armory.sim.presets import MIXES  # noqa: E402
 
 ROWS = Path(__file__).resolve().parents[1] / "docs" / "results" / "frontier" / "optimum_search.json"
 DECISION_CASES = [(10, 5, 120.0, 1.0), (100, 8, 60.0, 10.0)]  # (robots, cap, simulated s, p99 limit ms)
@@ -100,11 +98,9 @@ def small_fleets(targets: Targets) -> list[str]:
     ]
     for r in rows:
         ep = episode_for(r["preset"], r["mix"], r["robots"], r["horizon_s"])
-        profile = load_profile(get_preset(r["preset"]).latency_profile)
         cells, values = [], []
         for label, name, options, tell in COLUMNS:
-            sched = make_scheduler_config(name, **options).build(profile, ep.max_batch_size)
-            frac = play(ep, sched, tell_end=tell).weighted_executed_s / r["optimum"]
+            frac = play_episode(r["preset"], ep, name, options, tell).weighted_executed_s / r["optimum"]
             cells.append(f"{100 * frac:>{max(7, len(label)) - 1}.1f}%")
             values.append(f"{100 * frac:.1f}")
             if label == CHECKED_LABEL:

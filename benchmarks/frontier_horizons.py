@@ -18,13 +18,15 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from lerobot_armory.latency import load_profile
-from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.optimal import episode_for, play, solve
-from lerobot_armory.sim.presets import MIXES, get_preset
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import play_episode  # noqa: E402
+
+from lerobot_armory.sim.optimal import episode_for, solve  # noqa: E402
+from lerobot_armory.sim.presets import MIXES  # noqa: E402
 
 # (label, scheduler, options): all told the episode's end.
 COLUMNS = [
@@ -41,11 +43,7 @@ def job(args: tuple[str, str, int, float, float]) -> tuple[tuple[str, str, int, 
     """Play every column on one episode, then solve it (the best of them as the incumbent)."""
     preset, mix, n, horizon, budget = args
     ep = episode_for(preset, mix, n, horizon)
-    profile = load_profile(get_preset(preset).latency_profile)
-    played = [
-        play(ep, make_scheduler_config(name, **opts).build(profile, ep.max_batch_size), tell_end=True)
-        for _, name, opts in COLUMNS
-    ]
+    played = [play_episode(preset, ep, name, opts, tell_end=True) for _, name, opts in COLUMNS]
     best = max(played, key=lambda r: r.weighted_executed_s)
     res = solve(ep, best.weighted_executed_s, best.batches, time_limit_s=budget)
     return (preset, mix, n, horizon), res.exact, res.value, [r.weighted_executed_s for r in played]
