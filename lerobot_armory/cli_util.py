@@ -43,6 +43,26 @@ def parse_or_exit(config_class: type[T], argv: list[str] | None, prog: str) -> T
     raise AssertionError("unreachable")
 
 
+def split_passthrough(argv: list[str] | None, group: str, own: set[str]) -> tuple[list[str], list[str]]:
+    """Split ``--<group>.<field>=value`` options whose field is not one of ``own`` off ``argv``.
+
+    LeRobot lets ``--policy.path=DIR`` be followed by any field of that policy's own config
+    (``--policy.dtype=bfloat16``); those fields are known only once the policy is found, so they
+    pass through draccus untouched and are checked where the policy is loaded. Returns
+    ``(remaining args, ["field=value", ...])``.
+    """
+    args = _join_space_separated(sys.argv[1:] if argv is None else argv)
+    keep, passed = [], []
+    prefix = f"--{group}."
+    for a in args:
+        name = a[len(prefix):].partition("=")[0] if a.startswith(prefix) else ""
+        if name and name.split(".")[0] not in own:
+            passed.append(a[len(prefix):])
+        else:
+            keep.append(a)
+    return keep, passed
+
+
 def run_or_exit(fn: Callable[[T], Any], cfg: T, prog: str = "lerobot-armory") -> Any:
     """Call ``fn(cfg)``; a :class:`ConfigError` becomes one line on stderr and exit code 2."""
     try:

@@ -19,7 +19,7 @@ class FakeEngine:
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
 
-    def infer(self, observations, tasks):
+    def infer(self, observations, tasks, noise_seeds=None):
         time.sleep(self.seconds)
         return np.zeros((len(observations), 4, 2), np.float32)
 

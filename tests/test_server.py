@@ -291,11 +291,11 @@ def test_engine_failure_hits_one_batch_only(server, engine, monkeypatch):
     real = engine.infer
     calls = {"n": 0}
 
-    def flaky(obs, tasks):
+    def flaky(obs, tasks, noise_seeds=None):
         calls["n"] += 1
         if calls["n"] == 1:
             raise RuntimeError("simulated CUDA error")
-        return real(obs, tasks)
+        return real(obs, tasks, noise_seeds)
 
     monkeypatch.setattr(server.loop.engine, "infer", flaky)
     assert wait_for(lambda: any(n.kind == pb.Notice.INFERENCE_FAILED for n in robot.notices))

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, load_profile
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
@@ -44,7 +44,10 @@ class ServerConfig:
     """Options of ``lerobot-armory-server``.
 
     Attributes:
-        policy: ``--policy.path`` (local directory or hub id) and ``--policy.device``.
+        policy: ``--policy.path`` (local directory or hub id), ``--policy.device``,
+            ``--policy.cpu_threads``, and any field of the policy's own config
+            (``--policy.dtype=bfloat16``, ``--policy.compile_model=true``,
+            ``--policy.num_inference_steps=5``, ``--policy.n_action_steps=...``).
         engine: ``--engine.emulate_profile=NAME|FILE`` replays a latency profile (see emulation.py).
         scheduler: ``--scheduler.type=rr|edf|lookahead`` and its knobs.
         max_batch_size: batch cap b.
@@ -253,6 +256,8 @@ def serve(cfg: ServerConfig) -> None:
     configure_logging(cfg.log_level, cfg.log_format)
     log.info("loading policy %s ...", cfg.policy.path)
     engine = PolicyEngine(cfg.policy)
+    log.info("warming up b = 1..%d ...", cfg.max_batch_size)
+    engine.warmup(cfg.max_batch_size)
     serving_engine: Engine = engine
     latency_note = ""
     if cfg.engine.emulate_profile:
@@ -306,8 +311,12 @@ def serve(cfg: ServerConfig) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point."""
-    cfg = parse_or_exit(ServerConfig, argv, "lerobot-armory-server")
+    """Console entry point. ``--policy.<field>=value`` for any field of the policy's own config
+    (``--policy.dtype=bfloat16``) is passed to LeRobot's config parser when the policy loads."""
+    own = {f.name for f in dataclasses.fields(PolicyOptions)}
+    args, overrides = split_passthrough(argv, "policy", own)
+    cfg = parse_or_exit(ServerConfig, args, "lerobot-armory-server")
+    cfg.policy.overrides = [*cfg.policy.overrides, *overrides]
     run_or_exit(serve, cfg, "lerobot-armory-server")
 
 

@@ -1,10 +1,12 @@
-"""``lerobot-armory-make-demo-policy``: a small random-weight ACT saved as a normal LeRobot policy.
+"""``lerobot-armory-make-demo-policy``: a random-weight LeRobot policy saved as a normal policy dir.
 
-Built entirely offline (``pretrained_backbone_weights=None``: no ImageNet download), with its
-pre/post-processors, so ``--policy.path=DIR`` loads it through the very same code path as a hub
-policy. Deterministic at inference and for a given ``--seed``.
+Built entirely offline, with its pre/post-processors, so ``--policy.path=DIR`` loads it through the
+very same code path as a hub policy. Kinds: a small ACT (``pretrained_backbone_weights=None``: no
+ImageNet download; deterministic at inference), π0.5 at ``--size=tiny|full`` (LeRobot's own
+classes, a stand-in tokenizer inside DIR: ``server/demo_pi05.py``) and the analytic planner.
 
     lerobot-armory-make-demo-policy --output=out/demo-policy
+    lerobot-armory-make-demo-policy --kind=pi05 --size=tiny --output=out/pi05-tiny
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.server.engine import SIDECAR
 
+KINDS = ("act", "pi05", "planner")
+
 
 @dataclass
 class DemoPolicyConfig:
@@ -24,8 +28,12 @@ class DemoPolicyConfig:
 
     Attributes:
         output: directory to write (created).
-        kind: ``act`` (small random-weight ACT) or ``planner`` (the analytic ``armory_planner``
-            that solves the ``armory_sim`` tasks when served on time; one camera, 2-D state).
+        kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights) or
+            ``planner`` (the analytic ``armory_planner`` that solves the ``armory_sim`` tasks when
+            served on time; one camera, 2-D state).
+        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU) or
+            ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
+        dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
         chunk_size: H, actions per chunk.
         state_dim: length of ``observation.state``.
         action_dim: length of each action (default: state_dim).
@@ -38,6 +46,8 @@ class DemoPolicyConfig:
 
     output: str = "out/demo-policy"
     kind: str = "act"
+    size: str = "tiny"
+    dtype: str = "float32"
     chunk_size: int = 20
     state_dim: int = 2
     action_dim: int | None = None
@@ -56,11 +66,19 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
-    if cfg.kind not in ("act", "planner"):
-        raise ConfigError("kind", f"must be act or planner, got {cfg.kind!r}")
+    if cfg.kind not in KINDS:
+        raise ConfigError("kind", f"must be one of {', '.join(KINDS)}, got {cfg.kind!r}")
     cameras = [c.strip() for c in cfg.cameras.split(",") if c.strip()]
     if cfg.kind == "planner":
         return _make_planner(cfg, cameras)
+    if cfg.kind == "pi05":
+        from lerobot_armory.server.demo_pi05 import make_pi05_policy
+
+        out = make_pi05_policy(
+            cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype
+        )
+        _write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "pi05", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
+        return out
     if not cameras:
         raise ConfigError("cameras", "ACT needs at least one camera")
     for field, value in (("chunk_size", cfg.chunk_size), ("state_dim", cfg.state_dim), ("image_size", cfg.image_size)):
@@ -102,19 +120,13 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     policy.save_pretrained(out)
     pre.save_pretrained(out)
     post.save_pretrained(out)
-    (out / SIDECAR).write_text(
-        json.dumps(
-            {
-                "action_names": [f"action_{k}" for k in range(action_dim)],
-                "made_by": "lerobot-armory-make-demo-policy",
-                "random_weights": True,
-                "seed": cfg.seed,
-            },
-            indent=2,
-        )
-        + "\n"
-    )
+    _write_sidecar(out, action_dim, {"kind": "act", "random_weights": True, "seed": cfg.seed})
     return out
+
+
+def _write_sidecar(out: Path, action_dim: int, extra: dict) -> None:
+    names = {"action_names": [f"action_{k}" for k in range(action_dim)], "made_by": "lerobot-armory-make-demo-policy"}
+    (out / SIDECAR).write_text(json.dumps({**names, **extra}, indent=2) + "\n")
 
 
 def _make_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
@@ -152,8 +164,10 @@ def _make_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 
 def _run(cfg: DemoPolicyConfig) -> None:
     out = make_demo_policy(cfg)
-    size_mb = sum(f.stat().st_size for f in out.iterdir()) / 1e6
-    what = "analytic armory_planner policy" if cfg.kind == "planner" else "ACT policy (random weights)"
+    size_mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 1e6
+    what = {"planner": "analytic armory_planner policy", "act": "ACT policy (random weights)"}.get(
+        cfg.kind, f"π0.5 {cfg.size} policy (random weights, stand-in tokenizer)"
+    )
     print(f"demo {what}, {size_mb:.1f} MB, written to {out}; serve it with --policy.path={out}")
 
 

@@ -45,9 +45,11 @@ class EmulatedLatencyEngine:
     def label(self) -> str:
         return f"{self.profile.name} (emulated latency)"
 
-    def infer(self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str]) -> np.ndarray:
+    def infer(
+        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+    ) -> np.ndarray:
         start = self.clock()
-        out = self.engine.infer(observations, tasks)
+        out = self.engine.infer(observations, tasks, noise_seeds)
         target = self.profile.latency_s(len(observations))
         remaining = target - (self.clock() - start)
         self.batches += 1

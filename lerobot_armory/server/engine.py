@@ -1,25 +1,40 @@
 """The inference engine: any LeRobot chunking policy, run batched.
 
 One call of :meth:`PolicyEngine.infer` is one forward pass for the whole batch:
-wire arrays → stacked tensors → LeRobot pre-processor → ``predict_action_chunk`` →
+wire arrays → stacked tensors on the device → LeRobot pre-processor → ``predict_action_chunk`` →
 post-processor → one ``(H, action_dim)`` chunk per robot. No Python loop over robots or actions
 touches the model.
 
 The policy is loaded exactly the way ``--policy.path`` is loaded by LeRobot itself
-(``PreTrainedConfig.from_pretrained``, the policy class's ``from_pretrained``,
-``make_pre_post_processors(pretrained_path=...)``), so a local directory and a hub id behave alike.
+(``PreTrainedConfig.from_pretrained`` with the ``--policy.<field>`` overrides, the policy class's
+``from_pretrained``, ``make_pre_post_processors(pretrained_path=...)``), so a local directory and a
+hub id behave alike.
+
+On a GPU the host side does as little as it can: images are stacked as uint8 into a reusable
+pinned buffer, copied asynchronously (a quarter of the bytes of float32) and converted to float
+on the device; the only synchronisation of a batch is the copy of its actions back to the host.
+Every batch size is warmed up (and compiled, with ``--policy.compile_model=true``) before the
+first robot is served; a compiled model is kept only where it measured faster than eager.
+
+Flow-matching policies (π0, π0.5, SmolVLA) start from Gaussian noise. The engine draws it per
+request from a seed (:func:`noise_seed`: robot id and chunk id), so a robot's chunk does not depend
+on who shared its batch, and a chunk can be recomputed alone.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import inspect
 import json
 import logging
 import os
 import statistics
 import threading
 import time
+import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +48,9 @@ log = logging.getLogger(__name__)
 
 # Optional sidecar a policy directory may carry (the demo policy writes it): action names.
 SIDECAR = "armory.json"
+# A tokenizer stored inside the policy directory (the π0.5 demo's stand-in) replaces the one the
+# saved pre-processor names, wherever the directory has been moved to.
+TOKENIZER_DIR = "tokenizer"
 
 
 @dataclass
@@ -44,18 +62,32 @@ class PolicyOptions:
         device: torch device (``cuda``, ``cuda:1``, ``cpu``, ``mps``); default: cuda if available.
         cpu_threads: torch intra-op threads when the policy runs on the CPU; default: all cores
             but one, so the network threads keep a core (oversubscribing makes every batch slower).
+        overrides: fields of the policy's own config, as LeRobot takes them after
+            ``--policy.path`` (``["dtype=bfloat16", "num_inference_steps=5"]``); on the command
+            line every ``--policy.<field>=value`` that is not one of the options above.
     """
 
     path: str = ""
     device: str | None = None
     cpu_threads: int | None = None
+    overrides: list[str] = field(default_factory=list)
+
+
+def noise_seed(robot_id: str, chunk_id: int) -> int:
+    """The noise seed of one request: fixed by the robot and its chunk number, not by the batch.
+
+    32 bits, because torch's CPU generator keeps only the low 32 bits of a seed (a seed that put
+    the robot in the high bits would give every robot the same noise for the same chunk number).
+    """
+    return zlib.crc32(f"{chunk_id}:{robot_id}".encode())
 
 
 class PolicyEngine:
     """A loaded LeRobot policy with its processors, served in batches.
 
     Raises:
-        ConfigError: the path is missing/unloadable, or the policy does not predict chunks.
+        ConfigError: the path is missing/unloadable, an override names no field of the policy,
+            or the policy does not predict chunks.
     """
 
     def __init__(self, options: PolicyOptions) -> None:
@@ -73,7 +105,7 @@ class PolicyEngine:
         self._threads_set: set[int] = set()
         self._set_thread_count()
         self.path = options.path
-        self.config, self.policy, self.preprocessor, self.postprocessor = _load(options.path, self.device)
+        self.config, self.policy, self.preprocessor, self.postprocessor = _load(options.path, self.device, options.overrides)
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
         if action is None:
@@ -81,12 +113,21 @@ class PolicyEngine:
         self.action_dim = int(action.shape[0])
         self.action_names = _action_names(options.path, self.action_dim)
         self.wire_features = expected_wire_features(self.input_features)
+        self.noise_shape = _noise_shape(self.policy)
+        # Pinned host buffers for asynchronous copies, one per (feature, batch size); reused
+        # because every batch ends with a synchronisation (its actions come back to the host).
+        self._pinned = torch.device(self.device).type == "cuda"
+        self._staging: dict[tuple[str, int], Any] = {}
+        self.compiled_kept: bool | None = None  # after warmup(): compiled model kept (None: not compiled)
         # The chunk size is whatever predict_action_chunk really returns (checked by a dry run).
         self.chunk_size = self._dry_run()
 
     @property
     def description(self) -> str:
-        return f"{self.config.type} from {self.path} on {self.device}"
+        notes = [f"dtype={self.config.dtype}"] if isinstance(getattr(self.config, "dtype", None), str) else []
+        if self.compiled_kept is not None:
+            notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
+        return f"{self.config.type} from {self.path} on {self.device}" + (f" ({', '.join(notes)})" if notes else "")
 
     def _dry_run(self) -> int:
         try:
@@ -122,35 +163,115 @@ class PolicyEngine:
             torch.set_num_threads(self.cpu_threads)
             self._threads_set.add(ident)
 
-    def infer(self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str]) -> np.ndarray:
-        """One batched forward pass. Returns float32 ``(B, H, action_dim)`` on the CPU."""
+    def infer(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None = None,
+    ) -> np.ndarray:
+        """One batched forward pass. Returns float32 ``(B, H, action_dim)`` on the CPU.
+
+        ``tasks[k]`` is row k's prompt. ``noise_seeds[k]`` fixes row k's initial noise for a
+        flow-matching policy (default: 0..B-1); other policies ignore it.
+        """
         import torch
 
         self._set_thread_count()
-
-        batch = self.to_batch(observations)
-        batch["task"] = list(tasks)
-        with torch.inference_mode():
-            processed = self.preprocessor(batch)
-            actions = self.policy.predict_action_chunk(processed)
-            actions = self.postprocessor(actions)
-        return actions.detach().to("cpu", torch.float32).numpy()
+        try:
+            batch = self.to_batch(observations)
+            batch["task"] = list(tasks)
+            kwargs = {}
+            if self.noise_shape is not None:
+                seeds = range(len(observations)) if noise_seeds is None else noise_seeds
+                kwargs["noise"] = self._noise(seeds)
+            with torch.inference_mode():
+                processed = self.preprocessor(batch)
+                actions = self.policy.predict_action_chunk(processed, **kwargs)
+                actions = self.postprocessor(actions)
+            # The one synchronisation of the batch (a no-op copy on the CPU).
+            return actions.detach().to("cpu", torch.float32).numpy()
+        except BaseException:
+            if self._pinned:  # a failed batch must not leave copies from the staging buffers in flight
+                torch.cuda.synchronize(self.device)
+            raise
 
     def to_batch(self, observations: Sequence[dict[str, np.ndarray]]) -> dict[str, Any]:
-        """Stack the robots' wire arrays into policy tensors (images: uint8 HWC → float CHW in [0, 1])."""
+        """Stack the robots' wire arrays into policy tensors on the device (images: uint8 HWC → float
+        CHW in [0, 1], converted on the device)."""
         import torch
 
         batch: dict[str, Any] = {}
         for name, feature in self.input_features.items():
             arrays = [obs[name] for obs in observations]
-            if _is_visual(feature) and any(a.dtype == np.uint8 for a in arrays):
-                if all(a.dtype == np.uint8 for a in arrays):  # the common case: one stack, one permute
-                    batch[name] = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).float().div_(255.0)
-                else:  # robots may send float CHW instead: convert each, then stack
-                    batch[name] = torch.stack([_image_chw(a) for a in arrays])
+            if _is_visual(feature) and all(a.dtype == np.uint8 for a in arrays):
+                # The common case: one stack, one copy of uint8, the conversion on the device.
+                batch[name] = self._upload(name, arrays).permute(0, 3, 1, 2).float().div_(255.0)
+            elif _is_visual(feature):  # robots may send float CHW instead: convert each, then stack
+                batch[name] = torch.stack([_image_chw(a) for a in arrays]).to(self.device)
             else:
-                batch[name] = torch.from_numpy(np.stack(arrays)).float()
+                batch[name] = self._upload(name, arrays).float()
         return batch
+
+    def _upload(self, name: str, arrays: list[np.ndarray]):
+        """``np.stack(arrays)`` as a tensor on the device (pinned staging + async copy on CUDA)."""
+        import torch
+
+        if not self._pinned:
+            return torch.from_numpy(np.stack(arrays)).to(self.device)
+        key = (name, len(arrays))
+        buf = self._staging.get(key)
+        if buf is None or tuple(buf.shape[1:]) != arrays[0].shape or buf.dtype != torch.from_numpy(arrays[0][:0]).dtype:
+            buf = torch.from_numpy(np.stack(arrays)).pin_memory()
+            self._staging[key] = buf
+        else:
+            np.stack(arrays, out=buf.numpy())
+        return buf.to(self.device, non_blocking=True)
+
+    def _noise(self, seeds: Sequence[int]):
+        """Standard-normal float32 noise ``(B, H, D)``, row k drawn from ``seeds[k]`` alone."""
+        import torch
+
+        rows = [torch.randn(self.noise_shape, generator=torch.Generator().manual_seed(int(s)), dtype=torch.float32) for s in seeds]
+        return self._upload("__noise__", [r.numpy() for r in rows])
+
+    def warmup(self, max_batch_size: int, reps: int = 2, log_progress: bool = True) -> None:
+        """Run every batch size 1..max_batch_size before serving (allocator, kernels, and the
+        compilation of a compiled model happen now, not under the first robots). With a compiled
+        model, time it against eager and keep whichever is faster over all sizes."""
+        compiled = _compiled_functions(self.policy)
+        if compiled:
+            _allow_recompiles(max_batch_size)
+        self._time_sizes(max_batch_size, reps, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
+        if not compiled:
+            return
+        # The first pass compiled; now time the compiled model warm, then eager, same inputs.
+        fast_ms = self._time_sizes(max_batch_size, reps, "compiled", log_progress)
+        for owner, name, fn in compiled:
+            setattr(owner, name, fn._torchdynamo_orig_callable)
+        eager_ms = self._time_sizes(max_batch_size, reps, "eager", log_progress)
+        self.compiled_kept = sum(fast_ms) < sum(eager_ms)
+        if self.compiled_kept:
+            for owner, name, fn in compiled:
+                setattr(owner, name, fn)
+        log.info(
+            "compiled %s ms vs eager %s ms (b=1..%d): keeping the %s model",
+            [round(x, 1) for x in fast_ms], [round(x, 1) for x in eager_ms], max_batch_size,
+            "compiled" if self.compiled_kept else "eager",
+        )  # fmt: skip
+
+    def _time_sizes(self, max_batch_size: int, reps: int, what: str, log_progress: bool) -> list[float]:
+        out = []
+        for b in range(1, max_batch_size + 1):
+            obs = [self.example_observation(seed=k) for k in range(b)]
+            times = []
+            for _ in range(max(1, reps)):
+                start = time.perf_counter()
+                self.infer(obs, ["warm-up"] * b)
+                times.append((time.perf_counter() - start) * 1000.0)
+            out.append(min(times))
+            if log_progress:
+                log.info("%s b=%d: %.1f ms", what, b, out[-1])
+        return out
 
     def profile(self, max_batch_size: int, warmup: int = 2, reps: int = 5, log_progress: bool = True) -> LatencyProfile:
         """Measure ``d_infer(b)`` for b = 1..max_batch_size (median of ``reps`` after ``warmup``).
@@ -176,7 +297,7 @@ class PolicyEngine:
         return LatencyProfile(f"profiled:{self.config.type}", tuple(values), self.device, "profiled")
 
 
-def _load(path: str, device: str):
+def _load(path: str, device: str, overrides: Sequence[str] = ()):
     """Load config, policy and processors the way LeRobot loads ``--policy.path``."""
     try:
         from lerobot.configs.policies import PreTrainedConfig
@@ -193,8 +314,13 @@ def _load(path: str, device: str):
     local = Path(path)
     if (local.exists() or path.startswith((".", "/"))) and not (local / "config.json").is_file():
         raise ConfigError("policy.path", f"{path}: not a LeRobot policy directory (no config.json)")
+    saved = _read_local_config(local)
+    _register_variants(saved, path)
+    pre_overrides: dict[str, dict[str, Any]] = {"device_processor": {"device": device}}
+    if (local / TOKENIZER_DIR).is_dir():
+        pre_overrides["tokenizer_processor"] = {"tokenizer_name": str((local / TOKENIZER_DIR).resolve())}
     try:
-        config = PreTrainedConfig.from_pretrained(path)
+        config = _parse_config(PreTrainedConfig, path, list(overrides))
         config.device = device
         policy = get_policy_class(config.type).from_pretrained(path, config=config)
         policy.to(device)
@@ -202,7 +328,7 @@ def _load(path: str, device: str):
         pre, post = make_pre_post_processors(
             config,
             pretrained_path=path,
-            preprocessor_overrides={"device_processor": {"device": device}},
+            preprocessor_overrides=pre_overrides,
             postprocessor_overrides={"device_processor": {"device": "cpu"}},
         )
     except ConfigError:
@@ -213,6 +339,96 @@ def _load(path: str, device: str):
     if not hasattr(policy, "predict_action_chunk"):
         raise ConfigError("policy.path", f"{path}: {config.type} does not predict action chunks")
     return config, policy, pre, post
+
+
+def _read_local_config(local: Path) -> dict[str, Any]:
+    try:
+        data = json.loads((local / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _register_variants(saved: dict[str, Any], path: str) -> None:
+    """A π0.5 directory of ours names a model size LeRobot does not ship: register it first."""
+    from lerobot_armory.policies import pi05_variants
+
+    if saved.get("type") == "pi05" and pi05_variants.uses_variant(saved):
+        try:
+            pi05_variants.register()
+        except ImportError as exc:
+            raise ConfigError("policy.path", f"{path}: π0.5 needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
+
+
+def _parse_config(base: Any, path: str, overrides: list[str]) -> Any:
+    """``PreTrainedConfig.from_pretrained(path, cli_overrides=...)`` with one clear line for an
+    override that names no field of the policy's config or has a bad value."""
+    if not overrides:
+        return base.from_pretrained(path)
+    probe = base.from_pretrained(path)  # the policy type decides which fields exist
+    known = {f.name for f in dataclasses.fields(probe)}
+    args = []
+    for item in overrides:
+        name, eq, value = item.removeprefix("--").removeprefix("policy.").partition("=")
+        top = name.split(".")[0]
+        if not eq or not name:
+            raise ConfigError("policy", f"override {item!r} must look like --policy.<field>=<value>")
+        if top not in known:
+            close = difflib.get_close_matches(top, sorted(known), n=3)
+            hint = f" (did you mean {', '.join(close)}?)" if close else ""
+            raise ConfigError(f"policy.{name}", f"{probe.type} policies have no field {top!r}{hint}")
+        args.append(f"--{name}={value}")
+    try:
+        return base.from_pretrained(path, cli_overrides=args)
+    except SystemExit:  # draccus reports an unparsable value on stderr and exits
+        raise ConfigError("policy", f"invalid value in {' '.join(args)} for a {probe.type} policy") from None
+    except Exception as exc:  # draccus wraps the config's own check (PI05Config: "Invalid dtype: float16")
+        while exc.__cause__ is not None or exc.__context__ is not None:
+            exc = exc.__cause__ or exc.__context__
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        where = f"policy.{args[0][2:].partition('=')[0]}" if len(args) == 1 else "policy"
+        raise ConfigError(where, f"{' '.join(args)} refused by the {probe.type} config: {first}") from None
+
+
+def _noise_shape(policy: Any) -> tuple[int, int] | None:
+    """``(H, D)`` of the initial noise of a flow-matching policy whose ``predict_action_chunk``
+    forwards ``noise=`` to its ``sample_actions`` (π0, π0.5, SmolVLA); None for other policies."""
+    sample = getattr(getattr(policy, "model", None), "sample_actions", None)
+    if sample is None:
+        return None
+    try:
+        if "noise" not in inspect.signature(sample).parameters:
+            return None
+        params = inspect.signature(policy.predict_action_chunk).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    if not any(p.name == "noise" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    h, d = getattr(policy.config, "chunk_size", None), getattr(policy.config, "max_action_dim", None)
+    return (h, d) if isinstance(h, int) and isinstance(d, int) else None
+
+
+def _compiled_functions(policy: Any) -> list[tuple[Any, str, Any]]:
+    """``(owner, attribute, compiled fn)`` for every ``torch.compile`` wrapper a policy installed on
+    itself or its model (π0.5 compiles ``model.sample_actions`` with ``compile_model=true``)."""
+    out = []
+    for owner in (policy, getattr(policy, "model", None)):
+        if owner is None:
+            continue
+        for name, value in list(vars(owner).items()):
+            if callable(value) and hasattr(value, "_torchdynamo_orig_callable"):
+                out.append((owner, name, value))
+    return out
+
+
+def _allow_recompiles(max_batch_size: int) -> None:
+    """Each batch size may compile its own graph: raise dynamo's recompile limit to fit them."""
+    import torch._dynamo
+
+    cfg = torch._dynamo.config
+    for knob in ("recompile_limit", "cache_size_limit"):
+        if hasattr(cfg, knob):
+            setattr(cfg, knob, max(getattr(cfg, knob), 2 * max_batch_size + 8))
 
 
 def _image_chw(array: np.ndarray):

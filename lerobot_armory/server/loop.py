@@ -24,6 +24,7 @@ from lerobot_armory.mirror import Chunk
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler, check_batch
 from lerobot_armory.server.fleet import Fleet, RobotSession
+from lerobot_armory.server.engine import noise_seed
 from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)
@@ -32,7 +33,9 @@ log = logging.getLogger(__name__)
 class Engine(Protocol):
     """What the loop needs from an engine (``PolicyEngine`` or a test double)."""
 
-    def infer(self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str]) -> np.ndarray: ...
+    def infer(
+        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+    ) -> np.ndarray: ...
 
 
 @dataclass
@@ -170,7 +173,11 @@ class ServingLoop:
         fleet = self.fleet
         t_start = fleet.clock()
         try:
-            actions = self.engine.infer([it.observation for it in items], [it.session.task for it in items])
+            actions = self.engine.infer(
+                [it.observation for it in items],
+                [it.session.task for it in items],
+                [noise_seed(it.session.robot_id, it.chunk.chunk_id) for it in items],
+            )
             if actions.shape[0] != len(items):
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {len(items)}")
         except Exception as exc:

@@ -1,0 +1,171 @@
+"""A tiny Gemma size for LeRobot's own π0.5 classes (``paligemma_variant="armory_tiny"``).
+
+LeRobot 0.6 sizes π0.5 by *named* Gemma variants only (``gemma_300m``, ``gemma_2b``:
+``modeling_pi05.get_gemma_config``, checked in ``PI05Config.__post_init__``), and the PaliGemma
+wrapper hard-codes the SigLIP vision tower (≈ 400 M parameters) and the 257 152-token vocabulary.
+Nothing of that size runs a batch on a laptop CPU in seconds, which the tests and the offline demo
+need. :func:`register` adds one more named variant, ``armory_tiny``, to the *same* classes
+(``PI05Config``, ``PI05Policy``, ``PI05Pytorch``, ``PaliGemmaWithExpertModel``): the same code path
+runs — prefix encoding, KV cache, 10 flow-matching steps, the action expert, RTC hooks — only
+the widths, depths, the vision tower and the vocabulary are small.
+
+How: four narrow patches of ``lerobot.policies.pi05``, each a no-op unless a variant of ours is
+being built (a ``ContextVar`` set while ``PI05Pytorch.__init__`` runs), so the real variants and
+hub checkpoints load exactly as LeRobot loads them:
+
+- ``PI05Config.__post_init__`` accepts the variant names of :data:`VARIANTS`;
+- ``get_gemma_config`` returns their Gemma sizes;
+- the PaliGemma and expert constructors get a small SigLIP config (projection to the text width)
+  and a small vocabulary (:data:`TINY_VOCAB`; the stand-in tokenizer's ids all fit in it).
+
+A process that loads such a policy directory must call :func:`register` first; the server does
+(``server/engine.py``), and so must any plain LeRobot script that loads one
+(``import lerobot_armory.policies.pi05_variants as v; v.register()``).
+"""
+
+from __future__ import annotations
+
+import contextvars
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+TINY = "armory_tiny"
+# Vocabulary of the tiny variant: the stand-in tokenizer (``server/standin_tokenizer.py``) has
+# fewer pieces, so every id it emits is inside the model's embedding table.
+TINY_VOCAB = 1024
+
+
+@dataclass(frozen=True)
+class VisionSize:
+    """SigLIP sizes of a variant (the real π0.5 uses So400m: 1152 wide, 27 layers, patch 14)."""
+
+    hidden_size: int
+    num_hidden_layers: int
+    num_attention_heads: int
+    intermediate_size: int
+    patch_size: int
+
+
+@dataclass(frozen=True)
+class Variant:
+    """Sizes of one registered variant: Gemma (as openpi's ``gemma.get_config``), vision, vocab."""
+
+    width: int
+    depth: int
+    mlp_dim: int
+    num_heads: int
+    num_kv_heads: int
+    head_dim: int
+    vision: VisionSize
+    vocab_size: int
+
+
+VARIANTS: dict[str, Variant] = {
+    TINY: Variant(
+        width=64, depth=2, mlp_dim=128, num_heads=2, num_kv_heads=1, head_dim=32,
+        vision=VisionSize(hidden_size=32, num_hidden_layers=1, num_attention_heads=2, intermediate_size=64, patch_size=8),
+        vocab_size=TINY_VOCAB,
+    ),
+}  # fmt: skip
+
+# The variant whose model is being built in this thread (None: a LeRobot variant, untouched).
+_building: contextvars.ContextVar[Variant | None] = contextvars.ContextVar("armory_pi05_variant", default=None)
+_lock = threading.Lock()
+_registered = False
+
+
+def register() -> None:
+    """Make LeRobot's π0.5 accept the variants of :data:`VARIANTS` (idempotent, thread-safe).
+
+    Raises:
+        ImportError: ``transformers`` (LeRobot's ``pi`` extra) is not installed.
+    """
+    global _registered
+    with _lock:
+        if _registered:
+            return
+        from lerobot.policies.pi05 import modeling_pi05
+        from lerobot.policies.pi05.configuration_pi05 import PI05Config
+
+        if modeling_pi05.PaliGemmaForConditionalGenerationWithPiGemma is None:
+            raise ImportError("π0.5 needs transformers: pip install 'lerobot-armory[pi]'")
+        _patch_config(PI05Config)
+        _patch_model(modeling_pi05)
+        _registered = True
+
+
+def _patch_config(config_cls: Any) -> None:
+    validate = config_cls.__post_init__
+    fields = ("paligemma_variant", "action_expert_variant")
+
+    def __post_init__(self: Any) -> None:  # noqa: N807 - replaces the dataclass hook
+        # LeRobot validates against a literal list of its own names; let ours through that one
+        # check and restore them right after, so everything else it validates still runs.
+        ours = {f: getattr(self, f) for f in fields if getattr(self, f) in VARIANTS}
+        for f in ours:
+            setattr(self, f, "gemma_300m")
+        try:
+            validate(self)
+        finally:
+            for f, name in ours.items():
+                setattr(self, f, name)
+
+    config_cls.__post_init__ = __post_init__
+
+
+def _patch_model(m: Any) -> None:
+    get_config = m.get_gemma_config
+    build_vlm = m.PaliGemmaForConditionalGenerationWithPiGemma
+    build_expert = m.PiGemmaForCausalLM
+    init_model = m.PI05Pytorch.__init__
+
+    def get_gemma_config(variant: str) -> Any:
+        v = VARIANTS.get(variant)
+        if v is None:
+            return get_config(variant)
+        return m.GemmaConfig(v.width, v.depth, v.mlp_dim, v.num_heads, v.num_kv_heads, v.head_dim)
+
+    def vlm(config: Any) -> Any:
+        v = _building.get()
+        if v is not None:
+            vis = config.vision_config
+            vis.hidden_size = v.vision.hidden_size
+            vis.num_hidden_layers = v.vision.num_hidden_layers
+            vis.num_attention_heads = v.vision.num_attention_heads
+            vis.intermediate_size = v.vision.intermediate_size
+            vis.patch_size = v.vision.patch_size
+            # Image tokens join the text sequence: project to the text width (LeRobot fixes
+            # 2048, the width of gemma_2b, the only PaliGemma size it ships).
+            vis.projection_dim = config.text_config.hidden_size
+            config.text_config.vocab_size = v.vocab_size
+        return build_vlm(config=config)
+
+    def expert(config: Any) -> Any:
+        v = _building.get()
+        if v is not None:
+            config.vocab_size = v.vocab_size  # the expert's embedding is dropped; its lm_head is unused
+        return build_expert(config=config)
+
+    def __init__(self: Any, config: Any, *args: Any, **kwargs: Any) -> None:  # noqa: N807
+        v = VARIANTS.get(config.paligemma_variant)
+        if v is not None and config.image_resolution[0] % v.vision.patch_size:
+            raise ValueError(
+                f"image_resolution {config.image_resolution} must be a multiple of the {config.paligemma_variant} "
+                f"patch size {v.vision.patch_size}"
+            )
+        token = _building.set(v)
+        try:
+            init_model(self, config, *args, **kwargs)
+        finally:
+            _building.reset(token)
+
+    m.get_gemma_config = get_gemma_config
+    m.PaliGemmaForConditionalGenerationWithPiGemma = vlm
+    m.PiGemmaForCausalLM = expert
+    m.PI05Pytorch.__init__ = __init__
+
+
+def uses_variant(config_json: dict[str, Any]) -> bool:
+    """True if a saved ``config.json`` names a variant of ours (the loader must :func:`register`)."""
+    return config_json.get("paligemma_variant") in VARIANTS or config_json.get("action_expert_variant") in VARIANTS

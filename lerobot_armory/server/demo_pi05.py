@@ -1,0 +1,134 @@
+"""Build a π0.5 policy directory offline: LeRobot's ``PI05Config`` / ``PI05Policy`` with random
+weights, LeRobot's own π0.5 pre/post-processors, and a stand-in tokenizer stored inside it.
+
+    lerobot-armory-make-demo-policy --kind=pi05 --size=tiny --output=out/pi05-tiny
+    lerobot-armory-server --policy.path=out/pi05-tiny
+
+``size=full`` is the real architecture (PaliGemma ``gemma_2b`` + SigLIP So400m at 224², expert
+``gemma_300m``, ≈ 3.6 B parameters, 14 GB in float32 / 7 GB with ``--dtype=bfloat16``);
+``size=tiny`` is the same classes and code path at the registered ``armory_tiny`` Gemma size
+(``policies/pi05_variants.py``; 0.4 M parameters, a batch of 8 in well under a second on a CPU).
+
+The input features are ``observation.state`` and one ``observation.images.<camera>`` per camera,
+as ``armory_sim`` sends them, so simulated robots can be served by it. The directory loads with
+``--policy.path=DIR`` and no network: the pre-processor's tokenizer step names the stand-in in
+``DIR/tokenizer`` (the server always points it there, so the directory can be moved).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
+from lerobot_armory.errors import ConfigError
+
+TOKENIZER_DIR = "tokenizer"
+SIZES = ("tiny", "full")
+
+
+def make_pi05_policy(
+    output: str | Path,
+    size: str = "tiny",
+    chunk_size: int = 50,
+    state_dim: int = 2,
+    action_dim: int | None = None,
+    cameras: tuple[str, ...] = ("front",),
+    image_size: int = 64,
+    seed: int = 0,
+    dtype: str = "float32",
+) -> Path:
+    """Build and save a random-weight π0.5; returns its directory.
+
+    Args:
+        output: directory to write (created).
+        size: ``tiny`` (registered ``armory_tiny`` variant) or ``full`` (gemma_2b + gemma_300m).
+        chunk_size: H, actions per chunk (π0.5's default is 50).
+        state_dim / action_dim: vector sizes (padded internally to π0.5's 32).
+        cameras: camera names; each becomes ``observation.images.<name>`` of ``image_size``².
+        image_size: side of the images robots send (the model resizes to its own resolution).
+        seed: torch seed for the random weights.
+        dtype: ``float32`` or ``bfloat16`` weights (LeRobot keeps the vision tower in float32).
+    """
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from lerobot_armory.policies import pi05_variants
+    from lerobot_armory.server.standin_tokenizer import build_standin_tokenizer
+
+    if size not in SIZES:
+        raise ConfigError("size", f"must be tiny or full, got {size!r}")
+    if not cameras:
+        raise ConfigError("cameras", "π0.5 needs at least one camera")
+    action_dim = action_dim or state_dim
+    for field, value in (("chunk_size", chunk_size), ("state_dim", state_dim), ("action_dim", action_dim), ("image_size", image_size)):
+        if value < 1:
+            raise ConfigError(field, f"must be >= 1, got {value}")
+    if state_dim > 32 or action_dim > 32:
+        raise ConfigError("state_dim", "π0.5 takes at most 32 state and 32 action dimensions")
+    try:
+        pi05_variants.register()
+        from lerobot.policies.pi05.configuration_pi05 import PI05Config
+        from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+    except ImportError as exc:
+        raise ConfigError("kind", f"π0.5 needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
+    tiny = size == "tiny"
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    vocab = pi05_variants.TINY_VOCAB if tiny else 257152
+    tokenizer = build_standin_tokenizer(out / TOKENIZER_DIR, max_id=vocab)
+    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
+    for cam in cameras:
+        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
+    config = PI05Config(
+        paligemma_variant=pi05_variants.TINY if tiny else "gemma_2b",
+        action_expert_variant=pi05_variants.TINY if tiny else "gemma_300m",
+        image_resolution=(32, 32) if tiny else (224, 224),
+        tokenizer_max_length=64 if tiny else 200,
+        chunk_size=chunk_size,
+        n_action_steps=chunk_size,
+        dtype=dtype,
+        input_features=inputs,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+        device="cpu",
+    )
+    torch.manual_seed(seed)
+    policy = PI05Policy(config)
+    # π0.5 normalises state and action by quantiles; armory_sim's positions live in [-1, 1].
+    stats = {
+        "observation.state": _unit_stats(state_dim),
+        "action": _unit_stats(action_dim),
+    }
+    with _tokenizer_from(tokenizer):
+        pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    return out
+
+
+def _unit_stats(dim: int) -> dict:
+    import torch
+
+    ones = torch.ones(dim)
+    return {"q01": -ones, "q99": ones, "min": -ones, "max": ones, "mean": 0 * ones, "std": ones}
+
+
+@contextlib.contextmanager
+def _tokenizer_from(path: Path) -> Iterator[None]:
+    """While building the pre-processor, LeRobot's π0.5 tokenizer step loads ``path`` instead of
+    the gated hub tokenizer (the saved step then names ``path``)."""
+    from lerobot.policies.pi05 import processor_pi05
+
+    real = processor_pi05.TokenizerProcessorStep
+
+    def step(**kwargs):
+        kwargs["tokenizer_name"] = str(path.resolve())
+        return real(**kwargs)
+
+    processor_pi05.TokenizerProcessorStep = step
+    try:
+        yield
+    finally:
+        processor_pi05.TokenizerProcessorStep = real

@@ -1,0 +1,218 @@
+"""π0.5 served for real: LeRobot's own PI05 classes at the tiny size, built and loaded offline,
+per-robot prompts and noise, ``--policy.<field>`` overrides, and the whole path end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.robot.connection import Connection
+from lerobot_armory.schedulers import EarliestDeadlineConfig
+from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features, noise_seed
+from lerobot_armory.server.service import PolicyInfo
+from tests.test_server import wait_for
+
+STATE = "observation.state"
+IMAGE = "observation.images.front"
+TASKS = ("pick up the red block", "sort the bricks by colour", "reach the moving target")
+
+
+@pytest.fixture(scope="session")
+def pi05_dir(tmp_path_factory):
+    """``lerobot-armory-make-demo-policy --kind=pi05 --size=tiny`` (chunk 10, armory_sim features)."""
+    from lerobot_armory.server.demo_policy import main
+
+    out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
+    main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
+    return out
+
+
+@pytest.fixture(scope="session")
+def pi05(pi05_dir):
+    import torch
+
+    torch.set_num_threads(1)
+    return PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+
+
+def observation(robot: int, index: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(1000 * robot + index)
+    return {STATE: rng.uniform(-1, 1, 2).astype(np.float32), IMAGE: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)}
+
+
+def test_tiny_pi05_is_lerobots_own_pi05_loaded_offline_with_armory_sim_features(pi05_dir, monkeypatch):
+    from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+
+    from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+    from lerobot_armory.robot.features import FeatureMap
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    saved = json.loads((pi05_dir / "config.json").read_text())
+    assert saved["type"] == "pi05" and saved["paligemma_variant"] == "armory_tiny"
+    assert (pi05_dir / "tokenizer" / "tokenizer.json").is_file()
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+    assert isinstance(engine.policy, PI05Policy)
+    assert engine.chunk_size == 10 and engine.noise_shape == (10, 32)
+    robot = ArmorySim(ArmorySimConfig())
+    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+    from lerobot_armory.wire import FeatureSpec
+
+    declared = [FeatureSpec(name, dtype, shape) for name, (dtype, shape) in fmap.wire_features().items()]
+    assert check_features(declared, engine.wire_features) == []
+    assert engine.action_dim == len(fmap.action_keys)
+
+
+def test_the_directory_loads_after_it_was_moved(pi05_dir, tmp_path):
+    """The tokenizer inside the directory is used wherever the directory now is."""
+    moved = tmp_path / "moved"
+    shutil.copytree(pi05_dir, moved)
+    original = pi05_dir / "tokenizer"
+    hidden = pi05_dir / "tokenizer.away"
+    original.rename(hidden)  # the path the saved pre-processor names no longer exists
+    try:
+        engine = PolicyEngine(PolicyOptions(str(moved), "cpu"))
+        assert engine.infer([observation(0, 0)], ["touch the target"]).shape == (1, 10, 2)
+    finally:
+        hidden.rename(original)
+
+
+def test_a_batched_chunk_equals_the_chunk_computed_alone(pi05):
+    obs = [observation(k, 3) for k in range(3)]
+    seeds = [noise_seed(f"robot{k}", 5) for k in range(3)]
+    together = pi05.infer(obs, list(TASKS), seeds)
+    for k in range(3):
+        alone = pi05.infer([obs[k]], [TASKS[k]], [seeds[k]])[0]
+        np.testing.assert_allclose(together[k], alone, atol=1e-5)
+    # ... and in any order and company.
+    mixed = pi05.infer([obs[2], obs[0]], [TASKS[2], TASKS[0]], [seeds[2], seeds[0]])
+    np.testing.assert_allclose(mixed[0], together[2], atol=1e-5)
+
+
+def test_the_prompt_and_the_noise_each_change_the_chunk(pi05):
+    obs = observation(0, 0)
+    seed = noise_seed("robot0", 1)
+    a, b = pi05.infer([obs, obs], [TASKS[0], TASKS[1]], [seed, seed])
+    assert np.abs(a - b).max() > 1e-4, "two prompts gave the same chunk"
+    # Two robots at the same chunk number draw different noise (the seed is not just the chunk id).
+    assert noise_seed("robot0", 1) != noise_seed("robot1", 1)
+    assert 0 <= noise_seed("robot0", 1) < 2**32  # torch's CPU generator only uses 32 bits
+    c, d = pi05.infer([obs, obs], [TASKS[0], TASKS[0]], [noise_seed("robot0", 1), noise_seed("robot1", 1)])
+    assert np.abs(c - d).max() > 1e-3
+    # The same request twice: the same chunk (deterministic per request).
+    np.testing.assert_array_equal(pi05.infer([obs], [TASKS[0]], [seed]), pi05.infer([obs], [TASKS[0]], [seed]))
+
+
+def test_policy_field_overrides_reach_the_policy_config(pi05_dir):
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["num_inference_steps=2", "dtype=bfloat16"]))
+    assert engine.config.num_inference_steps == 2 and engine.config.dtype == "bfloat16"
+    assert "dtype=bfloat16" in engine.description
+    assert engine.infer([observation(0, 0)], ["x"]).dtype == np.float32
+    with pytest.raises(ConfigError, match=r"policy\.dtyp: pi05 policies have no field 'dtyp' \(did you mean dtype\?\)"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtyp=bfloat16"]))
+    with pytest.raises(ConfigError, match=r"policy\.dtype: .*Invalid dtype: float16"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=float16"]))
+
+
+def test_server_command_names_an_unknown_policy_field_and_exits_2(pi05_dir):
+    proc = subprocess.run(
+        [sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={pi05_dir}", "--policy.device=cpu", "--policy.bogus=1"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last == "lerobot-armory-server: error: policy.bogus: pi05 policies have no field 'bogus'", proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+class PromptRobot:
+    """A robot double with its own prompt that pushes reproducible observations and keeps chunks."""
+
+    def __init__(self, address: str, engine: PolicyEngine, k: int, task: str) -> None:
+        self.k, self.task, self.robot_id = k, task, f"prompt{k}"
+        self.conn = Connection(address)
+        features = {f.name: (f.dtype, f.shape) for f in engine.wire_features}
+        self.conn.register(self.robot_id, features, fps=30, h_min=1, h_max=10, task=task)
+        self.chunks = []
+        self.conn.open_stream(self.chunks.append)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        index = 0
+        while not self._stop.is_set():
+            self.conn.send_observation(index, observation(self.k, index))
+            index += 1
+            time.sleep(0.03)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.conn.close()
+
+
+def test_served_chunks_equal_each_robots_chunk_computed_alone(pi05):
+    """Through the real server: every chunk a robot receives is what the policy computes for that
+    robot's observation, its own prompt and its own noise, whoever shared the batch."""
+    info = PolicyInfo(pi05.description, pi05.wire_features, pi05.action_names, pi05.chunk_size)
+    server = ArmoryServer(pi05, info, LatencyProfile("test", (20.0, 25.0, 30.0)), EarliestDeadlineConfig(), 3, port=0).start()
+    robots = [PromptRobot(server.address, pi05, k, TASKS[k]) for k in range(3)]
+    try:
+        assert wait_for(lambda: all(len(r.chunks) >= 4 for r in robots), timeout=60)
+        assert wait_for(lambda: any(len(b.robots) >= 2 for b in server.batch_log), timeout=30), "no batch was shared"
+    finally:
+        for r in robots:
+            r.stop()
+        server.stop(grace_s=0.5)
+    for r in robots:
+        for chunk in r.chunks[:4]:
+            alone = pi05.infer([observation(r.k, chunk.i_start)], [r.task], [noise_seed(r.robot_id, chunk.chunk_id)])[0]
+            np.testing.assert_allclose(chunk.actions, alone, atol=1e-5)
+
+
+def test_end_to_end_build_serve_two_armory_sim_robots_with_their_own_tasks(pi05_dir, tmp_path):
+    """The commands a user types: the built directory served by lerobot-armory-server, two
+    lerobot-armory-client armory_sim robots with different --task, chunks received and executed."""
+    from lerobot_armory.bench.live import _start_server
+
+    batch_log = tmp_path / "batches.jsonl"
+    server, address = _start_server(
+        [f"--policy.path={pi05_dir}", "--policy.device=cpu", "--port=0", "--max_batch_size=2", "--scheduler.type=edf",
+         "--latency_profile=l40s-pi05", "--status_interval_s=0", f"--batch_log={batch_log}"]
+    )  # fmt: skip
+    clients = []
+    try:
+        for k, (scene, task) in enumerate((("dynamic", "reach the moving target"), ("static", "touch the static target"))):
+            clients.append(
+                subprocess.Popen(
+                    [sys.executable, "-m", "lerobot_armory.robot.cli", "--robot.type=armory_sim", f"--robot.scene={scene}",
+                     f"--server_address={address}", f"--robot_id=sim{k}", f"--task={task}", "--fps=20", "--h_min=1",
+                     "--h_max=10", "--duration_s=6", f"--stats_path={tmp_path / f'sim{k}.json'}", "--log_level=warning"],
+                    env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                )  # fmt: skip
+            )
+        codes = [c.wait(timeout=120) for c in clients]
+    finally:
+        for c in clients:
+            if c.poll() is None:
+                c.kill()
+        server.send_signal(signal.SIGINT)
+        assert server.wait(timeout=30) == 0
+    assert codes == [0, 0]
+    for k in range(2):
+        stats = json.loads((tmp_path / f"sim{k}.json").read_text())
+        assert stats["chunks_received"] >= 5 and stats["executed_steps"] > 0, stats
+    batches = [json.loads(line) for line in batch_log.read_text().splitlines()]
+    assert {r for b in batches for r in b["robots"]} == {"sim0", "sim1"}
