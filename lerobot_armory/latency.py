@@ -8,12 +8,19 @@ as named profiles; any other profile is a JSON file::
 (``latency_ms`` may also be an object keyed by batch size: ``{"1": 42.3, "2": 56.0}``.) For
 batch sizes beyond the table the latency is extrapolated linearly from the last two points
 (:meth:`LatencyProfile.is_extrapolated` says when that happens, and every report says so).
+
+A profile measured once at start-up can be wrong for the rest of the run (a busy machine, another
+process on the GPU, thermal throttling). :class:`OnlineLatency` starts from such a profile and
+learns ``d_infer(b)`` from the batches the server actually serves; like the mirror and the
+schedulers it is pure code with no clock of its own: whoever measures a batch feeds it.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import statistics
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -152,3 +159,193 @@ def load_profile(name_or_path: str) -> LatencyProfile:
         raise ConfigError(field, f"{path}: latency_ms must be a list or an object, got {type(raw).__name__}")
     validate_latencies(values, field)
     return LatencyProfile(str(data.get("name") or path.stem), tuple(float(v) for v in values), str(data.get("device", "")), str(path))
+
+
+@dataclass(frozen=True)
+class LatencyDrift:
+    """One batch size: the start-up ``d_infer(b)`` against the estimate the scheduler uses now.
+
+    Attributes:
+        batch_size: b.
+        startup_ms: the start-up profile's value.
+        current_ms: the current estimate.
+        samples: accepted samples of this size in the estimator's window.
+        measured: True if ``current_ms`` comes from this size's own recent samples; False if it is
+            fitted from other sizes (or still the start-up value).
+    """
+
+    batch_size: int
+    startup_ms: float
+    current_ms: float
+    samples: int
+    measured: bool
+
+    @property
+    def pct(self) -> float:
+        """Relative change from start-up, in % (positive: slower than profiled)."""
+        return 100.0 * (self.current_ms - self.startup_ms) / self.startup_ms
+
+
+class OnlineLatency:
+    """``d_infer(b)`` for b = 1..cap, learnt online from served batches and seeded with a profile.
+
+    Feed :meth:`observe` with every successfully served batch; read :meth:`table_s`. The estimate:
+
+    * **per size**: the median of the last ``window`` accepted samples, used once a size has
+      ``min_samples`` of them and has been served within the last ``stale_after`` batches;
+    * **outliers**: a sample more than ``outlier_factor`` times above (or below) its size's median
+      is held aside, so one hiccup never moves the table. Only ``confirm`` consecutive outliers in
+      the same direction are taken as a real change of speed: they replace the window. A milder
+      change moves the median after ``window // 2 + 1`` samples. Either way a genuine step change
+      is followed within a bounded number of batches of that size;
+    * **other sizes**: sizes without a usable estimate are fitted. With one measured size the
+      start-up profile is rescaled to it (its shape kept); with two or more, a Theil-Sen line
+      ``a + slope * b`` through the measured sizes (median of pairwise slopes: robust to one bad
+      size). Fitted values are clipped between their measured neighbours, and below the smallest
+      measured size to at least ``d(b_min) * b / b_min`` (a smaller batch never costs more per
+      robot), which keeps them positive;
+    * the table is **positive and non-decreasing** in b (measured medians are raised to their
+      predecessor, as start-up profiling does), as :func:`validate_latencies` and the schedulers
+      require;
+    * the **published** table (what :meth:`table_s` returns) changes only when some entry moved by
+      more than ``tolerance`` (relative), so the scheduler is not rewritten for noise.
+
+    Deterministic: the same sample stream gives the same tables. Not thread-safe for writers (one
+    thread feeds it); readers get the published table as one immutable snapshot.
+    """
+
+    def __init__(
+        self,
+        profile: LatencyProfile,
+        max_batch_size: int,
+        window: int = 21,
+        min_samples: int = 3,
+        outlier_factor: float = 3.0,
+        confirm: int = 5,
+        stale_after: int = 1000,
+        tolerance: float = 0.02,
+    ) -> None:
+        if max_batch_size < 1:
+            raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        if not 1 <= min_samples <= confirm <= window:
+            raise ValueError(f"need 1 <= min_samples <= confirm <= window, got {min_samples}, {confirm}, {window}")
+        if not outlier_factor > 1.0 or stale_after < 1 or tolerance < 0:
+            raise ValueError("outlier_factor must be > 1, stale_after >= 1, tolerance >= 0")
+        self.profile = profile
+        self.max_batch_size = max_batch_size
+        self.min_samples, self.outlier_factor, self.confirm = min_samples, outlier_factor, confirm
+        self.stale_after, self.tolerance = stale_after, tolerance
+        self.startup_ms: tuple[float, ...] = tuple(profile.latency_ms_for(b) for b in range(1, max_batch_size + 1))
+        self._window: list[deque[float]] = [deque(maxlen=window) for _ in range(max_batch_size)]
+        self._suspects: list[list[float]] = [[] for _ in range(max_batch_size)]
+        self._last_seen = [-math.inf] * max_batch_size  # observation number of the latest sample
+        self._count = 0
+        self.rejected = 0  # samples held aside as outliers (some may later confirm a change)
+        self._table_ms = self.startup_ms  # published; replaced whole, never mutated
+        self._measured: frozenset[int] = frozenset()
+
+    @property
+    def observed(self) -> int:
+        """Batches fed so far."""
+        return self._count
+
+    def observe(self, batch_size: int, seconds: float) -> bool:
+        """Record one served batch of ``batch_size`` robots that took ``seconds``.
+
+        Returns True when the published table changed (the caller then copies :meth:`table_s`
+        into the scheduler). A non-positive or non-finite time is ignored (it says nothing).
+        """
+        if not 1 <= batch_size <= self.max_batch_size:
+            raise ValueError(f"batch size {batch_size} outside 1..{self.max_batch_size}")
+        if not (math.isfinite(seconds) and seconds > 0):
+            return False
+        ms = seconds * 1000.0
+        k = batch_size - 1
+        window, suspects = self._window[k], self._suspects[k]
+        self._count += 1
+        if self._count - self._last_seen[k] > self.stale_after:
+            # Not served for long: its old samples describe another machine state; start afresh.
+            window.clear()
+            suspects.clear()
+        self._last_seen[k] = self._count
+        if len(window) >= self.min_samples:
+            ref = statistics.median(window)
+            high, low = ms > ref * self.outlier_factor, ms < ref / self.outlier_factor
+        else:
+            ref, high, low = ms, False, False  # too few samples to call anything an outlier
+        if high or low:
+            self.rejected += 1
+            if suspects and (suspects[0] > ref) != high:
+                suspects.clear()  # the run of outliers changed direction: start counting again
+            suspects.append(ms)
+            if len(suspects) >= self.confirm:
+                # Consecutive outliers all on one side: the machine really changed speed.
+                window.clear()
+                window.extend(suspects)
+                suspects.clear()
+        else:
+            suspects.clear()
+            window.append(ms)
+        return self._publish()
+
+    def _fit(self) -> tuple[list[float], frozenset[int]]:
+        """The full table in ms from the current windows, and the sizes measured directly."""
+        n = self.max_batch_size
+        measured: dict[int, float] = {}
+        for b in range(1, n + 1):
+            window = self._window[b - 1]
+            if len(window) >= self.min_samples and self._count - self._last_seen[b - 1] <= self.stale_after:
+                # Raised to the previous measured size: a larger batch is never scheduled as cheaper.
+                measured[b] = max(statistics.median(window), max(measured.values(), default=0.0))
+        if not measured:
+            return list(self.startup_ms), frozenset()
+        sizes = sorted(measured)
+        if len(sizes) == 1:
+            scale = measured[sizes[0]] / self.startup_ms[sizes[0] - 1]
+            guess = [s * scale for s in self.startup_ms]
+        else:
+            slope = max(0.0, statistics.median(
+                (measured[j] - measured[i]) / (j - i) for x, i in enumerate(sizes) for j in sizes[x + 1 :]
+            ))  # fmt: skip
+            intercept = statistics.median(measured[b] - slope * b for b in sizes)
+            guess = [intercept + slope * b for b in range(1, n + 1)]
+        table = []
+        b_min = sizes[0]
+        for b in range(1, n + 1):
+            if b in measured:
+                table.append(measured[b])
+                continue
+            below = [s for s in sizes if s < b]
+            above = [s for s in sizes if s > b]
+            lo = measured[below[-1]] if below else measured[b_min] * b / b_min
+            hi = measured[above[0]] if above else math.inf
+            table.append(min(max(guess[b - 1], lo), hi))
+        return table, frozenset(sizes)
+
+    def _publish(self) -> bool:
+        table, self._measured = self._fit()
+        old = self._table_ms
+        if all(abs(new - cur) <= self.tolerance * cur for new, cur in zip(table, old, strict=True)):
+            return False
+        self._table_ms = tuple(table)
+        return True
+
+    def table_ms(self) -> tuple[float, ...]:
+        """The published ``d_infer(b)`` in ms, b = 1..cap."""
+        return self._table_ms
+
+    def table_s(self) -> list[float]:
+        """The published ``d_infer(b)`` in seconds, index b-1 (the scheduler's layout)."""
+        return [ms / 1000.0 for ms in self._table_ms]
+
+    def drift(self) -> list[LatencyDrift]:
+        """Start-up vs current estimate for every batch size."""
+        table, measured = self._table_ms, self._measured
+        return [
+            LatencyDrift(b, self.startup_ms[b - 1], table[b - 1], len(self._window[b - 1]), b in measured)
+            for b in range(1, self.max_batch_size + 1)
+        ]
+
+    def max_drift(self) -> LatencyDrift:
+        """The batch size whose estimate moved furthest from start-up (relative; first on ties)."""
+        return max(self.drift(), key=lambda d: abs(d.pct))

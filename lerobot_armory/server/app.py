@@ -5,8 +5,9 @@
 
 Start-up loads the policy through LeRobot's factory, profiles ``d_infer(b)`` for b = 1..cap (or
 loads it: ``--latency_profile``), prints a summary, then serves until SIGINT/SIGTERM, logging one
-line of fleet status per second. Shutdown finishes the in-flight batch, tells every robot, and
-exits 0.
+line of fleet status per second. A profiled table keeps learning from the batches served
+(``--latency_learning``); a loaded one is pinned.
+Shutdown finishes the in-flight batch, tells every robot, and exits 0.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, load_profile
+from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
 from lerobot_armory.server.logs import configure_logging
@@ -55,6 +56,10 @@ class ServerConfig:
         port: TCP port (0 picks a free one and prints it).
         latency_profile: a built-in name or a JSON file to load ``d_infer`` from instead of
             profiling; a path that does not exist yet is profiled and saved there.
+        latency_learning: keep learning ``d_infer`` from the batches actually served and hand the
+            scheduler the updated table (true/false). Unset: learn when the table was profiled at
+            start-up; not when ``--latency_profile`` loaded one (pinned) or
+            ``--engine.emulate_profile`` replays one (batches take exactly the profile).
         profile_reps: timed repetitions per batch size when profiling.
         max_robots: robots served at once.
         max_message_mb: largest message accepted, MiB.
@@ -75,6 +80,7 @@ class ServerConfig:
     host: str = "127.0.0.1"
     port: int = 8080
     latency_profile: str | None = None
+    latency_learning: bool | None = None
     profile_reps: int = 5
     max_robots: int = 64
     max_message_mb: float = 16.0
@@ -113,7 +119,9 @@ class ArmoryServer:
     """The whole serving process in one object: fleet, loop, gRPC front end.
 
     ``engine`` is anything with ``infer(observations, tasks)``; ``policy`` says what robots must
-    send. Tests build it with a real :class:`PolicyEngine` on an ephemeral port.
+    send. Tests build it with a real :class:`PolicyEngine` on an ephemeral port. With
+    ``learn_latency`` the scheduler's ``d_infer`` table follows the measured batch times
+    (:class:`OnlineLatency`, seeded with ``profile``); without, ``profile`` is used as given.
     """
 
     def __init__(
@@ -131,6 +139,7 @@ class ArmoryServer:
         auth: AuthTokens | None = None,
         tls: tuple[bytes, bytes] | None = None,
         max_obs_rate_hz: float = 0.0,
+        learn_latency: bool = False,
     ) -> None:
         self.policy = policy
         self.profile = profile
@@ -139,9 +148,14 @@ class ArmoryServer:
         self.fleet = Fleet(clock, max_robots)
         self.batch_log: list[BatchRecord] = []
         self.batch_listeners: list[Callable[[BatchRecord], None]] = [self._keep_recent]
-        self.loop = ServingLoop(self.fleet, engine, self.scheduler, on_batch=self._on_batch)
+        # Built even when not learning: it then reports the fixed table (drift 0) to metrics.
+        self.latency = OnlineLatency(profile, max_batch_size)
+        self.learn_latency = learn_latency
+        self.loop = ServingLoop(
+            self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None
+        )
         self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz)
-        self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size)
+        self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
         self.batch_listeners.append(self.metrics.on_batch)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None
@@ -217,10 +231,15 @@ class ArmoryServer:
         tier_txt = " ".join(f"{t} {statistics.mean(v):.1f}%" for t, v in sorted(tiers.items())) or "-"
         dec = sorted(stats.decision_ms)
         p99 = dec[min(len(dec) - 1, int(0.99 * len(dec)))] if dec else 0.0
+        if self.learn_latency:
+            worst = self.latency.max_drift()
+            latency_txt = f"d_infer_drift={worst.pct:+.0f}%@b={worst.batch_size}"
+        else:
+            latency_txt = "d_infer=fixed"
         return (
             f"robots={len(sessions)} batches={stats.batches} mean_b={mean_b:.2f} busy={100 * stats.busy_s / elapsed:.0f}% "
             f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
-            f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches}"
+            f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches} {latency_txt}"
         )
 
 
@@ -249,6 +268,17 @@ def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
     return profile
 
 
+def latency_learning(cfg: ServerConfig, profile: LatencyProfile) -> tuple[bool, str]:
+    """Whether the scheduler's ``d_infer`` learns from served batches, and why (for the summary)."""
+    if cfg.latency_learning is not None:
+        return cfg.latency_learning, f"--latency_learning={str(cfg.latency_learning).lower()}"
+    if cfg.engine.emulate_profile:
+        return False, "emulated latency: every batch takes exactly the profile"
+    if profile.source != "profiled":
+        return False, f"pinned by --latency_profile={cfg.latency_profile}"
+    return True, "seeded with the start-up profile, follows the measured batch times"
+
+
 def serve(cfg: ServerConfig) -> None:
     """Build everything, print the summary, serve until a signal."""
     cfg.validate()
@@ -270,9 +300,11 @@ def serve(cfg: ServerConfig) -> None:
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
+    learn, learn_why = latency_learning(cfg, profile)
     server = ArmoryServer(
         serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
         int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
+        learn_latency=learn,
     )  # fmt: skip
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
@@ -289,7 +321,8 @@ def serve(cfg: ServerConfig) -> None:
         f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
         f"  metrics: {f'http://{cfg.host}:{cfg.metrics_port}/metrics' if cfg.metrics_port is not None else 'off'}\n"
-        f"{profile.describe(cfg.max_batch_size)}{latency_note}",
+        f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
+        f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})",
         flush=True,
     )
     stop = threading.Event()

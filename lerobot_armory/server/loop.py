@@ -20,6 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lerobot_armory.latency import OnlineLatency
 from lerobot_armory.mirror import Chunk
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler, check_batch
@@ -28,6 +29,9 @@ from lerobot_armory.server.engine import noise_seed
 from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)
+
+# Warn (once per excursion) when the learnt d_infer moves this far from the start-up profile.
+DRIFT_WARN_PCT = 25.0
 
 
 class Engine(Protocol):
@@ -89,6 +93,8 @@ class ServingLoop:
         engine: anything with ``infer(observations, tasks) -> (B, H, A)``.
         scheduler: a registered scheduler built for the engine's latency profile.
         on_batch: optional callback with each :class:`BatchRecord` (batch logs).
+        latency: if given, every served batch's time feeds this model and its table replaces the
+            scheduler's ``d_infer`` whenever it changes (None: the table stays as built).
     """
 
     def __init__(
@@ -97,11 +103,16 @@ class ServingLoop:
         engine: Engine,
         scheduler: Scheduler,
         on_batch: Callable[[BatchRecord], None] | None = None,
+        latency: OnlineLatency | None = None,
     ) -> None:
+        if latency is not None and latency.max_batch_size != scheduler.max_batch_size:
+            raise ValueError(f"latency model covers b <= {latency.max_batch_size}, the scheduler b <= {scheduler.max_batch_size}")
         self.fleet = fleet
         self.engine = engine
         self.scheduler = scheduler
         self.on_batch = on_batch
+        self.latency = latency
+        self._drift_warned = False
         self.stats = LoopStats(started=fleet.clock())
         self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
         self._last_end: float | None = None
@@ -205,7 +216,34 @@ class ServingLoop:
                 session.outbox.put(msg)
             self._finish(size, t_start, t_done)
             fleet.cond.notify_all()
+        if self.latency is not None:
+            self._learn(size, t_done - t_start)
         self._record(items, t_start, t_done, decision_ms, ok=True)
+
+    def _learn(self, size: int, seconds: float) -> None:
+        """Feed one served batch to the latency model; hand a changed table to the scheduler.
+
+        Failed batches are not fed: an exception's timing says nothing about inference.
+        """
+        model = self.latency
+        assert model is not None
+        if not model.observe(size, seconds):
+            return  # the published table did not move: the scheduler keeps its list untouched
+        table = model.table_s()
+        with self.fleet.cond:
+            # In place, under the lock every decision holds: schedulers read self.d_infer on each
+            # decision (some keep a local alias for its duration), and none sees a half-written table.
+            self.scheduler.d_infer[:] = table
+        worst = model.max_drift()
+        if abs(worst.pct) > DRIFT_WARN_PCT and not self._drift_warned:
+            self._drift_warned = True
+            log.warning(
+                "d_infer drifted %+.0f%% from the start-up profile at b=%d (%.1f -> %.1f ms); the scheduler now uses "
+                "the measured table: %s ms",
+                worst.pct, worst.batch_size, worst.startup_ms, worst.current_ms, ", ".join(f"{ms:.1f}" for ms in model.table_ms()),
+            )  # fmt: skip
+        elif abs(worst.pct) < DRIFT_WARN_PCT / 2:
+            self._drift_warned = False  # back near the profile: warn again on the next excursion
 
     def _fail(self, items: list[WorkItem], exc: Exception, t_start: float, decision_ms: float) -> None:
         """An engine error hurts only this batch: its robots are told and become useful again."""

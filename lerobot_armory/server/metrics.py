@@ -13,6 +13,7 @@ from prometheus_client import CollectorRegistry, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
+from lerobot_armory.latency import OnlineLatency
 from lerobot_armory.server.fleet import Fleet
 from lerobot_armory.server.loop import BatchRecord, LoopStats
 
@@ -64,12 +65,33 @@ class FleetCollector(Collector):
         yield CounterMetricFamily("armory_batches_failed", "Batches whose inference raised", value=self.stats.failed_batches)
 
 
+class LatencyCollector(Collector):
+    """The scheduler's ``d_infer(b)`` table and its drift from the start-up profile, per batch size."""
+
+    def __init__(self, latency: OnlineLatency) -> None:
+        self.latency = latency
+
+    def collect(self) -> Iterator:
+        labels = ["batch_size"]
+        estimate = GaugeMetricFamily("armory_latency_estimate_seconds", "d_infer(b) the scheduler uses now", labels=labels)
+        startup = GaugeMetricFamily("armory_latency_startup_seconds", "d_infer(b) of the start-up profile", labels=labels)
+        drift = GaugeMetricFamily("armory_latency_drift_ratio", "(current - start-up) / start-up d_infer(b)", labels=labels)
+        for d in self.latency.drift():
+            lv = [str(d.batch_size)]
+            estimate.add_metric(lv, d.current_ms / 1000.0)
+            startup.add_metric(lv, d.startup_ms / 1000.0)
+            drift.add_metric(lv, d.pct / 100.0)
+        yield from (estimate, startup, drift)
+
+
 class ServerMetrics:
     """The registry, its histograms, and the batch listener that feeds them."""
 
-    def __init__(self, fleet: Fleet, stats: LoopStats, max_batch_size: int) -> None:
+    def __init__(self, fleet: Fleet, stats: LoopStats, max_batch_size: int, latency: OnlineLatency | None = None) -> None:
         self.registry = CollectorRegistry()
         self.registry.register(FleetCollector(fleet, stats))
+        if latency is not None:
+            self.registry.register(LatencyCollector(latency))
         self.batch_size = Histogram(
             "armory_batch_size", "Robots per dispatched batch", buckets=tuple(range(1, max_batch_size + 1)), registry=self.registry
         )
