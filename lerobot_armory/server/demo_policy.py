@@ -3,10 +3,13 @@
 Built entirely offline, with its pre/post-processors, so ``--policy.path=DIR`` loads it through the
 very same code path as a hub policy. Kinds: a small ACT (``pretrained_backbone_weights=None``: no
 ImageNet download; deterministic at inference), π0.5 at ``--size=tiny|full`` (LeRobot's own
-classes, a stand-in tokenizer inside DIR: ``server/demo_pi05.py``) and the analytic planner.
+classes, a stand-in tokenizer inside DIR: ``server/demo_pi05.py``), a tiny SmolVLA (LeRobot's own
+classes, a stand-in VLM config and tokenizer inside DIR: ``server/demo_smolvla.py``) and the
+analytic planner.
 
     lerobot-armory-make-demo-policy --output=out/demo-policy
     lerobot-armory-make-demo-policy --kind=pi05 --size=tiny --output=out/pi05-tiny
+    lerobot-armory-make-demo-policy --kind=smolvla --output=out/smolvla-tiny
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.server.engine import SIDECAR
 
-KINDS = ("act", "pi05", "planner")
+KINDS = ("act", "pi05", "smolvla", "planner")
 
 
 @dataclass
@@ -28,9 +31,10 @@ class DemoPolicyConfig:
 
     Attributes:
         output: directory to write (created).
-        kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights) or
-            ``planner`` (the analytic ``armory_planner`` that solves the ``armory_sim`` tasks when
-            served on time; one camera, 2-D state).
+        kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights),
+            ``smolvla`` (LeRobot's SmolVLA, tiny, random weights) or ``planner`` (the analytic
+            ``armory_planner`` that solves the ``armory_sim`` tasks when served on time; one
+            camera, 2-D state).
         size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU) or
             ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
         dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
@@ -78,6 +82,17 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
             cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype
         )
         _write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "pi05", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
+        return out
+    if cfg.kind == "smolvla":
+        from lerobot_armory.server.demo_smolvla import make_smolvla_policy
+
+        if cfg.size != "tiny" or cfg.dtype != "float32":
+            raise ConfigError("size", "SmolVLA is built at size=tiny, dtype=float32 only")
+        out = make_smolvla_policy(
+            cfg.output, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed
+        )
+        extra = {"kind": "smolvla", "size": "tiny", "random_weights": True, "seed": cfg.seed}
+        _write_sidecar(out, cfg.action_dim or cfg.state_dim, extra)
         return out
     if not cameras:
         raise ConfigError("cameras", "ACT needs at least one camera")
@@ -165,9 +180,11 @@ def _make_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 def _run(cfg: DemoPolicyConfig) -> None:
     out = make_demo_policy(cfg)
     size_mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 1e6
-    what = {"planner": "analytic armory_planner policy", "act": "ACT policy (random weights)"}.get(
-        cfg.kind, f"π0.5 {cfg.size} policy (random weights, stand-in tokenizer)"
-    )
+    what = {
+        "planner": "analytic armory_planner policy",
+        "act": "ACT policy (random weights)",
+        "smolvla": "SmolVLA tiny policy (random weights, stand-in VLM config and tokenizer)",
+    }.get(cfg.kind, f"π0.5 {cfg.size} policy (random weights, stand-in tokenizer)")
     print(f"demo {what}, {size_mb:.1f} MB, written to {out}; serve it with --policy.path={out}")
 
 

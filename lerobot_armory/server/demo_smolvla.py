@@ -1,0 +1,221 @@
+"""Build a SmolVLA policy directory offline: LeRobot's ``SmolVLAConfig`` / ``SmolVLAPolicy`` with
+random weights, LeRobot's own SmolVLA pre/post-processors, and a tiny stand-in VLM stored inside it.
+
+    lerobot-armory-make-demo-policy --kind=smolvla --output=out/smolvla-tiny
+    lerobot-armory-server --policy.path=out/smolvla-tiny
+
+SmolVLA builds its backbone from ``vlm_model_name`` (``HuggingFaceTB/SmolVLM2-500M-Video-Instruct``)
+even with ``load_vlm_weights=False``: ``SmolVLMWithExpertModel`` calls ``AutoConfig`` and
+``AutoProcessor.from_pretrained(vlm_model_name)`` (the architecture, and the tokenizer's
+``<fake_token_around_image>`` / ``<global-img>`` ids), and the pre-processor's
+``tokenizer_processor`` step calls ``AutoTokenizer.from_pretrained(vlm_model_name)``. Both accept
+a local directory, so this module writes one, ``DIR/vlm``, with nothing from the hub:
+
+- ``config.json``: a ``SmolVLMConfig`` (Llama text model 64 wide, 2 layers, head_dim 32; SigLIP-style
+  vision tower 32 wide, 1 layer, 32² images in 8² patches, pixel-shuffle 2 → 4 tokens per camera);
+- a byte-level BPE tokenizer (GPT-2 style like SmolVLM2's, so any text encodes) trained here on a
+  fixed text, with SmolVLM2's special tokens and its ``fake_image_token`` / ``global_image_token`` /
+  ``image_token`` names; saved with the ``SmolVLMProcessor`` that wraps it (``processor_config.json``).
+
+``DIR/tokenizer`` holds the same tokenizer alone, so the server points the pre-processor's
+``tokenizer_processor`` step there wherever the directory has been moved (``server/engine.py``).
+
+Everything else is LeRobot's real SmolVLA code path: prefix of image, language and state tokens,
+KV cache, the interleaved self/cross-attention action expert (0.75 × the VLM width), 10
+flow-matching steps. 0.24 M parameters; a batch runs in tens of milliseconds on one CPU core.
+
+Caveat: ``config.json`` stores ``vlm_model_name`` as the absolute path of ``DIR/vlm`` at build time
+(SmolVLA resolves it against the working directory, not the policy directory). A moved directory
+loads with ``--policy.vlm_model_name=NEWDIR/vlm`` (or once the server sets that override itself).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+from lerobot_armory.errors import ConfigError
+
+VLM_DIR = "vlm"
+TOKENIZER_DIR = "tokenizer"
+
+# SmolVLM2's special tokens (its tokenizer names the image ones as attributes SmolVLA reads).
+_SPECIALS = {
+    "unk_token": "<|endoftext|>",
+    "bos_token": "<|im_start|>",
+    "pad_token": "<|im_end|>",
+    "eos_token": "<end_of_utterance>",
+}
+_EXTRA = {
+    "fake_image_token": "<fake_token_around_image>",
+    "image_token": "<image>",
+    "global_image_token": "<global-img>",
+    "end_of_utterance_token": "<end_of_utterance>",
+    "video_token": "<video>",
+}
+# Text the stand-in tokenizer is trained on (SmolVLA's prompt is the task and a newline). Fixed,
+# so a build is reproducible.
+_CORPUS = [
+    "pick up the red block and place it in the bin\n",
+    "sort the bricks by colour\n",
+    "reach the moving target\n",
+    "touch the static target\n",
+    "open the drawer and close the drawer\n",
+    "push the button, fold the towel, stack the cups\n",
+    "put the bowl on the plate, wipe the table\n",
+    "insert the peg into the hole\n",
+    "move the arm to the left, to the right, up and down\n",
+    "0 1 2 3 4 5 6 7 8 9 10 20 50 100\n",
+]
+# Sizes of the stand-in SmolVLM (SmolVLM2-500M: text 960 wide, 32 layers, head_dim 64; vision 768
+# wide, 12 layers, 512² images in 16² patches). The action expert is 0.75 × the text width.
+TINY_TEXT = dict(
+    hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=2, num_key_value_heads=1, head_dim=32
+)
+TINY_VISION = dict(
+    hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, image_size=32, patch_size=8
+)
+
+
+def make_smolvla_policy(
+    output: str | Path,
+    chunk_size: int = 50,
+    state_dim: int = 2,
+    action_dim: int | None = None,
+    cameras: tuple[str, ...] = ("front",),
+    image_size: int = 64,
+    seed: int = 0,
+) -> Path:
+    """Build and save a random-weight tiny SmolVLA; returns its directory.
+
+    Args:
+        output: directory to write (created).
+        chunk_size: H, actions per chunk (SmolVLA's default is 50).
+        state_dim / action_dim: vector sizes (padded internally to SmolVLA's 32).
+        cameras: camera names; each becomes ``observation.images.<name>`` of ``image_size``².
+        image_size: side of the images robots send (the model resizes and pads to 32²).
+        seed: torch seed for the random weights.
+    """
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    if not cameras:
+        raise ConfigError("cameras", "SmolVLA needs at least one camera")
+    action_dim = action_dim or state_dim
+    sizes = (("chunk_size", chunk_size), ("state_dim", state_dim), ("action_dim", action_dim), ("image_size", image_size))
+    for field, value in sizes:
+        if value < 1:
+            raise ConfigError(field, f"must be >= 1, got {value}")
+    if state_dim > 32 or action_dim > 32:
+        raise ConfigError("state_dim", "SmolVLA takes at most 32 state and 32 action dimensions")
+    try:
+        from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+        from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+        from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
+    except ImportError as exc:
+        raise ConfigError("kind", f"SmolVLA needs LeRobot's smolvla extra (pip install 'lerobot[smolvla]'): {exc}") from None
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    vlm = build_standin_vlm(out / VLM_DIR)
+    tokenizer_dir = out / TOKENIZER_DIR
+    _tokenizer(vlm).save_pretrained(tokenizer_dir)
+    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
+    for cam in cameras:
+        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
+    side = TINY_VISION["image_size"]
+    config = SmolVLAConfig(
+        vlm_model_name=str(vlm.resolve()),
+        load_vlm_weights=False,  # random weights: the architecture comes from DIR/vlm/config.json
+        num_vlm_layers=TINY_TEXT["num_hidden_layers"],
+        resize_imgs_with_padding=(side, side),
+        chunk_size=chunk_size,
+        n_action_steps=chunk_size,
+        input_features=inputs,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+        device="cpu",
+    )
+    torch.manual_seed(seed)
+    with _quiet():
+        policy = SmolVLAPolicy(config)
+    # SmolVLA normalises state and action by mean/std; armory_sim's positions live in [-1, 1].
+    stats = {
+        "observation.state": {"mean": torch.zeros(state_dim), "std": torch.ones(state_dim)},
+        "action": {"mean": torch.zeros(action_dim), "std": torch.ones(action_dim)},
+    }
+    pre, post = make_smolvla_pre_post_processors(config, dataset_stats=stats)
+    # The saved tokenizer step names DIR/tokenizer (the server re-points it wherever DIR now is).
+    for step in pre.steps:
+        if type(step).__name__ == "TokenizerProcessorStep":
+            step.tokenizer_name = str(tokenizer_dir.resolve())
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    return out
+
+
+def build_standin_vlm(output: str | Path, vocab_size: int = 512) -> Path:
+    """Write a tiny SmolVLM (``config.json``, tokenizer, ``SmolVLMProcessor``) to ``output``, a
+    local stand-in for ``vlm_model_name``; returns ``output``. Needs no network."""
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+    from transformers import (
+        PreTrainedTokenizerFast,
+        SmolVLMConfig,
+        SmolVLMImageProcessor,
+        SmolVLMProcessor,
+        SmolVLMVideoProcessor,
+    )
+
+    specials = list(dict.fromkeys([*_SPECIALS.values(), *_EXTRA.values()]))
+    bpe = Tokenizer(models.BPE())
+    bpe.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    bpe.decoder = decoders.ByteLevel()
+    trainer = trainers.BpeTrainer(
+        vocab_size=vocab_size,
+        special_tokens=specials,
+        initial_alphabet=pre_tokenizers.ByteLevel.alphabet(),  # every byte: any text encodes
+        show_progress=False,
+    )
+    bpe.train_from_iterator(_CORPUS * 8, trainer=trainer)
+    tokenizer = PreTrainedTokenizerFast(tokenizer_object=bpe, extra_special_tokens=dict(_EXTRA), **_SPECIALS)
+    side = TINY_VISION["image_size"]
+    processor = SmolVLMProcessor(
+        image_processor=SmolVLMImageProcessor(
+            size={"longest_edge": side}, max_image_size={"longest_edge": side}, do_image_splitting=False
+        ),
+        tokenizer=tokenizer,
+        video_processor=SmolVLMVideoProcessor(),
+        image_seq_len=(side // TINY_VISION["patch_size"]) ** 2 // 4,  # pixel shuffle with scale factor 2
+    )
+    config = SmolVLMConfig(
+        text_config=dict(
+            model_type="llama",
+            vocab_size=len(tokenizer),
+            pad_token_id=tokenizer.pad_token_id,
+            max_position_embeddings=512,
+            **TINY_TEXT,
+        ),
+        vision_config=dict(TINY_VISION),
+        scale_factor=2,
+        image_token_id=tokenizer.convert_tokens_to_ids(_EXTRA["image_token"]),
+        pad_token_id=tokenizer.pad_token_id,
+    )
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    processor.save_pretrained(out)
+    config.save_pretrained(out)
+    return out
+
+
+def _tokenizer(vlm: Path):
+    from transformers import AutoTokenizer
+
+    return AutoTokenizer.from_pretrained(vlm)
+
+
+@contextlib.contextmanager
+def _quiet():
+    """SmolVLA prints "Reducing the number of VLM layers to N ..." while it builds."""
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        yield
