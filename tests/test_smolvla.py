@@ -98,16 +98,17 @@ def test_plain_lerobot_loads_the_directory_offline(smolvla_dir, no_network):
     assert actions.shape == (2, 10, 2) and torch.isfinite(actions).all()
 
 
-def test_the_directory_loads_after_it_was_moved_with_vlm_model_name_pointed_at_it(smolvla_dir, tmp_path, no_network):
-    """``vlm_model_name`` is saved as an absolute path; a moved directory names its own ``vlm``
-    with ``--policy.vlm_model_name`` (the tokenizer step is re-pointed by the server itself)."""
+def test_the_directory_loads_after_it_was_moved(smolvla_dir, tmp_path, no_network):
+    """``vlm_model_name`` is saved as an absolute path; the server points it (and the tokenizer
+    step) at the moved directory's own ``vlm`` and ``tokenizer``."""
     moved = tmp_path / "moved"
     shutil.copytree(smolvla_dir, moved)
     hidden = {name: smolvla_dir / f"{name}.away" for name in ("vlm", "tokenizer")}
     for name, away in hidden.items():
         (smolvla_dir / name).rename(away)  # the paths the saved files name no longer exist
     try:
-        engine = PolicyEngine(PolicyOptions(str(moved), "cpu", overrides=[f"vlm_model_name={moved / 'vlm'}"]))
+        engine = PolicyEngine(PolicyOptions(str(moved), "cpu"))
+        assert engine.config.vlm_model_name == str((moved / "vlm").resolve())
         assert engine.infer([observation(0, 0)], ["touch the target"]).shape == (1, 10, 2)
     finally:
         for name, away in hidden.items():

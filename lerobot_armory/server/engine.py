@@ -51,6 +51,7 @@ SIDECAR = "armory.json"
 # A tokenizer stored inside the policy directory (the π0.5 demo's stand-in) replaces the one the
 # saved pre-processor names, wherever the directory has been moved to.
 TOKENIZER_DIR = "tokenizer"
+VLM_DIR = "vlm"  # a stand-in VLM inside the directory (the SmolVLA demo's)
 
 
 @dataclass
@@ -322,6 +323,15 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
     try:
         config = _parse_config(PreTrainedConfig, path, list(overrides))
         config.device = device
+        # A SmolVLA demo directory carries its stand-in VLM in DIR/vlm; its config.json can only
+        # name it by absolute path (LeRobot resolves a relative one against the working
+        # directory), so point it there wherever the directory now is, unless the user chose one.
+        if (
+            getattr(config, "vlm_model_name", None) is not None
+            and (local / VLM_DIR / "config.json").is_file()
+            and not any(o.removeprefix("--").removeprefix("policy.").startswith("vlm_model_name=") for o in overrides)
+        ):
+            config.vlm_model_name = str((local / VLM_DIR).resolve())
         policy = get_policy_class(config.type).from_pretrained(path, config=config)
         policy.to(device)
         policy.eval()

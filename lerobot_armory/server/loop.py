@@ -24,8 +24,8 @@ from lerobot_armory.latency import OnlineLatency
 from lerobot_armory.mirror import Chunk
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler, check_batch
-from lerobot_armory.server.fleet import Fleet, RobotSession
 from lerobot_armory.server.engine import noise_seed
+from lerobot_armory.server.fleet import Fleet, RobotSession
 from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)
