@@ -1,6 +1,7 @@
-"""Engine efficiency: served chunks/s at batch b >= 0.9 x a bare batched predict_action_chunk loop.
+"""Engine efficiency: served chunks/s at batch b >= 0.95 x (GPU) / 0.9 x (CPU) a bare batched loop.
 
-For b = 1, 3, 5 and the demo ACT (random weights, CPU):
+For b = 1, 3, 5, 8 and a random-weight policy (``--policy=act``: the demo ACT; ``pi05-tiny`` /
+``pi05-full``: π0.5 built offline), on the GPU when there is one (else the CPU):
 
 - *bare*: LeRobot's pre-processor -> ``predict_action_chunk`` -> post-processor on ready-made
   tensors, as fast as it can, in this process;
@@ -9,7 +10,11 @@ For b = 1, 3, 5 and the demo ACT (random weights, CPU):
 
 This machine's speed drifts by ±20 % from second to second, so the two are measured in
 alternating windows (robots paused during bare windows) and the medians are compared.
-Run: ``.venv/bin/python benchmarks/engine_efficiency.py``. Exits 1 if a ratio is below 0.9.
+On a GPU the target is 0.95 (the host work — decoding, stacking, the uint8 upload, the scheduler —
+overlaps the device); on a 2-core CPU the network threads and the model share the same cores, so
+the target there stays 0.9.
+Run: ``.venv/bin/python benchmarks/engine_efficiency.py [--policy=act|pi05-tiny|pi05-full]``.
+Exits 1 if a ratio is below its target.
 """
 
 from __future__ import annotations
@@ -24,11 +29,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets  # noqa: E402
 
-SIZES = (1, 3, 5)
+SIZES = (1, 3, 5, 8)
 ROUNDS = 5
 BARE_S = 1.5
 SERVED_S = 2.0
-TARGET = 0.9
+TARGET_GPU = 0.95
+TARGET_CPU = 0.9
 PUSH_PERIOD_S = 0.02
 
 
@@ -69,29 +75,52 @@ def robots_process(address: str, n: int, features: dict, pushing, done) -> None:
         c.close()
 
 
+def build_policy(kind: str, out: str) -> str:
+    """The policy directory to serve (random weights, built offline)."""
+    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+
+    if kind == "act":
+        make_demo_policy(DemoPolicyConfig(output=out))
+    elif kind in ("pi05-tiny", "pi05-full"):
+        make_demo_policy(DemoPolicyConfig(output=out, kind="pi05", size=kind.split("-")[1], chunk_size=50, dtype="bfloat16"))
+    else:
+        raise SystemExit(f"unknown --policy={kind}; use act, pi05-tiny or pi05-full")
+    return out
+
+
 def main() -> None:
+    import argparse
+
     import torch
 
     from lerobot_armory.latency import LatencyProfile
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.server.app import ArmoryServer, tune_process
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
     from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
     from lerobot_armory.server.service import PolicyInfo
 
+    parser = argparse.ArgumentParser(description="served chunks/s vs a bare batched loop")
+    parser.add_argument("--policy", default="act", help="act, pi05-tiny or pi05-full")
+    parser.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    args = parser.parse_args()
+    sizes = [int(b) for b in args.sizes.split(",")]
     tune_process()  # as lerobot-armory-server does
-    tmp = tempfile.mkdtemp()
-    make_demo_policy(DemoPolicyConfig(output=f"{tmp}/policy"))
-    engine = PolicyEngine(PolicyOptions(f"{tmp}/policy", "cpu"))
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    target = TARGET_GPU if device == "cuda" else TARGET_CPU
+    path = build_policy(args.policy, f"{tempfile.mkdtemp()}/policy")
+    overrides = ["dtype=bfloat16"] if args.policy.startswith("pi05") and device == "cuda" else []
+    engine = PolicyEngine(PolicyOptions(path, device, overrides=overrides))
+    engine.warmup(max(sizes), log_progress=False)
     features = {f.name: (f.dtype, f.shape) for f in engine.wire_features}
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     targets = Targets()
-    print(f"demo ACT ({engine.description}), torch intra-op threads={torch.get_num_threads()}")
+    print(f"{engine.description}, torch intra-op threads={torch.get_num_threads()}, target served/bare >= {target}")
     ctx = mp.get_context("spawn")
-    for b in SIZES:
+    for b in sizes:
         obs = [engine.example_observation(k) for k in range(b)]
         batch = engine.to_batch(obs)
         batch["task"] = [""] * b
+        noise = {"noise": engine._noise(range(b))} if engine.noise_shape is not None else {}
         server = ArmoryServer(engine, info, LatencyProfile("flat", tuple([10.0] * b)), EarliestDeadlineConfig(), b, port=0).start()
         pushing, done = ctx.Event(), ctx.Event()
         proc = ctx.Process(target=robots_process, args=(server.address, max(2, 2 * b), features, pushing, done))
@@ -103,7 +132,8 @@ def main() -> None:
             n, t0 = 0, time.perf_counter()
             with torch.inference_mode():
                 while time.perf_counter() - t0 < BARE_S:
-                    engine.postprocessor(engine.policy.predict_action_chunk(engine.preprocessor(dict(batch))))
+                    # The bare loop: pre-processor, forward, post-processor on tensors already on the device.
+                    engine.postprocessor(engine.policy.predict_action_chunk(engine.preprocessor(dict(batch)), **noise)).to("cpu")
                     n += 1
             bare_runs.append(n * b / (time.perf_counter() - t0))
             pushing.set()
@@ -127,7 +157,7 @@ def main() -> None:
             f"batch sizes {sizes})\n        in-server batch p50 {infer[len(infer) // 2]:.1f} ms, idle with work waiting "
             f"{1000 * server.loop.stats.idle_with_work_s / max(1, server.loop.stats.batches):.2f} ms/batch"
         )
-        targets.check_min(f"served/bare b={b}", ratio, TARGET)
+        targets.check_min(f"served/bare b={b}", ratio, target)
     targets.finish()
 
 

@@ -54,7 +54,11 @@ class BenchConfig:
         depth: Lookahead depth L.
         max_batch_size: batch cap (default: the preset's).
         emulate_profile: latency profile the server replays (``--engine.emulate_profile``); empty:
-            the real model's timing on this machine.
+            the real model's timing on this machine (the server profiles it at start-up and the
+            simulator replays that measured profile).
+        device: ``--policy.device`` of the server (``cpu``, ``cuda``).
+        policy_args: more ``--policy.<field>=value`` options for the server, space-separated
+            (``--policy.dtype=bfloat16 --policy.compile_model=true``).
         net_median_ms / net_sigma: client-side emulated one-way delay (log-normal per message).
         duration_s: seconds per run.
         seeds: runs per scheduler (seed 0, 1, ...).
@@ -73,6 +77,8 @@ class BenchConfig:
     depth: int = 1
     max_batch_size: int | None = None
     emulate_profile: str = "l40s-pi05"
+    device: str = "cpu"
+    policy_args: str = ""
     net_median_ms: float = 0.0
     net_sigma: float = 0.0
     duration_s: float = 20.0
@@ -158,13 +164,18 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
     (run_dir / "stats").mkdir(parents=True, exist_ok=True)
     batch_log = run_dir / "batches.jsonl"
     args = [
-        f"--policy.path={policy}", "--policy.device=cpu", "--port=0", f"--scheduler.type={scheduler}",
+        f"--policy.path={policy}", f"--policy.device={cfg.device}", "--port=0", f"--scheduler.type={scheduler}",
         f"--max_batch_size={cap}", f"--batch_log={batch_log}", "--status_interval_s=0", "--log_level=warning",
+        *shlex.split(cfg.policy_args),
     ]  # fmt: skip
+    measured = run_dir / "profile.json"  # real timing: profiled at start-up, saved, replayed by the simulator
     if scheduler == "lookahead":
         args.append(f"--scheduler.depth={cfg.depth}")
     if cfg.emulate_profile:
         args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
+    else:
+        measured.unlink(missing_ok=True)
+        args.append(f"--latency_profile={measured}")
     server, address = _start_server(args)
     before = os.times()
     reaped_before = before.children_user + before.children_system
@@ -217,13 +228,16 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
         raise RuntimeError(f"robot group(s) failed with exit codes {codes}; see the messages above")
     stats = [json.loads(p.read_text()) for p in sorted((run_dir / "stats").glob("*.json"))]
     batches = [json.loads(line) for line in batch_log.read_text().splitlines() if line.strip()]
-    record = _record(cfg, scheduler, seed, cap, stats, batches, cpu_pct)
+    profile = load_profile(cfg.emulate_profile or str(measured))
+    record = _record(cfg, scheduler, seed, cap, stats, batches, cpu_pct, profile)
     record["machine_busy_pct"] = machine_pct
     record["saturated"] = machine_pct > SATURATED_PCT
     return record
 
 
-def _record(cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[dict], batches: list[dict], cpu_pct: float) -> dict[str, Any]:
+def _record(
+    cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[dict], batches: list[dict], cpu_pct: float, profile: LatencyProfile
+) -> dict[str, Any]:
     tiers: dict[str, dict[str, float]] = {}
     for tier in ("fast", "slow"):
         rows = [s for s in stats if s["tier"] == tier]
@@ -238,8 +252,8 @@ def _record(cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[d
     for b in batches:
         sizes[str(len(b["robots"]))] = sizes.get(str(len(b["robots"])), 0) + 1
     decisions = sorted(b["decision_ms"] for b in batches) or [0.0]
-    overhead_ms = batch_overhead_ms(batches, cfg)
-    profile_label = f"{cfg.emulate_profile} (emulated latency)" if cfg.emulate_profile else "real model timing"
+    overhead_ms = batch_overhead_ms(batches, profile)
+    profile_label = f"{cfg.emulate_profile} (emulated latency)" if cfg.emulate_profile else f"real model timing on {cfg.device}"
     return {
         "live": True,
         "scheduler": scheduler,
@@ -251,6 +265,7 @@ def _record(cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[d
         "max_batch_size": cap,
         "fast_weight": cfg.fast_weight,
         "latency_profile": profile_label,
+        "latency_profile_ms": list(profile.latency_ms),
         "net_median_ms": cfg.net_median_ms,
         "net_sigma": cfg.net_sigma,
         "duration_s": cfg.duration_s,
@@ -266,26 +281,29 @@ def _record(cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[d
     }
 
 
-def batch_overhead_ms(batches: list[dict], cfg: BenchConfig) -> float:
+def batch_overhead_ms(batches: list[dict], profile: LatencyProfile) -> float:
     """Measured serving overhead per batch: time a batch took beyond the profile, plus the gap
     to the next batch when they ran back to back (a request was waiting). The simulator adds it
     to model the live server (SPEC §5 mirror fidelity)."""
-    if not batches or not cfg.emulate_profile:
+    if not batches:
         return 0.0
-    profile = load_profile(cfg.emulate_profile)
     ordered = sorted(batches, key=lambda b: b["t_start"])
     excess = [b["t_end"] - b["t_start"] - profile.latency_s(len(b["robots"])) for b in ordered]
     gaps = [n["t_start"] - p["t_end"] for p, n in zip(ordered, ordered[1:], strict=False) if n["t_start"] - p["t_end"] < 0.02]
     return 1000.0 * (float(np.mean(excess)) + (float(np.mean(gaps)) if gaps else 0.0))
 
 
-def simulate_same(cfg: BenchConfig, scheduler: str, seed: int, overhead_ms: float = 0.0) -> dict[str, float]:
+def simulate_same(
+    cfg: BenchConfig, scheduler: str, seed: int, overhead_ms: float = 0.0, profile: LatencyProfile | None = None
+) -> dict[str, float]:
     """The simulator's per-tier starvation for the live run's fleet, profile and network;
     ``overhead_ms`` adds the live server's measured per-batch serving overhead to the batches'
-    real duration (the scheduler still plans with the nominal profile, as the live one does)."""
+    real duration (the scheduler still plans with the nominal profile, as the live one does).
+    ``profile``: the run's (emulated, or measured by the server at start-up); default: the
+    emulated profile or the preset's."""
     preset = get_preset(cfg.preset)
     cap = cfg.max_batch_size or preset.default_batch_cap(cfg.mix)
-    profile = load_profile(cfg.emulate_profile or preset.latency_profile)
+    profile = profile or load_profile(cfg.emulate_profile or preset.latency_profile)
     sched_cfg = make_scheduler_config(scheduler)
     if scheduler == "lookahead":
         sched_cfg = replace(sched_cfg, depth=cfg.depth)
@@ -334,7 +352,7 @@ def run(cfg: BenchConfig) -> list[dict[str, Any]]:
     if cfg.emulate_profile:
         load_profile(cfg.emulate_profile)
     work = Path(cfg.work_dir or tempfile.mkdtemp(prefix="armory-bench-"))
-    label = f"{cfg.emulate_profile} (emulated latency)" if cfg.emulate_profile else "real model timing"
+    label = f"{cfg.emulate_profile} (emulated latency)" if cfg.emulate_profile else f"real model timing on {cfg.device}"
     total = len(entries) * cfg.seeds
     print(
         f"live bench: {cfg.robots} armory_sim robots ({cfg.preset} timing, {cfg.mix}), profile {label}, "
@@ -346,8 +364,9 @@ def run(cfg: BenchConfig) -> list[dict[str, Any]]:
         one = replace(cfg, fast_weight=weight)
         print(f"[{k + 1}/{total}] {run_label(scheduler, weight, cfg.depth)} seed={seed} ...", flush=True)
         record = run_live(one, scheduler, seed, work)
-        record["sim_ideal"] = simulate_same(one, scheduler, seed)
-        record["sim"] = simulate_same(one, scheduler, seed, record["batch_overhead_ms"])
+        profile = LatencyProfile("measured", tuple(record["latency_profile_ms"]))
+        record["sim_ideal"] = simulate_same(one, scheduler, seed, profile=profile)
+        record["sim"] = simulate_same(one, scheduler, seed, record["batch_overhead_ms"], profile)
         runs.append(record)
         if record["saturated"]:
             print(
