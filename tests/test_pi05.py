@@ -216,3 +216,27 @@ def test_end_to_end_build_serve_two_armory_sim_robots_with_their_own_tasks(pi05_
         assert stats["chunks_received"] >= 5 and stats["executed_steps"] > 0, stats
     batches = [json.loads(line) for line in batch_log.read_text().splitlines()]
     assert {r for b in batches for r in b["robots"]} == {"sim0", "sim1"}
+
+
+def test_pinned_staging_buffers_are_reused_and_never_serve_stale_data(pi05, monkeypatch):
+    """The CUDA path's staging (exercised on the CPU with pinning stubbed out): one buffer per
+    (feature, batch size), refilled for every batch, so a batch never sees its predecessor's data."""
+    import torch
+
+    monkeypatch.setattr(torch.Tensor, "pin_memory", lambda self: self)
+    monkeypatch.setattr(pi05, "_pinned", True)
+    monkeypatch.setattr(pi05, "_staging", {})
+    first = pi05.to_batch([observation(0, 0), observation(1, 0)])
+    ptr = pi05._staging[(IMAGE, 2)].data_ptr()
+    second = pi05.to_batch([observation(2, 0), observation(3, 0)])
+    assert pi05._staging[(IMAGE, 2)].data_ptr() == ptr, "the buffer for b=2 was not reused"
+    expected = np.stack([observation(k, 0)[IMAGE] for k in (2, 3)]).transpose(0, 3, 1, 2) / 255.0
+    np.testing.assert_allclose(second[IMAGE].numpy(), expected, atol=1e-6)
+    assert not torch.equal(first[IMAGE], second[IMAGE])
+    pi05.to_batch([observation(0, 0)])
+    assert set(pi05._staging) == {(IMAGE, 2), (IMAGE, 1)}  # one per batch size; the state stays on the host
+    # Served chunks are unchanged by the staging path.
+    seeds = [noise_seed("robot0", 0)]
+    staged = pi05.infer([observation(0, 0)], [TASKS[0]], seeds)
+    monkeypatch.setattr(pi05, "_pinned", False)
+    np.testing.assert_allclose(staged, pi05.infer([observation(0, 0)], [TASKS[0]], seeds), atol=1e-6)

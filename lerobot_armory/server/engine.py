@@ -23,6 +23,7 @@ on who shared its batch, and a chunk can be recomputed alone.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import inspect
@@ -193,12 +194,19 @@ class PolicyEngine:
             return actions.detach().to("cpu", torch.float32).numpy()
         except BaseException:
             if self._pinned:  # a failed batch must not leave copies from the staging buffers in flight
-                torch.cuda.synchronize(self.device)
+                with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
+                    torch.cuda.synchronize(self.device)
             raise
 
     def to_batch(self, observations: Sequence[dict[str, np.ndarray]]) -> dict[str, Any]:
-        """Stack the robots' wire arrays into policy tensors on the device (images: uint8 HWC → float
-        CHW in [0, 1], converted on the device)."""
+        """Stack the robots' wire arrays into policy tensors: images on the device (uint8 HWC →
+        float CHW in [0, 1], converted there), low-dimensional features on the host.
+
+        Why the split: the images are nearly all the bytes, so they go early and as uint8; the
+        state stays where LeRobot's pre-processor expects it (π0.5's prompt step discretises it
+        with ``state.cpu()``, which on the device would be a synchronisation) and its own device
+        step moves it with the tokens, asynchronously.
+        """
         import torch
 
         batch: dict[str, Any] = {}
@@ -210,7 +218,7 @@ class PolicyEngine:
             elif _is_visual(feature):  # robots may send float CHW instead: convert each, then stack
                 batch[name] = torch.stack([_image_chw(a) for a in arrays]).to(self.device)
             else:
-                batch[name] = self._upload(name, arrays).float()
+                batch[name] = torch.from_numpy(np.stack(arrays)).float()
         return batch
 
     def _upload(self, name: str, arrays: list[np.ndarray]):
