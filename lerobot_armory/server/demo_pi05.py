@@ -5,7 +5,8 @@ weights, LeRobot's own π0.5 pre/post-processors, and a stand-in tokenizer store
     lerobot-armory-server --policy.path=out/pi05-tiny
 
 ``size=full`` is the real architecture (PaliGemma ``gemma_2b`` + SigLIP So400m at 224², expert
-``gemma_300m``, ≈ 3.6 B parameters, 14 GB in float32 / 7 GB with ``--dtype=bfloat16``);
+``gemma_300m``: 4.1 B parameters; 9.4 GB on disk with ``--dtype=bfloat16``, whose vision tower
+LeRobot keeps in float32; building it peaks at 19 GB of RAM);
 ``size=tiny`` is the same classes and code path at the registered ``armory_tiny`` Gemma size
 (``policies/pi05_variants.py``; 0.4 M parameters, a batch of 8 in well under a second on a CPU).
 
@@ -22,8 +23,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.server.engine import TOKENIZER_DIR  # where the loader looks for it
 
-TOKENIZER_DIR = "tokenizer"
 SIZES = ("tiny", "full")
 
 

@@ -24,9 +24,10 @@ Everything else is LeRobot's real SmolVLA code path: prefix of image, language a
 KV cache, the interleaved self/cross-attention action expert (0.75 × the VLM width), 10
 flow-matching steps. 0.24 M parameters; a batch runs in tens of milliseconds on one CPU core.
 
-Caveat: ``config.json`` stores ``vlm_model_name`` as the absolute path of ``DIR/vlm`` at build time
-(SmolVLA resolves it against the working directory, not the policy directory). A moved directory
-loads with ``--policy.vlm_model_name=NEWDIR/vlm`` (or once the server sets that override itself).
+``config.json`` stores ``vlm_model_name`` as the absolute path of ``DIR/vlm`` at build time
+(SmolVLA resolves it against the working directory, not the policy directory); the server points
+it at the directory's own ``vlm`` wherever the directory now is (``server/engine.py``), and a plain
+LeRobot script loading a moved directory passes ``vlm_model_name=NEWDIR/vlm``.
 """
 
 from __future__ import annotations
@@ -35,9 +36,7 @@ import contextlib
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-
-VLM_DIR = "vlm"
-TOKENIZER_DIR = "tokenizer"
+from lerobot_armory.server.engine import TOKENIZER_DIR, VLM_DIR  # where the loader looks for them
 
 # SmolVLM2's special tokens (its tokenizer names the image ones as attributes SmolVLA reads).
 _SPECIALS = {
