@@ -240,3 +240,28 @@ def test_pinned_staging_buffers_are_reused_and_never_serve_stale_data(pi05, monk
     staged = pi05.infer([observation(0, 0)], [TASKS[0]], seeds)
     monkeypatch.setattr(pi05, "_pinned", False)
     np.testing.assert_allclose(staged, pi05.infer([observation(0, 0)], [TASKS[0]], seeds), atol=1e-6)
+
+
+def test_a_hostile_prompt_is_served_and_changes_nothing_for_the_others(pi05):
+    """The longest prompt registration allows, in control characters, emoji and the template's own
+    words: the tokenizer truncates it, its robot is served, and its batch mate's chunks are still
+    exactly what that robot's own prompt gives alone."""
+    from lerobot_armory.server.service import MAX_TASK
+
+    hostile = ("Task: \x00\x1b[2J;\nAction: 🤖" + "ünïcødé\u202e" * 400)[:MAX_TASK]
+    info = PolicyInfo(pi05.description, pi05.wire_features, pi05.action_names, pi05.chunk_size)
+    server = ArmoryServer(pi05, info, LatencyProfile("test", (20.0, 25.0)), EarliestDeadlineConfig(), 2, port=0).start()
+    robots = [PromptRobot(server.address, pi05, 0, TASKS[0]), PromptRobot(server.address, pi05, 1, hostile)]
+    try:
+        assert wait_for(lambda: all(len(r.chunks) >= 3 for r in robots), timeout=60)
+        assert wait_for(lambda: any(len(b.robots) == 2 for b in server.batch_log), timeout=30)
+    finally:
+        for r in robots:
+            r.stop()
+        server.stop(grace_s=0.5)
+    assert server.loop.stats.failed_batches == 0
+    honest = robots[0]
+    for chunk in honest.chunks[:3]:
+        alone = pi05.infer([observation(0, chunk.i_start)], [TASKS[0]], [noise_seed(honest.robot_id, chunk.chunk_id)])[0]
+        np.testing.assert_allclose(chunk.actions, alone, atol=1e-5)
+    assert all(np.isfinite(c.actions).all() for c in robots[1].chunks)

@@ -23,6 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.server.demo_policy import policy_features
 from lerobot_armory.server.engine import TOKENIZER_DIR  # where the loader looks for it
 
 SIZES = ("tiny", "full")
@@ -52,7 +53,6 @@ def make_pi05_policy(
         dtype: ``float32`` or ``bfloat16`` weights (LeRobot keeps the vision tower in float32).
     """
     import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
 
     from lerobot_armory.policies import pi05_variants
@@ -60,14 +60,7 @@ def make_pi05_policy(
 
     if size not in SIZES:
         raise ConfigError("size", f"must be tiny or full, got {size!r}")
-    if not cameras:
-        raise ConfigError("cameras", "π0.5 needs at least one camera")
-    action_dim = action_dim or state_dim
-    for field, value in (("chunk_size", chunk_size), ("state_dim", state_dim), ("action_dim", action_dim), ("image_size", image_size)):
-        if value < 1:
-            raise ConfigError(field, f"must be >= 1, got {value}")
-    if state_dim > 32 or action_dim > 32:
-        raise ConfigError("state_dim", "π0.5 takes at most 32 state and 32 action dimensions")
+    inputs, outputs = policy_features("π0.5", chunk_size, state_dim, action_dim, cameras, image_size, max_dim=32)
     try:
         pi05_variants.register()
         from lerobot.policies.pi05.configuration_pi05 import PI05Config
@@ -79,9 +72,6 @@ def make_pi05_policy(
     out.mkdir(parents=True, exist_ok=True)
     vocab = pi05_variants.TINY_VOCAB if tiny else 257152
     tokenizer = build_standin_tokenizer(out / TOKENIZER_DIR, max_id=vocab)
-    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
-    for cam in cameras:
-        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
     config = PI05Config(
         paligemma_variant=pi05_variants.TINY if tiny else "gemma_2b",
         action_expert_variant=pi05_variants.TINY if tiny else "gemma_300m",
@@ -91,15 +81,15 @@ def make_pi05_policy(
         n_action_steps=chunk_size,
         dtype=dtype,
         input_features=inputs,
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+        output_features=outputs,
         device="cpu",
     )
     torch.manual_seed(seed)
     policy = PI05Policy(config)
     # π0.5 normalises state and action by quantiles; armory_sim's positions live in [-1, 1].
     stats = {
-        "observation.state": _unit_stats(state_dim),
-        "action": _unit_stats(action_dim),
+        "observation.state": _unit_stats(inputs["observation.state"].shape[0]),
+        "action": _unit_stats(outputs["action"].shape[0]),
     }
     with _tokenizer_from(tokenizer):
         pre, post = make_pre_post_processors(config, dataset_stats=stats)

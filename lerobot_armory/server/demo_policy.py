@@ -15,8 +15,10 @@ analytic planner.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
@@ -65,7 +67,7 @@ class DemoPolicyConfig:
 def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     """Build and save the policy; returns its directory."""
     import torch
-    from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+    from lerobot.configs.types import NormalizationMode
     from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
@@ -94,17 +96,9 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
         extra = {"kind": "smolvla", "size": "tiny", "random_weights": True, "seed": cfg.seed}
         _write_sidecar(out, cfg.action_dim or cfg.state_dim, extra)
         return out
-    if not cameras:
-        raise ConfigError("cameras", "ACT needs at least one camera")
-    for field, value in (("chunk_size", cfg.chunk_size), ("state_dim", cfg.state_dim), ("image_size", cfg.image_size)):
-        if value < 1:
-            raise ConfigError(field, f"must be >= 1, got {value}")
-    action_dim = cfg.action_dim or cfg.state_dim
+    inputs, outputs = policy_features("ACT", cfg.chunk_size, cfg.state_dim, cfg.action_dim, cameras, cfg.image_size)
+    action_dim = outputs["action"].shape[0]
     torch.manual_seed(cfg.seed)
-    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (cfg.state_dim,))}
-    for cam in cameras:
-        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, cfg.image_size, cfg.image_size))
-    outputs = {"action": PolicyFeature(FeatureType.ACTION, (action_dim,))}
     config = ACTConfig(
         input_features=inputs,
         output_features=outputs,
@@ -137,6 +131,34 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     post.save_pretrained(out)
     _write_sidecar(out, action_dim, {"kind": "act", "random_weights": True, "seed": cfg.seed})
     return out
+
+
+def policy_features(
+    policy: str,
+    chunk_size: int,
+    state_dim: int,
+    action_dim: int | None,
+    cameras: Sequence[str],
+    image_size: int,
+    max_dim: int | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Checked ``(input_features, output_features)`` of a demo policy: ``observation.state``, one
+    ``observation.images.<camera>`` per camera (``image_size``², as armory_sim sends them), the
+    action (``action_dim``, default ``state_dim``). ``max_dim`` caps both vector sizes."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    if not cameras:
+        raise ConfigError("cameras", f"{policy} needs at least one camera")
+    action_dim = action_dim or state_dim
+    for field, value in (("chunk_size", chunk_size), ("state_dim", state_dim), ("action_dim", action_dim), ("image_size", image_size)):
+        if value < 1:
+            raise ConfigError(field, f"must be >= 1, got {value}")
+    if max_dim is not None and max(state_dim, action_dim) > max_dim:
+        raise ConfigError("state_dim", f"{policy} takes at most {max_dim} state and {max_dim} action dimensions")
+    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
+    for cam in cameras:
+        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
+    return inputs, {"action": PolicyFeature(FeatureType.ACTION, (action_dim,))}
 
 
 def _write_sidecar(out: Path, action_dim: int, extra: dict) -> None:

@@ -36,6 +36,7 @@ import contextlib
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.server.demo_policy import policy_features
 from lerobot_armory.server.engine import TOKENIZER_DIR, VLM_DIR  # where the loader looks for them
 
 # SmolVLM2's special tokens (its tokenizer names the image ones as attributes SmolVLA reads).
@@ -96,17 +97,8 @@ def make_smolvla_policy(
         seed: torch seed for the random weights.
     """
     import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
 
-    if not cameras:
-        raise ConfigError("cameras", "SmolVLA needs at least one camera")
-    action_dim = action_dim or state_dim
-    sizes = (("chunk_size", chunk_size), ("state_dim", state_dim), ("action_dim", action_dim), ("image_size", image_size))
-    for field, value in sizes:
-        if value < 1:
-            raise ConfigError(field, f"must be >= 1, got {value}")
-    if state_dim > 32 or action_dim > 32:
-        raise ConfigError("state_dim", "SmolVLA takes at most 32 state and 32 action dimensions")
+    inputs, outputs = policy_features("SmolVLA", chunk_size, state_dim, action_dim, cameras, image_size, max_dim=32)
     try:
         from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
         from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
@@ -118,9 +110,6 @@ def make_smolvla_policy(
     vlm = build_standin_vlm(out / VLM_DIR)
     tokenizer_dir = out / TOKENIZER_DIR
     _tokenizer(vlm).save_pretrained(tokenizer_dir)
-    inputs = {"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,))}
-    for cam in cameras:
-        inputs[f"observation.images.{cam}"] = PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size))
     side = TINY_VISION["image_size"]
     config = SmolVLAConfig(
         vlm_model_name=str(vlm.resolve()),
@@ -130,7 +119,7 @@ def make_smolvla_policy(
         chunk_size=chunk_size,
         n_action_steps=chunk_size,
         input_features=inputs,
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+        output_features=outputs,
         device="cpu",
     )
     torch.manual_seed(seed)
@@ -139,7 +128,7 @@ def make_smolvla_policy(
     # SmolVLA normalises state and action by mean/std; armory_sim's positions live in [-1, 1].
     stats = {
         "observation.state": {"mean": torch.zeros(state_dim), "std": torch.ones(state_dim)},
-        "action": {"mean": torch.zeros(action_dim), "std": torch.ones(action_dim)},
+        "action": {"mean": torch.zeros(outputs["action"].shape[0]), "std": torch.ones(outputs["action"].shape[0])},
     }
     pre, post = make_smolvla_pre_post_processors(config, dataset_stats=stats)
     # The saved tokenizer step names DIR/tokenizer (the server re-points it wherever DIR now is).
