@@ -77,6 +77,7 @@ class Options:
     out: str | None
     work_dir: str | None
     stock_shared_server: bool
+    ours_server_args: str = ""
 
 
 @dataclass
@@ -191,6 +192,7 @@ def start_ours_server(opts: Options, threads: int | None, run_dir: Path) -> tupl
     ]  # fmt: skip
     if threads is not None:
         args.append(f"--policy.cpu_threads={threads}")
+    args += shlex.split(opts.ours_server_args)
     proc = start(
         "ours server", [sys.executable, "-m", "lerobot_armory.server.app", *args], run_dir / "server.log", run_dir
     )
@@ -624,6 +626,7 @@ def parse_args(argv: list[str] | None = None) -> Options:
         "--ours_scheduler", default="lookahead", help="--scheduler.type for ours (lookahead is the server's default)"
     )
     ap.add_argument("--max_batch_size", type=int, default=3, help="ours: batch cap (the server's default is 3)")
+    ap.add_argument("--ours_server_args", default="", help="more lerobot-armory-server options for ours (e.g. --latency_learning=false)")
     ap.add_argument(
         "--stock_cpu_threads",
         type=int,
@@ -652,7 +655,7 @@ def parse_args(argv: list[str] | None = None) -> Options:
         ap.error("--ours_cpu_threads: must be >= 1")
     return Options(
         robots, a.duration_s, systems, a.device, threads, a.ours_scheduler, a.max_batch_size, a.stock_cpu_threads,
-        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server,
+        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server, a.ours_server_args,
     )  # fmt: skip
 
 
@@ -732,7 +735,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1)
     report = {
         "command": command, "machine": machine(), "gpu": gpu_name(opts.device), "device": opts.device,
-        "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "max_batch_size": opts.max_batch_size,
+        "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "ours_server_args": opts.ours_server_args, "max_batch_size": opts.max_batch_size,
         "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
         "policy_sha256": weights_sha256(opts.policy), "runs": runs, "stock_shared_server": shared,
     }  # fmt: skip
