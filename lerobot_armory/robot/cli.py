@@ -4,10 +4,17 @@
         --server_address=127.0.0.1:8080 --fps=30 --h_min=5 --h_max=10 --weight=3 --tier=fast \\
         --duration_s=20 --stats_path=out/robot0.json
 
-The robot is built with LeRobot's ``make_robot_from_config`` (third-party ``lerobot_robot_*``
-plugins are registered first, then the robots shipped here: ``armory_sim`` and ``piper``).
-Exit codes: 0 done, 1 registration refused or server lost for good (the reason is printed),
-2 bad command line, 130 interrupted.
+    lerobot-armory-client --robot.type=so101_follower --robot.port=/dev/ttyACM0 --robot.id=arm0 \
+        --robot.cameras='{"front": {"type": "opencv", "index_or_path": 0, "width": 640, "height": 480, "fps": 30}}' \
+        --server_address=gpu-box:8080 --task="pick the cube"
+
+Every robot type is selectable (``--help`` lists them): each one LeRobot ships (found by walking
+``lerobot.robots``), third-party ``lerobot_robot_*`` plugins, and the robots shipped here
+(``armory_sim``, ``piper``); see :mod:`lerobot_armory.robot.robot_types`. The robot is built with
+LeRobot's ``make_robot_from_config``. Exit codes: 0 done; 1 robot unavailable (missing hardware,
+port, permission or SDK: one line naming the robot and its port), registration refused (the
+server's reason, or a policy whose action size does not fit the robot) or server lost for good;
+2 bad command line; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -19,16 +26,24 @@ import os
 import signal
 import socket
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lerobot.robots.config import RobotConfig
+from lerobot.robots.robot import Robot
+from lerobot.utils.errors import DeviceNotConnectedError
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RegistrationRefused, RobotIdentity
+from lerobot_armory.robot.connection import Registration
 from lerobot_armory.robot.features import FeatureMap
+from lerobot_armory.robot.hardware import RobotUnavailable, explain_robot_error
+from lerobot_armory.robot.robot_types import SKIPPED, register_robot_types
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
 
 log = logging.getLogger("lerobot_armory.client")
 
@@ -89,18 +104,8 @@ class ClientConfig:
             raise ConfigError("duration_s", f"must be >= 0, got {self.duration_s}")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise ConfigError("jpeg_quality", f"must be in 1..100, got {self.jpeg_quality}")
-
-
-def register_robot_types() -> None:
-    """Make every robot type selectable: third-party plugins, then the ones shipped here."""
-    try:
-        from lerobot.utils.import_utils import register_third_party_plugins
-
-        register_third_party_plugins()
-    except Exception as exc:  # a broken plugin must not stop the robots that do work
-        log.warning("third-party plugin registration failed: %s", exc)
-    import lerobot_armory.robot.armory_sim.config_armory_sim  # noqa: F401
-    import lerobot_armory.robot.piper.config_piper  # noqa: F401
+        if self.log_level.lower() not in LOG_LEVELS:
+            raise ConfigError("log_level", f"must be one of {', '.join(LOG_LEVELS)}, got {self.log_level!r}")
 
 
 def read_credentials(cfg: ClientConfig) -> tuple[bytes | None, str]:
@@ -123,51 +128,121 @@ def read_credentials(cfg: ClientConfig) -> tuple[bytes | None, str]:
     return tls_ca, token
 
 
-def default_robot_id(cfg: ClientConfig) -> str:
-    return cfg.robot_id or getattr(cfg.robot, "id", None) or f"{cfg.robot.type}-{socket.gethostname()}-{os.getpid()}"
+def default_robot_id(cfg: ClientConfig, robot_type: str | None = None) -> str:
+    kind = robot_type or cfg.robot.type
+    return cfg.robot_id or getattr(cfg.robot, "id", None) or f"{kind}-{socket.gethostname()}-{os.getpid()}"
 
 
-def run_client(cfg: ClientConfig) -> dict[str, Any]:
-    """Build the robot, run the loop, always leave the robot disconnected; returns the stats."""
+def _configure_logging(level: str) -> None:
+    logging.basicConfig(level=level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    # LeRobot's import already called basicConfig (its module-level logging.debug does), which
+    # makes the call above a no-op: set the level the user asked for on the root logger itself.
+    logging.getLogger().setLevel(level.upper())
+    for what, reason in SKIPPED.items():
+        log.debug("robot/camera module skipped: %s (%s)", what, reason)
+
+
+def _robot_call[T](robot_cfg: RobotConfig, robot_type: str, fn: Callable[[], T]) -> T:
+    """Run one call into the robot; whatever it raises becomes one line naming robot and port."""
+    try:
+        return fn()
+    except RobotUnavailable:
+        raise
+    except Exception as exc:
+        log.debug("robot error", exc_info=True)  # the traceback, for --log_level=debug
+        raise RobotUnavailable(explain_robot_error(exc, robot_cfg, robot_type)) from exc
+
+
+def _disconnect(robot: Robot, failing: bool) -> None:
+    """Disconnect whatever state the robot is in, never hiding the error that got us here.
+
+    After a failure (``failing``) the disconnect is expected to fail too (motors that did not
+    answer cannot have their torque disabled either): that is logged at debug level only, so the
+    user reads one line, the reason.
+    """
+    try:
+        robot.disconnect()
+    except DeviceNotConnectedError:
+        pass  # connect() failed before the robot counted as connected: nothing to release
+    except Exception as exc:
+        text = str(exc).strip()
+        level = logging.DEBUG if failing else logging.WARNING
+        log.log(level, "disconnecting %s failed: %s", robot, text.splitlines()[0] if text else exc)
+
+
+def typed_robot_type(args: list[str] | None, robot: RobotConfig) -> str:
+    """The ``--robot.type`` as typed. LeRobot registers one config class under several names
+    (``so100_follower`` and ``so101_follower`` are both ``SOFollowerRobotConfig``) and
+    ``robot.type`` answers the first, so messages would name the wrong robot."""
+    args = sys.argv[1:] if args is None else args
+    choices = RobotConfig.get_known_choices()
+    for arg, following in reversed(list(zip(args, [*args[1:], ""], strict=True))):
+        name = arg.partition("=")[2] if arg.startswith("--robot.type=") else following if arg == "--robot.type" else ""
+        if name:  # the last one given is the one draccus used
+            return name if choices.get(name) is type(robot) else robot.type
+    return robot.type
+
+
+def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, Any]:
+    """Build the robot, run the loop, always leave the robot disconnected; returns the stats.
+
+    ``robot_type`` is the robot's name in messages and the default robot id (default: ``cfg.robot.type``).
+
+    Raises:
+        RobotUnavailable: the robot could not be built, connected or driven (one-line reason).
+        RegistrationRefused: the server refused, or its policy's actions do not fit the robot.
+        ConnectionError: the server could not be reached within ``give_up_s``.
+    """
     from lerobot.robots.utils import make_robot_from_config
 
     cfg.validate()
-    logging.basicConfig(level=cfg.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    robot = make_robot_from_config(cfg.robot)
-    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
-    identity = RobotIdentity(default_robot_id(cfg), cfg.fps, cfg.h_min, cfg.h_max, cfg.weight, cfg.tier, cfg.task)
-    backoff = Backoff(cfg.backoff.initial_s, cfg.backoff.max_s, cfg.give_up_s)
+    _configure_logging(cfg.log_level)
     tls_ca, token = read_credentials(cfg)
-    client = ArmoryClient(
-        cfg.server_address,
-        identity,
-        fmap.wire_features(),
-        observe=lambda: fmap.to_wire(robot.get_observation()),
-        act=lambda vector: robot.send_action(fmap.to_action(vector)),
-        jpeg_quality=cfg.jpeg_quality,
-        backoff=backoff,
-        tls_ca=tls_ca,
-        token=token,
-    )
-    previous = signal.signal(signal.SIGTERM, lambda *_: client.stop())
-    robot.connect()
+    name = robot_type or cfg.robot.type
+    robot = _robot_call(cfg.robot, name, lambda: make_robot_from_config(cfg.robot))
+    client: ArmoryClient | None = None
+
+    def on_sigterm(*_: object) -> None:
+        if client is None:
+            raise KeyboardInterrupt  # still connecting the robot: unwind through the finally below
+        client.stop()
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    failing = True
     try:
+        _robot_call(cfg.robot, name, robot.connect)
+        # Features are read once connected: a camera without a configured size learns it there.
+        fmap = _robot_call(
+            cfg.robot, name, lambda: FeatureMap.for_robot(robot.observation_features, robot.action_features)
+        )
+
+        def check_registration(reg: Registration) -> None:
+            refusal = fmap.action_mismatch(reg.action_dim, name)
+            if refusal is not None:
+                raise RegistrationRefused(refusal)
+
+        client = ArmoryClient(
+            cfg.server_address,
+            RobotIdentity(default_robot_id(cfg, name), cfg.fps, cfg.h_min, cfg.h_max, cfg.weight, cfg.tier, cfg.task),
+            fmap.wire_features(),
+            observe=lambda: _robot_call(cfg.robot, name, lambda: fmap.to_wire(robot.get_observation())),
+            act=lambda vector: _robot_call(cfg.robot, name, lambda: robot.send_action(fmap.to_action(vector))),
+            jpeg_quality=cfg.jpeg_quality,
+            backoff=Backoff(cfg.backoff.initial_s, cfg.backoff.max_s, cfg.give_up_s),
+            tls_ca=tls_ca,
+            token=token,
+            check_registration=check_registration,
+        )
         try:
-            client.connect()
-            if client.connection is not None:
-                names = client.connection.registration.action_names if client.connection.registration else []
-                if len(names) != len(fmap.action_keys):
-                    raise RegistrationRefused(
-                        f"the policy's actions ({len(names)}: {', '.join(names)}) do not fit the robot's "
-                        f"({len(fmap.action_keys)}: {', '.join(fmap.action_keys)})"
-                    )
             stats = client.run(cfg.duration_s)
         except KeyboardInterrupt:
             log.info("interrupted: holding the robot and disconnecting")
             stats = client.stats()
+        failing = False
     finally:
-        client.close()
-        robot.disconnect()
+        if client is not None:
+            client.close()
+        _disconnect(robot, failing)
         signal.signal(signal.SIGTERM, previous)
     if hasattr(robot, "task_stats"):
         task = robot.task_stats()
@@ -188,10 +263,10 @@ def run_client(cfg: ClientConfig) -> dict[str, Any]:
     return stats
 
 
-def _run(cfg: ClientConfig) -> None:
+def _run(cfg: ClientConfig, robot_type: str | None = None) -> None:
     try:
-        run_client(cfg)
-    except (RegistrationRefused, ConnectionError) as exc:
+        run_client(cfg, robot_type)
+    except (RobotUnavailable, RegistrationRefused, ConnectionError) as exc:
         print(f"lerobot-armory-client: {exc}", file=sys.stderr)
         sys.exit(1)
 
@@ -200,7 +275,8 @@ def main(argv: list[str] | None = None) -> None:
     """Console entry point."""
     register_robot_types()
     cfg = parse_or_exit(ClientConfig, argv, "lerobot-armory-client")
-    run_or_exit(_run, cfg, "lerobot-armory-client")
+    robot_type = typed_robot_type(argv, cfg.robot)
+    run_or_exit(lambda c: _run(c, robot_type), cfg, "lerobot-armory-client")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
-from lerobot_armory.robot.connection import Connection, ReceivedChunk
+from lerobot_armory.robot.connection import Connection, ReceivedChunk, Registration
 from lerobot_armory.robot.netem import NetworkEmulator
 
 log = logging.getLogger(__name__)
@@ -78,6 +78,10 @@ class ArmoryClient:
         backoff: reconnection policy.
         network: factory of an emulated network per connection (benchmarks).
         tls_ca / token: TLS trust root and auth token (see docs/security.md).
+        check_registration: called with the server's answer to every registration (reconnects
+            included: a restarted server may serve another policy) before the stream opens; it
+            raises :class:`RegistrationRefused` to refuse the policy, and the session is then
+            given back at once, before a single chunk can arrive.
     """
 
     def __init__(
@@ -94,6 +98,7 @@ class ArmoryClient:
         network: Callable[[], NetworkEmulator] | None = None,
         tls_ca: bytes | None = None,
         token: str = "",
+        check_registration: Callable[[Registration], None] | None = None,
     ) -> None:
         self.address = address
         self.identity = identity
@@ -107,6 +112,7 @@ class ArmoryClient:
         self.network = network
         self.tls_ca = tls_ca
         self.token = token
+        self.check_registration = check_registration
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
         self._epoch = 0
@@ -166,6 +172,12 @@ class ArmoryClient:
             if exc.code() in RETRYABLE:
                 raise ConnectionError(f"server {self.address} not ready: {exc.code().name}: {exc.details()}") from None
             raise RegistrationRefused(f"{exc.code().name}: {exc.details()}") from None
+        if self.check_registration is not None:
+            try:
+                self.check_registration(reg)
+            except RegistrationRefused:
+                conn.end_session()
+                raise
         with self._lock:
             self._epoch += 1
             epoch = self._epoch

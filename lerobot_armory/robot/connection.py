@@ -17,8 +17,8 @@ import grpc
 import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.proto.armory_grpc import ArmoryStub
+from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
 SESSION_KEY = "armory-session"
@@ -48,6 +48,7 @@ class Registration:
     policy: str
     expected_features: list[FeatureSpec]
     clock_sync: pb.ClockSync
+    action_dim: int = 0  # length of each action vector (0: a server that did not say)
 
 
 class Connection:
@@ -135,6 +136,7 @@ class Connection:
             response.policy,
             [FeatureSpec.from_proto(f) for f in response.expected_features],
             sync,
+            response.action_dim or len(response.action_names),
         )
         return self.registration
 
@@ -147,10 +149,7 @@ class Connection:
         """Open the stream; callbacks run on a receiver thread."""
         assert self.registration is not None, "register first"
         self._outgoing.put(pb.RobotMessage(clock_sync=self.registration.clock_sync))
-        metadata = [(SESSION_KEY, self.registration.session_id)]
-        if self.token:
-            metadata.append((TOKEN_KEY, self.token))
-        self._call = self.stub.Stream(self._requests(), metadata=tuple(metadata))
+        self._call = self.stub.Stream(self._requests(), metadata=self._stream_metadata())
 
         def receive() -> None:
             error = None
@@ -181,6 +180,29 @@ class Connection:
 
         self._receiver = threading.Thread(target=receive, name="armory-receive", daemon=True)
         self._receiver.start()
+
+    def _stream_metadata(self) -> tuple[tuple[str, str], ...]:
+        assert self.registration is not None, "register first"
+        metadata = [(SESSION_KEY, self.registration.session_id)]
+        if self.token:
+            metadata.append((TOKEN_KEY, self.token))
+        return tuple(metadata)
+
+    def end_session(self, timeout: float = 2.0) -> None:
+        """Give a registration back unused (no stream was opened), then close.
+
+        The protocol has no Unregister call: the server forgets a robot when its stream ends and
+        keeps a registration that never streamed for its ``stale_session_s`` (a fleet slot and the
+        robot id). Opening the stream with nothing to send and waiting for the server to end it
+        frees both at once, without touching the wire format.
+        """
+        if self.registration is not None and self._call is None:
+            try:
+                for _ in self.stub.Stream(iter(()), metadata=self._stream_metadata(), timeout=timeout):
+                    pass
+            except grpc.RpcError:
+                pass  # the server is gone or refused the stream: the registration expires there anyway
+        self.close()
 
     def _requests(self) -> Iterator[pb.RobotMessage]:
         while True:

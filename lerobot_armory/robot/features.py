@@ -1,9 +1,14 @@
 """Mapping between a LeRobot robot's raw observation/action dicts and policy features.
 
-LeRobot robots report motors as ``"<motor>.pos": float`` and cameras as ``"<name>": (h, w, 3)``;
-policies consume ``observation.state`` (the motor values in the robot's feature order) and
-``observation.images.<name>``, and produce one action vector whose entries follow the robot's
-``action_features`` order — the same convention LeRobot's datasets use.
+LeRobot robots declare every scalar as ``"<key>": float`` and every camera as ``"<name>": (h, w, c)``;
+the keys are not always motor positions: a mobile base reports velocities (LeKiwi's ``x.vel``,
+``theta.vel``; Reachy 2's ``mobile_base.vx``), bimanual robots prefix each arm (``left_joint_1.pos``),
+a rover reports IMU and GPS values. Policies consume ``observation.state`` (*every* float
+observation, in the robot's declared order) and ``observation.images.<name>`` (every tuple
+feature), and produce one action vector whose entries follow the robot's float
+``action_features`` order — exactly how LeRobot's ``hw_to_dataset_features`` builds a dataset's
+``observation.state`` and ``action`` names, so a policy trained on a LeRobot dataset of the robot
+lines up entry by entry.
 """
 
 from __future__ import annotations
@@ -28,12 +33,29 @@ class FeatureMap:
 
     @classmethod
     def for_robot(cls, observation_features: Mapping[str, Any], action_features: Mapping[str, Any]) -> FeatureMap:
+        """Read a robot's declared features (after ``connect()``: cameras may learn their size then)."""
         state = tuple(k for k, v in observation_features.items() if v is float)
-        cams = {k: tuple(int(d) for d in v) for k, v in observation_features.items() if isinstance(v, tuple)}
+        cams: dict[str, tuple[int, int, int]] = {}
+        for k, v in observation_features.items():
+            if isinstance(v, tuple):
+                if len(v) != 3 or any(d is None for d in v):
+                    raise ValueError(
+                        f"camera {k!r} has no definite (height, width, channels), got {v}: set its width and height"
+                    )
+                cams[k] = (int(v[0]), int(v[1]), int(v[2]))
         actions = tuple(k for k, v in action_features.items() if v is float)
         if not actions:
             raise ValueError("the robot declares no float action features")
         return cls(state, cams, actions)
+
+    def action_mismatch(self, policy_action_dim: int, robot: str) -> str | None:
+        """Why a policy with actions of ``policy_action_dim`` cannot drive this robot (None: it can)."""
+        if policy_action_dim == len(self.action_keys):
+            return None
+        return (
+            f"the policy's actions have {policy_action_dim} dims, robot {robot} takes {len(self.action_keys)} "
+            f"({', '.join(self.action_keys)})"
+        )
 
     def wire_features(self) -> dict[str, tuple[str, tuple[int, ...]]]:
         """``{feature name: (dtype, shape)}`` to declare at registration."""
@@ -50,7 +72,11 @@ class FeatureMap:
         if self.state_keys:
             out[STATE] = np.array([raw[k] for k in self.state_keys], dtype=np.float32)
         for name in self.cameras:
-            out[IMAGES + name] = np.ascontiguousarray(raw[name], dtype=np.uint8)
+            frame = np.asarray(raw[name])
+            if frame.dtype != np.uint8:
+                # Casting would wrap a uint16 depth map (millimetres) modulo 256: refuse instead.
+                raise ValueError(f"camera {name!r} gives {frame.dtype} frames; images go to the policy as uint8")
+            out[IMAGES + name] = np.ascontiguousarray(frame)
         return out
 
     def to_action(self, vector: np.ndarray) -> dict[str, float]:
