@@ -29,12 +29,12 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
-from lerobot_armory.server.logs import configure_logging
-from lerobot_armory.server.metrics import ServerMetrics
-from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
 from lerobot_armory.server.fleet import Fleet
+from lerobot_armory.server.logs import configure_logging
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
+from lerobot_armory.server.metrics import ServerMetrics
+from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
 log = logging.getLogger("lerobot_armory.server")
