@@ -103,8 +103,9 @@ def make_smolvla_policy(
         from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
         from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
         from lerobot.policies.smolvla.processor_smolvla import make_smolvla_pre_post_processors
+        import num2words  # noqa: F401  (transformers' SmolVLM processor needs it; fail here, in one line)
     except ImportError as exc:
-        raise ConfigError("kind", f"SmolVLA needs LeRobot's smolvla extra (pip install 'lerobot[smolvla]'): {exc}") from None
+        raise ConfigError("kind", f"SmolVLA needs LeRobot's smolvla extra (pip install 'lerobot-armory[smolvla]'): {exc}") from None
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     vlm = build_standin_vlm(out / VLM_DIR)
