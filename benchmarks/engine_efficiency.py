@@ -75,6 +75,19 @@ def robots_process(address: str, n: int, features: dict, pushing, done) -> None:
         c.close()
 
 
+def bare_loop(engine, batch: dict, noise: dict, seconds: float) -> float:
+    """Batches/s of pre-processor -> forward -> post-processor on a batch already stacked, as fast
+    as it goes, on the engine's device thread (where the served passes run)."""
+    import torch
+
+    n, t0 = 0, time.perf_counter()
+    with torch.inference_mode():
+        while time.perf_counter() - t0 < seconds:
+            engine.postprocessor(engine.policy.predict_action_chunk(engine.preprocessor(dict(batch)), **noise)).to("cpu")
+            n += 1
+    return n / (time.perf_counter() - t0)
+
+
 def build_policy(kind: str, out: str) -> str:
     """The policy directory to serve (random weights, built offline)."""
     from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
@@ -129,13 +142,7 @@ def main() -> None:
         for _ in range(ROUNDS):
             pushing.clear()
             time.sleep(0.3)  # let the in-flight batch finish
-            n, t0 = 0, time.perf_counter()
-            with torch.inference_mode():
-                while time.perf_counter() - t0 < BARE_S:
-                    # The bare loop: pre-processor, forward, post-processor on tensors already on the device.
-                    engine.postprocessor(engine.policy.predict_action_chunk(engine.preprocessor(dict(batch)), **noise)).to("cpu")
-                    n += 1
-            bare_runs.append(n * b / (time.perf_counter() - t0))
+            bare_runs.append(b * engine.on_device(bare_loop, engine, batch, noise, BARE_S))
             pushing.set()
             time.sleep(0.5)  # robots resume, batches refill
             stats = server.loop.stats

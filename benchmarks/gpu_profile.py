@@ -10,7 +10,8 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
 
 For each batch size: *engine* = ``PolicyEngine.infer`` on wire arrays (stacking, the uint8 upload,
 pre-processor with the prompt's tokenizer, ``predict_action_chunk``, post-processor, the copy back)
-and *bare* = ``predict_action_chunk`` alone on a batch already pre-processed on the device; both
+and *bare* = ``predict_action_chunk`` alone on a batch already pre-processed on the device (the
+model's own time; ``engine_efficiency.py``'s "bare" loop includes the pre/post-processors); both
 median of ``--reps`` after the engine's warm-up, synchronised. Results merge into
 ``docs/results/gpu/<device>.json`` (one call per configuration fits the device tool's 10-minute
 limit); its top-level ``latency_ms`` is π0.5 bf16 through the engine (the compiled run where it
@@ -96,21 +97,30 @@ def measure(engine: Any, max_b: int, reps: int) -> tuple[list[float], list[float
             engine.infer(obs, tasks, seeds)  # ends with the copy back to the host
             times.append((time.perf_counter() - t0) * 1000.0)
         engine_ms.append(statistics.median(times))
-        batch = engine.to_batch(obs)
-        batch["task"] = tasks
-        kwargs = {"noise": engine._noise(seeds)} if engine.noise_shape is not None else {}
-        with torch.inference_mode():
-            ready = engine.preprocessor(batch)
-            sync()
-            times = []
-            for _ in range(reps):
-                t0 = time.perf_counter()
-                engine.policy.predict_action_chunk(ready, **kwargs)
-                sync()
-                times.append((time.perf_counter() - t0) * 1000.0)
-        bare_ms.append(statistics.median(times))
+        bare_ms.append(statistics.median(engine.on_device(bare_forward, engine, obs, tasks, seeds, reps, sync)))
         print(f"    b={b}: engine {engine_ms[-1]:7.1f} ms   bare {bare_ms[-1]:7.1f} ms   ratio {bare_ms[-1] / engine_ms[-1]:.3f}", flush=True)
     return engine_ms, bare_ms
+
+
+def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], reps: int, sync: Any) -> list[float]:
+    """ms of ``predict_action_chunk`` alone on a batch already pre-processed on the device. Runs on
+    the engine's device thread (via ``engine.on_device``), where the served forward passes run:
+    a compiled model's CUDA graphs belong to that thread."""
+    import torch
+
+    batch = engine.to_batch(obs)
+    batch["task"] = tasks
+    kwargs = {"noise": engine._noise(seeds)} if engine.noise_shape is not None else {}
+    times = []
+    with torch.inference_mode():
+        ready = engine.preprocessor(batch)
+        sync()
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            engine.policy.predict_action_chunk(ready, **kwargs)
+            sync()
+            times.append((time.perf_counter() - t0) * 1000.0)
+    return times
 
 
 def device_name(device: str) -> str:

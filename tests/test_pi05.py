@@ -9,24 +9,14 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
-import time
 
 import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.robot.connection import Connection
-from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ArmoryServer
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features, noise_seed
-from lerobot_armory.server.service import PolicyInfo
-from tests.test_server import wait_for
+from tests.vla_helpers import IMAGE, TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 
-STATE = "observation.state"
-IMAGE = "observation.images.front"
-TASKS = ("pick up the red block", "sort the bricks by colour", "reach the moving target")
 
 
 @pytest.fixture(scope="session")
@@ -45,11 +35,6 @@ def pi05(pi05_dir):
 
     torch.set_num_threads(1)
     return PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
-
-
-def observation(robot: int, index: int) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(1000 * robot + index)
-    return {STATE: rng.uniform(-1, 1, 2).astype(np.float32), IMAGE: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)}
 
 
 def test_tiny_pi05_is_lerobots_own_pi05_loaded_offline_with_armory_sim_features(pi05_dir, monkeypatch):
@@ -136,50 +121,11 @@ def test_server_command_names_an_unknown_policy_field_and_exits_2(pi05_dir):
     assert "Traceback" not in proc.stderr
 
 
-class PromptRobot:
-    """A robot double with its own prompt that pushes reproducible observations and keeps chunks."""
-
-    def __init__(self, address: str, engine: PolicyEngine, k: int, task: str) -> None:
-        self.k, self.task, self.robot_id = k, task, f"prompt{k}"
-        self.conn = Connection(address)
-        features = {f.name: (f.dtype, f.shape) for f in engine.wire_features}
-        self.conn.register(self.robot_id, features, fps=30, h_min=1, h_max=10, task=task)
-        self.chunks = []
-        self.conn.open_stream(self.chunks.append)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        index = 0
-        while not self._stop.is_set():
-            self.conn.send_observation(index, observation(self.k, index))
-            index += 1
-            time.sleep(0.03)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.conn.close()
-
-
 def test_served_chunks_equal_each_robots_chunk_computed_alone(pi05):
-    """Through the real server: every chunk a robot receives is what the policy computes for that
-    robot's observation, its own prompt and its own noise, whoever shared the batch."""
-    info = PolicyInfo(pi05.description, pi05.wire_features, pi05.action_names, pi05.chunk_size)
-    server = ArmoryServer(pi05, info, LatencyProfile("test", (20.0, 25.0, 30.0)), EarliestDeadlineConfig(), 3, port=0).start()
-    robots = [PromptRobot(server.address, pi05, k, TASKS[k]) for k in range(3)]
-    try:
-        assert wait_for(lambda: all(len(r.chunks) >= 4 for r in robots), timeout=60)
-        assert wait_for(lambda: any(len(b.robots) >= 2 for b in server.batch_log), timeout=30), "no batch was shared"
-    finally:
-        for r in robots:
-            r.stop()
-        server.stop(grace_s=0.5)
-    for r in robots:
-        for chunk in r.chunks[:4]:
-            alone = pi05.infer([observation(r.k, chunk.i_start)], [r.task], [noise_seed(r.robot_id, chunk.chunk_id)])[0]
-            np.testing.assert_allclose(chunk.actions, alone, atol=1e-5)
+    """Through the real server: every chunk computed in a batch shared with other robots is what
+    the policy computes for that robot's observation, its own prompt and its own noise alone."""
+    server, robots = serve_prompt_robots(pi05, list(TASKS))
+    assert assert_shared_chunks_equal_alone(pi05, server, robots) >= 3
 
 
 def test_end_to_end_build_serve_two_armory_sim_robots_with_their_own_tasks(pi05_dir, tmp_path):
@@ -244,24 +190,54 @@ def test_pinned_staging_buffers_are_reused_and_never_serve_stale_data(pi05, monk
 
 def test_a_hostile_prompt_is_served_and_changes_nothing_for_the_others(pi05):
     """The longest prompt registration allows, in control characters, emoji and the template's own
-    words: the tokenizer truncates it, its robot is served, and its batch mate's chunks are still
-    exactly what that robot's own prompt gives alone."""
+    words: the tokenizer truncates it, its robot is served, and its batch mate's chunks from their
+    shared batches are still exactly what that robot's own prompt gives alone."""
     from lerobot_armory.server.service import MAX_TASK
 
     hostile = ("Task: \x00\x1b[2J;\nAction: 🤖" + "ünïcødé\u202e" * 400)[:MAX_TASK]
-    info = PolicyInfo(pi05.description, pi05.wire_features, pi05.action_names, pi05.chunk_size)
-    server = ArmoryServer(pi05, info, LatencyProfile("test", (20.0, 25.0)), EarliestDeadlineConfig(), 2, port=0).start()
-    robots = [PromptRobot(server.address, pi05, 0, TASKS[0]), PromptRobot(server.address, pi05, 1, hostile)]
-    try:
-        assert wait_for(lambda: all(len(r.chunks) >= 3 for r in robots), timeout=60)
-        assert wait_for(lambda: any(len(b.robots) == 2 for b in server.batch_log), timeout=30)
-    finally:
-        for r in robots:
-            r.stop()
-        server.stop(grace_s=0.5)
+    server, robots = serve_prompt_robots(pi05, [TASKS[0], hostile], max_batch_size=2)
     assert server.loop.stats.failed_batches == 0
-    honest = robots[0]
-    for chunk in honest.chunks[:3]:
-        alone = pi05.infer([observation(0, chunk.i_start)], [TASKS[0]], [noise_seed(honest.robot_id, chunk.chunk_id)])[0]
-        np.testing.assert_allclose(chunk.actions, alone, atol=1e-5)
-    assert all(np.isfinite(c.actions).all() for c in robots[1].chunks)
+    assert assert_shared_chunks_equal_alone(pi05, server, robots, only={"prompt0"}) >= 1
+    assert robots[1].chunks and all(np.isfinite(c.actions).all() for c in robots[1].chunks)
+
+
+def test_warmup_keeps_a_compiled_model_only_if_it_measured_faster(pi05_dir):
+    """``warmup`` times a torch.compile wrapper against the eager function it wraps, both warm, and
+    keeps the faster (a stand-in wrapper here: real compilation takes minutes on a CPU)."""
+    import time
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+    model = engine.policy.model
+    eager = model.sample_actions
+
+    def slow(*args, **kwargs):
+        time.sleep(0.05)
+        return eager(*args, **kwargs)
+
+    def fast(*args, **kwargs):
+        return eager(*args, **kwargs)
+
+    slow._torchdynamo_orig_callable = eager  # a "compiled" model slower than its eager self
+    model.sample_actions = slow
+    engine.warmup(2, reps=1, log_progress=False)
+    assert engine.compiled_kept is False and model.sample_actions == eager
+    assert "eager (compiled was slower)" in engine.description
+
+    fast._torchdynamo_orig_callable = slow  # a "compiled" model faster than its eager self
+    model.sample_actions = fast
+    engine.warmup(2, reps=1, log_progress=False)
+    assert engine.compiled_kept is True and model.sample_actions is fast
+    assert engine.description.endswith("compiled)")
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="the pinned, asynchronous path exists on CUDA only")
+def test_on_cuda_back_to_back_batches_match_the_unstaged_path(pi05_dir):
+    """Two batches in a row reuse the pinned staging buffers while the first copy may be in flight:
+    their chunks must equal the same requests through the synchronous host path."""
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cuda"))
+    seeds = [noise_seed("robot0", 0), noise_seed("robot1", 0)]
+    first = engine.infer([observation(0, 0), observation(1, 0)], list(TASKS[:2]), seeds)
+    second = engine.infer([observation(0, 1), observation(1, 1)], list(TASKS[:2]), seeds)
+    engine._pinned = False
+    np.testing.assert_allclose(first, engine.infer([observation(0, 0), observation(1, 0)], list(TASKS[:2]), seeds), atol=1e-4)
+    np.testing.assert_allclose(second, engine.infer([observation(0, 1), observation(1, 1)], list(TASKS[:2]), seeds), atol=1e-4)

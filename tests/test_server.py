@@ -392,3 +392,43 @@ def test_server_command_profiles_serves_and_exits_0_on_sigterm(demo_policy_dir, 
     robot.stop()
     rest = proc.stdout.read()
     assert "stopped cleanly" in rest, rest
+
+
+def test_an_engine_that_always_fails_stops_the_loop_instead_of_failing_forever(server, engine, monkeypatch):
+    """A broken device (a sticky CUDA error) fails every batch: after MAX_CONSECUTIVE_FAILURES in a
+    row the loop stops with an error (the server process then exits 1), robots are told each time."""
+    from lerobot_armory.server.loop import MAX_CONSECUTIVE_FAILURES
+
+    def broken(obs, tasks, noise_seeds=None):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+
+    monkeypatch.setattr(server.loop.engine, "infer", broken)
+    robot = Pusher(server.address, engine, 0).start()
+    try:
+        assert wait_for(lambda: server.loop.error is not None, timeout=30)
+        assert "failed batches in a row" in str(server.loop.error)
+        assert server.loop.stats.failed_batches == MAX_CONSECUTIVE_FAILURES
+        assert wait_for(lambda: not server.loop.alive, timeout=10)
+        assert sum(n.kind == pb.Notice.INFERENCE_FAILED for n in robot.notices) >= 1
+    finally:
+        robot.stop()
+
+
+def test_an_engine_without_noise_seeds_is_still_served(server, engine, monkeypatch):
+    """Engines written before per-request noise (``infer(observations, tasks)``) keep working."""
+    from lerobot_armory.server.loop import takes_noise_seeds
+
+    real = engine.infer
+
+    def old_style(obs, tasks):
+        return real(obs, tasks)
+
+    monkeypatch.setattr(server.loop.engine, "infer", old_style)
+    assert not takes_noise_seeds(server.loop.engine)
+    monkeypatch.setattr(server.loop, "_seeds", False)  # what the loop decides for such an engine at start
+    robot = Pusher(server.address, engine, 0).start()
+    try:
+        assert wait_for(lambda: len(robot.chunks) >= 2, timeout=30)
+        assert server.loop.stats.failed_batches == 0
+    finally:
+        robot.stop()

@@ -13,10 +13,8 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features, noise_seed
+from tests.vla_helpers import IMAGE, STATE, TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 
-STATE = "observation.state"
-IMAGE = "observation.images.front"
-TASKS = ("pick up the red block", "sort the bricks by colour", "reach the moving target")
 
 
 @pytest.fixture
@@ -49,11 +47,6 @@ def smolvla(smolvla_dir):
 
     torch.set_num_threads(1)
     return PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"))
-
-
-def observation(robot: int, index: int) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(1000 * robot + index)
-    return {STATE: rng.uniform(-1, 1, 2).astype(np.float32), IMAGE: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)}
 
 
 def test_tiny_smolvla_is_lerobots_own_smolvla_loaded_offline_with_armory_sim_features(smolvla_dir, no_network):
@@ -155,3 +148,9 @@ def test_smolvla_has_one_size(tmp_path):
 
     with pytest.raises(ConfigError, match="size=tiny"):
         make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "x"), kind="smolvla", size="full"))
+
+
+def test_served_chunks_equal_each_robots_chunk_computed_alone(smolvla):
+    """Through the real server, as for π0.5: chunks from shared batches equal each robot's alone."""
+    server, robots = serve_prompt_robots(smolvla, list(TASKS))
+    assert assert_shared_chunks_equal_alone(smolvla, server, robots) >= 3

@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
@@ -38,6 +39,7 @@ from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
 log = logging.getLogger("lerobot_armory.server")
+T = TypeVar("T")
 
 
 @dataclass
@@ -253,6 +255,18 @@ def tune_process() -> None:
     sys.setswitchinterval(0.0005)
 
 
+def on_startup_device(what: str, fn: Callable[..., T], *args: object) -> T:
+    """Run a start-up pass over every batch size; a failure (CUDA out of memory at the largest
+    batch, say) is one line naming the batch cap, not a traceback."""
+    try:
+        return fn(*args)
+    except ConfigError:
+        raise
+    except Exception as exc:
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise ConfigError("max_batch_size", f"{what} failed: {type(exc).__name__}: {first}") from None
+
+
 def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
     """Load ``--latency_profile`` if it names a profile or an existing file; else profile (and save)."""
     name = cfg.latency_profile
@@ -261,7 +275,8 @@ def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
         log.info("latency profile loaded from %s", name)
         return profile
     log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", cfg.max_batch_size, cfg.profile_reps)
-    profile = engine.profile(cfg.max_batch_size, reps=cfg.profile_reps)
+    # warmup=0: serve() has just warmed every size up.
+    profile = on_startup_device(f"profiling b = 1..{cfg.max_batch_size}", engine.profile, cfg.max_batch_size, 0, cfg.profile_reps)
     if name:
         profile.save(name)
         log.info("latency profile saved to %s", name)
@@ -287,7 +302,7 @@ def serve(cfg: ServerConfig) -> None:
     log.info("loading policy %s ...", cfg.policy.path)
     engine = PolicyEngine(cfg.policy)
     log.info("warming up b = 1..%d ...", cfg.max_batch_size)
-    engine.warmup(cfg.max_batch_size)
+    on_startup_device(f"warming up b = 1..{cfg.max_batch_size}", engine.warmup, cfg.max_batch_size)
     serving_engine: Engine = engine
     latency_note = ""
     if cfg.engine.emulate_profile:
@@ -333,12 +348,15 @@ def serve(cfg: ServerConfig) -> None:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    while not stop.wait(cfg.status_interval_s if cfg.status_interval_s > 0 else 3600):
-        if server.loop.error is not None:
+    next_status = time.monotonic() + cfg.status_interval_s
+    while not stop.wait(min(1.0, cfg.status_interval_s) if cfg.status_interval_s > 0 else 1.0):
+        if server.loop.error is not None:  # checked every second, whatever the status interval
             log.error("serving loop died: %s", server.loop.error)
             server.stop()
             sys.exit(1)
-        log.info("%s", server.status_line())
+        if cfg.status_interval_s > 0 and time.monotonic() >= next_status:
+            next_status += cfg.status_interval_s
+            log.info("%s", server.status_line())
     server.stop()
     log.info("stopped cleanly")
 

@@ -60,6 +60,8 @@ def make_pi05_policy(
 
     if size not in SIZES:
         raise ConfigError("size", f"must be tiny or full, got {size!r}")
+    if dtype not in ("float32", "bfloat16"):
+        raise ConfigError("dtype", f"must be float32 or bfloat16, got {dtype!r}")
     inputs, outputs = policy_features("π0.5", chunk_size, state_dim, action_dim, cameras, image_size, max_dim=32)
     try:
         pi05_variants.register()

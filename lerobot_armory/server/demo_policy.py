@@ -75,6 +75,8 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
     if cfg.kind not in KINDS:
         raise ConfigError("kind", f"must be one of {', '.join(KINDS)}, got {cfg.kind!r}")
     cameras = [c.strip() for c in cfg.cameras.split(",") if c.strip()]
+    if cfg.kind in ("act", "planner") and (cfg.size, cfg.dtype) != ("tiny", "float32"):
+        raise ConfigError("size" if cfg.size != "tiny" else "dtype", f"--size and --dtype apply to pi05 (and smolvla), not to {cfg.kind}")
     if cfg.kind == "planner":
         return _make_planner(cfg, cameras)
     if cfg.kind == "pi05":

@@ -14,7 +14,10 @@ On a GPU the host side does as little as it can: images are stacked as uint8 int
 pinned buffer, copied asynchronously (a quarter of the bytes of float32) and converted to float
 on the device; the only synchronisation of a batch is the copy of its actions back to the host.
 Every batch size is warmed up (and compiled, with ``--policy.compile_model=true``) before the
-first robot is served; a compiled model is kept only where it measured faster than eager.
+first robot is served; a compiled model is kept only where it measured faster than eager. Every
+forward pass — dry run, warm-up, profiling, serving — runs on the engine's one device thread,
+because torch.compile's CUDA graphs keep per-thread state (a graph recorded on one thread cannot
+be replayed from another).
 
 Flow-matching policies (π0, π0.5, SmolVLA) start from Gaussian noise. The engine draws it per
 request from a seed (:func:`noise_seed`: robot id and chunk id), so a robot's chunk does not depend
@@ -23,6 +26,7 @@ on who shared its batch, and a chunk can be recomputed alone.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import difflib
@@ -34,7 +38,7 @@ import statistics
 import threading
 import time
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,6 +57,17 @@ SIDECAR = "armory.json"
 # saved pre-processor names, wherever the directory has been moved to.
 TOKENIZER_DIR = "tokenizer"
 VLM_DIR = "vlm"  # a stand-in VLM inside the directory (the SmolVLA demo's)
+# Pre-processor steps known to leave images alone or to work on any device. Images go to the device
+# before the pre-processor only when every step before its device step is one of these (GR00T's
+# steps, for one, pull images back to the host with .cpu().numpy(): for such a policy the images
+# stay on the host and LeRobot's device step moves them, as before).
+DEVICE_AGNOSTIC_STEPS = frozenset(
+    {
+        "rename_observations_processor", "to_batch_processor", "relative_actions_processor",
+        "normalizer_processor", "tokenizer_processor", "pi05_prepare_state_tokenizer_processor_step",
+        "pi0_new_line_processor", "smolvla_new_line_processor",
+    }
+)  # fmt: skip
 
 
 @dataclass
@@ -106,7 +121,10 @@ class PolicyEngine:
             self.cpu_threads = threads
         self._threads_set: set[int] = set()
         self._set_thread_count()
+        # The one thread every forward pass runs on (see the module docstring).
+        self._device_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="armory-device")
         self.path = options.path
+        self.overrides = list(options.overrides)
         self.config, self.policy, self.preprocessor, self.postprocessor = _load(options.path, self.device, options.overrides)
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
@@ -120,6 +138,7 @@ class PolicyEngine:
         # because every batch ends with a synchronisation (its actions come back to the host).
         self._pinned = torch.device(self.device).type == "cuda"
         self._staging: dict[tuple[str, int], Any] = {}
+        self.early_upload = _early_upload_ok(self.preprocessor)
         self.compiled_kept: bool | None = None  # after warmup(): compiled model kept (None: not compiled)
         # The chunk size is whatever predict_action_chunk really returns (checked by a dry run).
         self.chunk_size = self._dry_run()
@@ -136,6 +155,9 @@ class PolicyEngine:
             out = self.infer([self.example_observation(seed=0)], ["dry run"])
         except NotImplementedError:
             raise ConfigError("policy.path", f"{self.path}: {self.config.type} does not predict action chunks") from None
+        except Exception as exc:  # e.g. --policy.num_inference_steps=0: ZeroDivisionError inside the sampler
+            where = f" with {' '.join('--policy.' + o for o in self.overrides)}" if self.overrides else ""
+            raise ConfigError("policy", f"{self.path}{where}: a first forward pass failed: {_first_line(exc)}") from None
         if out.ndim != 3 or out.shape[0] != 1 or out.shape[2] != self.action_dim:
             raise ConfigError(
                 "policy.path",
@@ -176,6 +198,19 @@ class PolicyEngine:
         ``tasks[k]`` is row k's prompt. ``noise_seeds[k]`` fixes row k's initial noise for a
         flow-matching policy (default: 0..B-1); other policies ignore it.
         """
+        return self.on_device(self._infer, observations, tasks, noise_seeds)
+
+    def on_device(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """Run ``fn`` on the engine's device thread and return its result (benchmarks time a bare
+        forward pass through this, so that it runs where the served ones do)."""
+        return self._device_thread.submit(fn, *args, **kwargs).result()
+
+    def _infer(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None,
+    ) -> np.ndarray:
         import torch
 
         self._set_thread_count()
@@ -200,7 +235,8 @@ class PolicyEngine:
 
     def to_batch(self, observations: Sequence[dict[str, np.ndarray]]) -> dict[str, Any]:
         """Stack the robots' wire arrays into policy tensors: images on the device (uint8 HWC →
-        float CHW in [0, 1], converted there), low-dimensional features on the host.
+        float CHW in [0, 1], converted there; on the host for a pre-processor that needs them
+        there, see :data:`DEVICE_AGNOSTIC_STEPS`), low-dimensional features on the host.
 
         Why the split: the images are nearly all the bytes, so they go early and as uint8; the
         state stays where LeRobot's pre-processor expects it (π0.5's prompt step discretises it
@@ -214,9 +250,12 @@ class PolicyEngine:
             arrays = [obs[name] for obs in observations]
             if _is_visual(feature) and all(a.dtype == np.uint8 for a in arrays):
                 # The common case: one stack, one copy of uint8, the conversion on the device.
-                batch[name] = self._upload(name, arrays).permute(0, 3, 1, 2).float().div_(255.0)
+                staged = self._upload(name, arrays) if self.early_upload else torch.from_numpy(np.stack(arrays))
+                batch[name] = staged.permute(0, 3, 1, 2).float().div_(255.0)
             elif _is_visual(feature):  # robots may send float CHW instead: convert each, then stack
-                batch[name] = torch.stack([_image_chw(a) for a in arrays]).to(self.device)
+                batch[name] = torch.stack([_image_chw(a) for a in arrays])
+                if self.early_upload:
+                    batch[name] = batch[name].to(self.device)
             else:
                 batch[name] = torch.from_numpy(np.stack(arrays)).float()
         return batch
@@ -246,17 +285,17 @@ class PolicyEngine:
     def warmup(self, max_batch_size: int, reps: int = 2, log_progress: bool = True) -> None:
         """Run every batch size 1..max_batch_size before serving (allocator, kernels, and the
         compilation of a compiled model happen now, not under the first robots). With a compiled
-        model, time it against eager and keep whichever is faster over all sizes."""
+        model, time it against eager, both warm, and keep whichever is faster over all sizes."""
         compiled = _compiled_functions(self.policy)
         if compiled:
             _allow_recompiles(max_batch_size)
-        self._time_sizes(max_batch_size, reps, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
+        self._time_sizes(max_batch_size, 1, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
         if not compiled:
             return
-        # The first pass compiled; now time the compiled model warm, then eager, same inputs.
         fast_ms = self._time_sizes(max_batch_size, reps, "compiled", log_progress)
         for owner, name, fn in compiled:
             setattr(owner, name, fn._torchdynamo_orig_callable)
+        self._time_sizes(max_batch_size, 1, "eager warm-up", False)  # eager's first passes are not its speed either
         eager_ms = self._time_sizes(max_batch_size, reps, "eager", log_progress)
         self.compiled_kept = sum(fast_ms) < sum(eager_ms)
         if self.compiled_kept:
@@ -268,42 +307,36 @@ class PolicyEngine:
             "compiled" if self.compiled_kept else "eager",
         )  # fmt: skip
 
-    def _time_sizes(self, max_batch_size: int, reps: int, what: str, log_progress: bool) -> list[float]:
+    def profile(self, max_batch_size: int, warmup: int = 2, reps: int = 5, log_progress: bool = True) -> LatencyProfile:
+        """Measure ``d_infer(b)`` for b = 1..max_batch_size (median of ``reps`` after ``warmup``
+        untimed passes per size; 0 after :meth:`warmup`).
+
+        Measured medians are made non-decreasing (a larger batch is never cheaper to schedule
+        for), as the schedulers require.
+        """
+        for _ in range(warmup):
+            self._time_sizes(max_batch_size, 1, "", False)
+        values: list[float] = []
+        for ms in self._time_sizes(max_batch_size, reps, "profiled", log_progress, statistics.median):
+            values.append(max(ms, values[-1]) if values else ms)
+        return LatencyProfile(f"profiled:{self.config.type}", tuple(values), self.device, "profiled")
+
+    def _time_sizes(
+        self, max_batch_size: int, reps: int, what: str, log_progress: bool, stat: Callable[[list[float]], float] = min
+    ) -> list[float]:
+        """``stat`` of ``reps`` timed batches (ms) for each size 1..max_batch_size."""
         out = []
         for b in range(1, max_batch_size + 1):
             obs = [self.example_observation(seed=k) for k in range(b)]
             times = []
             for _ in range(max(1, reps)):
                 start = time.perf_counter()
-                self.infer(obs, ["warm-up"] * b)
+                self.infer(obs, [what or "warm-up"] * b)
                 times.append((time.perf_counter() - start) * 1000.0)
-            out.append(min(times))
+            out.append(stat(times))
             if log_progress:
-                log.info("%s b=%d: %.1f ms", what, b, out[-1])
+                log.info("%s b=%d: %.1f ms%s", what, b, out[-1], f" ({stat.__name__} of {len(times)})" if len(times) > 1 else "")
         return out
-
-    def profile(self, max_batch_size: int, warmup: int = 2, reps: int = 5, log_progress: bool = True) -> LatencyProfile:
-        """Measure ``d_infer(b)`` for b = 1..max_batch_size (median of ``reps`` after ``warmup``).
-
-        Measured medians are made non-decreasing (a larger batch is never cheaper to schedule
-        for), as the schedulers require.
-        """
-        values: list[float] = []
-        for b in range(1, max_batch_size + 1):
-            obs = [self.example_observation(seed=k) for k in range(b)]
-            tasks = ["profiling"] * b
-            for _ in range(warmup):
-                self.infer(obs, tasks)
-            times = []
-            for _ in range(reps):
-                start = time.perf_counter()
-                self.infer(obs, tasks)
-                times.append((time.perf_counter() - start) * 1000.0)
-            ms = statistics.median(times)
-            values.append(max(ms, values[-1]) if values else ms)
-            if log_progress:
-                log.info("profiled b=%d: %.1f ms (median of %d)", b, ms, reps)
-        return LatencyProfile(f"profiled:{self.config.type}", tuple(values), self.device, "profiled")
 
 
 def _load(path: str, device: str, overrides: Sequence[str] = ()):
@@ -352,11 +385,59 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
     except ConfigError:
         raise
     except Exception as exc:  # hub errors, missing files, incompatible configs...
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise ConfigError("policy.path", f"cannot load policy from {path}: {type(exc).__name__}: {first}") from None
+        raise ConfigError("policy.path", f"cannot load policy from {path}: {_first_line(exc)}") from None
     if not hasattr(policy, "predict_action_chunk"):
         raise ConfigError("policy.path", f"{path}: {config.type} does not predict action chunks")
+    if overrides:
+        _check_weights_fit(policy, path, overrides)
     return config, policy, pre, post
+
+
+def _check_weights_fit(policy: Any, path: str, overrides: Sequence[str]) -> None:
+    """Refuse an override that changed the architecture under the saved weights.
+
+    Some policies (π0.5) only print a warning when the state dict does not fit and go on with
+    random weights; an override such as ``max_action_dim`` or ``image_resolution`` would then be
+    served silently untrained. Compares every parameter's shape with the weights file's header.
+    """
+    try:
+        from safetensors import safe_open
+        from transformers.utils import cached_file
+
+        weights = cached_file(path, "model.safetensors")
+    except Exception:  # no single safetensors file (sharded, or not transformers-style): nothing to compare
+        return
+    if weights is None:
+        return
+    with safe_open(weights, "pt") as f:
+        saved = {k.removeprefix("model."): tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118
+    wrong = [
+        f"{name} {tuple(t.shape)} vs {saved[key]} saved"
+        for name, t in policy.state_dict().items()
+        if (key := name.removeprefix("model.")) in saved and tuple(t.shape) != saved[key]
+    ]
+    if wrong:
+        given = " ".join(f"--policy.{o}" for o in overrides)
+        raise ConfigError(
+            "policy", f"{given} changes the model's shape under the weights in {path} ({len(wrong)} tensors, e.g. {wrong[0]})"
+        )
+
+
+def _early_upload_ok(preprocessor: Any) -> bool:
+    """True if the pre-processor has a device step and every step before it is device-agnostic."""
+    for step in getattr(preprocessor, "steps", []):
+        name = getattr(type(step), "_registry_name", None)
+        if name == "device_processor":
+            return True
+        if name not in DEVICE_AGNOSTIC_STEPS:
+            return False
+    return False
+
+
+def _first_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (one line for the user, no traceback)."""
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
 
 
 def _read_local_config(local: Path) -> dict[str, Any]:
@@ -392,7 +473,8 @@ def _parse_config(base: Any, path: str, overrides: list[str]) -> Any:
         if not eq or not name:
             raise ConfigError("policy", f"override {item!r} must look like --policy.<field>=<value>")
         if top not in known:
-            close = difflib.get_close_matches(top, sorted(known), n=3)
+            ours = {f.name for f in dataclasses.fields(PolicyOptions)} - {"overrides"}
+            close = difflib.get_close_matches(top, sorted(known | ours), n=3)
             hint = f" (did you mean {', '.join(close)}?)" if close else ""
             raise ConfigError(f"policy.{name}", f"{probe.type} policies have no field {top!r}{hint}")
         args.append(f"--{name}={value}")

@@ -11,6 +11,7 @@ model runs; they never wait for it and it never waits for them.
 from __future__ import annotations
 
 import collections
+import inspect
 import logging
 import threading
 import time
@@ -32,6 +33,11 @@ log = logging.getLogger(__name__)
 
 # Warn (once per excursion) when the learnt d_infer moves this far from the start-up profile.
 DRIFT_WARN_PCT = 25.0
+# This many failed batches in a row, across whichever robots they held, mean the engine is broken,
+# not one request: the loop stops and the server exits 1 (a supervisor restarts it) rather than
+# failing every robot's every request forever. One failure alone is not enough to tell: a CUDA
+# out-of-memory error passes, an illegal memory access does not.
+MAX_CONSECUTIVE_FAILURES = 20
 
 
 class Engine(Protocol):
@@ -40,6 +46,15 @@ class Engine(Protocol):
     def infer(
         self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
     ) -> np.ndarray: ...
+
+
+def takes_noise_seeds(engine: Engine) -> bool:
+    """Whether ``engine.infer`` accepts ``noise_seeds`` (engines written before it existed do not)."""
+    try:
+        params = inspect.signature(engine.infer).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == "noise_seeds" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params) or len(params) >= 3
 
 
 @dataclass
@@ -113,6 +128,8 @@ class ServingLoop:
         self.on_batch = on_batch
         self.latency = latency
         self._drift_warned = False
+        self._seeds = takes_noise_seeds(engine)
+        self._failures_in_a_row = 0
         self.stats = LoopStats(started=fleet.clock())
         self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
         self._last_end: float | None = None
@@ -184,17 +201,18 @@ class ServingLoop:
         fleet = self.fleet
         t_start = fleet.clock()
         try:
-            actions = self.engine.infer(
-                [it.observation for it in items],
-                [it.session.task for it in items],
-                [noise_seed(it.session.robot_id, it.chunk.chunk_id) for it in items],
-            )
+            observations, tasks = [it.observation for it in items], [it.session.task for it in items]
+            if self._seeds:
+                actions = self.engine.infer(observations, tasks, [noise_seed(it.session.robot_id, it.chunk.chunk_id) for it in items])
+            else:
+                actions = self.engine.infer(observations, tasks)
             if actions.shape[0] != len(items):
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {len(items)}")
         except Exception as exc:
             self._fail(items, exc, t_start, decision_ms)
             return
         t_done = fleet.clock()
+        self._failures_in_a_row = 0
         size = len(items)
         with fleet.cond:
             for k, it in enumerate(items):
@@ -265,6 +283,15 @@ class ServingLoop:
             self._finish(len(items), t_start, t_end)
             self.fleet.cond.notify_all()
         self._record(items, t_start, t_end, decision_ms, ok=False)
+        self._failures_in_a_row += 1
+        if self._failures_in_a_row >= MAX_CONSECUTIVE_FAILURES:
+            # A sticky device error (an illegal memory access leaves the CUDA context unusable) fails
+            # every batch in quick succession and lands here within a second or so.
+            self.error = RuntimeError(
+                f"the engine is broken ({self._failures_in_a_row} failed batches in a row; last: {type(exc).__name__}: {exc})"
+            )
+            log.error("stopping: %s", self.error)
+            self.fleet.stop()  # the loop ends at its next decision; the server sees loop.error and exits 1
 
     def _finish(self, size: int, t_start: float, t_end: float) -> None:
         """Counters at the end of a batch (lock held)."""

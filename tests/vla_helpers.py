@@ -1,0 +1,91 @@
+"""Shared by the VLA tests (π0.5, SmolVLA): armory_sim-shaped observations, robots with their own
+prompt, and the check that served chunks equal each robot's chunk computed alone."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.robot.connection import Connection
+from lerobot_armory.schedulers import EarliestDeadlineConfig
+from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.engine import PolicyEngine, noise_seed
+from lerobot_armory.server.service import PolicyInfo
+from tests.test_server import wait_for
+
+STATE = "observation.state"
+IMAGE = "observation.images.front"
+TASKS = ("pick up the red block", "sort the bricks by colour", "reach the moving target")
+
+
+def observation(robot: int, index: int) -> dict[str, np.ndarray]:
+    """A distinct, reproducible armory_sim-shaped observation per (robot, index)."""
+    rng = np.random.default_rng(1000 * robot + index)
+    return {STATE: rng.uniform(-1, 1, 2).astype(np.float32), IMAGE: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)}
+
+
+class PromptRobot:
+    """A robot double with its own prompt that pushes reproducible observations and keeps chunks."""
+
+    def __init__(self, address: str, engine: PolicyEngine, k: int, task: str) -> None:
+        self.k, self.task, self.robot_id = k, task, f"prompt{k}"
+        self.conn = Connection(address)
+        features = {f.name: (f.dtype, f.shape) for f in engine.wire_features}
+        self.conn.register(self.robot_id, features, fps=30, h_min=1, h_max=10, task=task)
+        self.chunks = []
+        self.conn.open_stream(self.chunks.append)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        index = 0
+        while not self._stop.is_set():
+            self.conn.send_observation(index, observation(self.k, index))
+            index += 1
+            time.sleep(0.03)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.conn.close()
+
+
+def serve_prompt_robots(engine: PolicyEngine, tasks: list[str], max_batch_size: int = 3) -> tuple[ArmoryServer, list[PromptRobot]]:
+    """A real server and one :class:`PromptRobot` per task, run until at least 3 batches held
+    several robots; returns the stopped server (with its batch log) and the robots."""
+    info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    profile = LatencyProfile("test", tuple(20.0 + 5.0 * b for b in range(max_batch_size)))
+    server = ArmoryServer(engine, info, profile, EarliestDeadlineConfig(), max_batch_size, port=0).start()
+    robots = [PromptRobot(server.address, engine, k, task) for k, task in enumerate(tasks)]
+    try:
+        assert wait_for(lambda: sum(len(b.robots) >= 2 for b in server.batch_log) >= 3, timeout=60), "batches were not shared"
+    finally:
+        for r in robots:
+            r.stop()
+        server.stop(grace_s=0.5)
+    return server, robots
+
+
+def assert_shared_chunks_equal_alone(engine: PolicyEngine, server: ArmoryServer, robots: list[PromptRobot], only=None) -> int:
+    """Every chunk that was computed in a batch shared with another robot equals the chunk of that
+    robot's observation, prompt and noise computed alone. Returns how many were checked (> 0)."""
+    by_id = {r.robot_id: r for r in robots if only is None or r.robot_id in only}
+    checked = 0
+    for record in server.batch_log:
+        if len(record.robots) < 2 or not record.ok:
+            continue
+        for robot_id, i_start in zip(record.robots, record.i_starts, strict=True):
+            robot = by_id.get(robot_id)
+            chunk = next((c for c in robot.chunks if c.i_start == i_start), None) if robot else None
+            if chunk is None:
+                continue  # a robot not checked, or a chunk still on its way when the robot stopped
+            seed = noise_seed(robot.robot_id, chunk.chunk_id)
+            alone = engine.infer([observation(robot.k, i_start)], [robot.task], [seed])[0]
+            np.testing.assert_allclose(chunk.actions, alone, atol=1e-5)
+            checked += 1
+    assert checked > 0, "no chunk from a shared batch was checked"
+    return checked
