@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Self
 
+from lerobot_armory.bench.live import cpu_seconds, machine_cpu  # the live bench measures CPU the same way
+
 HERE = Path(__file__).resolve().parent
 FPS = 30
 CHUNK = 10
@@ -265,22 +267,6 @@ def rss_bytes(pid: int) -> int:
     return 0
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds of ``pid`` (all its threads), from /proc/PID/stat."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
-def machine_jiffies() -> tuple[float, float]:
-    """(busy, total) jiffies of the whole machine, from /proc/stat."""
-    fields = [float(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
-    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)
-    return sum(fields) - idle, sum(fields)
-
-
 class Monitor:
     """Samples the servers' summed RSS (peak) and everyone's CPU seconds while a run lasts."""
 
@@ -317,7 +303,7 @@ def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str) -> dict[
     with Monitor(fleet) as mon:
         client_cpu0 = dict(mon.client_cpu)
         server_cpu0 = sum(cpu_seconds(pid) for pid in servers)
-        machine0, t0 = machine_jiffies(), time.monotonic()
+        machine0, t0 = machine_cpu(), time.monotonic()
         (run_dir / "go").write_text("go\n")
         next_report = t0 + 10.0
         while any(p.popen.poll() is None for p in fleet.clients):
@@ -335,7 +321,7 @@ def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str) -> dict[
             time.sleep(0.2)
         wall = min(time.monotonic() - t0, duration_s)  # the robots' window; servers idle after it
         server_cpu = sum(cpu_seconds(pid) for pid in servers) - server_cpu0
-        machine1 = machine_jiffies()
+        machine1 = machine_cpu()
     for p in fleet.clients:
         if p.popen.returncode:
             raise RunFailed(p.failed())

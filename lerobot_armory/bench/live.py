@@ -115,7 +115,7 @@ def ensure_policy(cfg: BenchConfig, chunk_size: int) -> str:
     return str(path)
 
 
-def _machine_cpu() -> tuple[float, float]:
+def machine_cpu() -> tuple[float, float]:
     """(busy, total) jiffies of the whole machine, from /proc/stat."""
     try:
         fields = [float(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
@@ -125,7 +125,8 @@ def _machine_cpu() -> tuple[float, float]:
     return sum(fields) - idle, sum(fields)
 
 
-def _cpu_seconds(pid: int) -> float:
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` (all its threads), from /proc/PID/stat (0 if gone)."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -205,14 +206,14 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
         # reaped children (os.times) once the robot groups have exited.
         time.sleep(min(cfg.duration_s / 4, 2.0))
         t_mid = time.monotonic()
-        machine_mid = _machine_cpu()
-        server_mid, groups_mid = _cpu_seconds(server.pid), sum(_cpu_seconds(p.pid) for p in procs)
+        machine_mid = machine_cpu()
+        server_mid, groups_mid = cpu_seconds(server.pid), sum(cpu_seconds(p.pid) for p in procs)
         codes = [p.wait(timeout=cfg.duration_s + 120) for p in procs]
         reaped = os.times()
         groups_total = reaped.children_user + reaped.children_system - reaped_before
-        used = (_cpu_seconds(server.pid) - server_mid) + (groups_total - groups_mid)
+        used = (cpu_seconds(server.pid) - server_mid) + (groups_total - groups_mid)
         cpu_pct = 100.0 * used / max(1e-9, time.monotonic() - t_mid) / (os.cpu_count() or 1)
-        machine_end = _machine_cpu()
+        machine_end = machine_cpu()
         # The whole machine, not just our processes: anything else running skews the robots' clocks.
         machine_pct = 100.0 * (machine_end[0] - machine_mid[0]) / max(1e-9, machine_end[1] - machine_mid[1])
     finally:
