@@ -8,13 +8,20 @@ import json
 import shutil
 import socket
 
-import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features, noise_seed
-from tests.vla_helpers import IMAGE, STATE, TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
-
+from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features
+from tests.vla_helpers import (
+    IMAGE,
+    STATE,
+    TASKS,
+    assert_batched_equals_alone,
+    assert_prompt_and_noise_change_the_chunk,
+    assert_shared_chunks_equal_alone,
+    observation,
+    serve_prompt_robots,
+)
 
 
 @pytest.fixture
@@ -109,25 +116,11 @@ def test_the_directory_loads_after_it_was_moved(smolvla_dir, tmp_path, no_networ
 
 
 def test_a_batched_chunk_equals_the_chunk_computed_alone(smolvla):
-    obs = [observation(k, 3) for k in range(3)]
-    seeds = [noise_seed(f"robot{k}", 5) for k in range(3)]
-    together = smolvla.infer(obs, list(TASKS), seeds)
-    for k in range(3):
-        alone = smolvla.infer([obs[k]], [TASKS[k]], [seeds[k]])[0]
-        np.testing.assert_allclose(together[k], alone, atol=1e-5)
-    # ... and in any order and company (prompts of other lengths pad the batch differently).
-    mixed = smolvla.infer([obs[2], obs[0]], [TASKS[2], TASKS[0]], [seeds[2], seeds[0]])
-    np.testing.assert_allclose(mixed[0], together[2], atol=1e-5)
+    assert_batched_equals_alone(smolvla)
 
 
 def test_the_prompt_and_the_noise_each_change_the_chunk(smolvla):
-    obs = observation(0, 0)
-    seed = noise_seed("robot0", 1)
-    a, b = smolvla.infer([obs, obs], [TASKS[0], TASKS[1]], [seed, seed])
-    assert np.abs(a - b).max() > 1e-4, "two prompts gave the same chunk"
-    c, d = smolvla.infer([obs, obs], [TASKS[0], TASKS[0]], [noise_seed("robot0", 1), noise_seed("robot1", 1)])
-    assert np.abs(c - d).max() > 1e-3, "two noise seeds gave the same chunk"
-    np.testing.assert_array_equal(smolvla.infer([obs], [TASKS[0]], [seed]), smolvla.infer([obs], [TASKS[0]], [seed]))
+    assert_prompt_and_noise_change_the_chunk(smolvla)
 
 
 def test_a_batch_of_eight_runs_in_well_under_a_second(smolvla):

@@ -89,3 +89,28 @@ def assert_shared_chunks_equal_alone(engine: PolicyEngine, server: ArmoryServer,
             checked += 1
     assert checked > 0, "no chunk from a shared batch was checked"
     return checked
+
+
+def assert_batched_equals_alone(engine: PolicyEngine) -> None:
+    """Three robots' rows, batched, equal each row computed alone with its own prompt and noise,
+    and in any order and company (prompts of other lengths pad the batch differently)."""
+    obs = [observation(k, 3) for k in range(3)]
+    seeds = [noise_seed(f"robot{k}", 5) for k in range(3)]
+    together = engine.infer(obs, list(TASKS), seeds)
+    for k in range(3):
+        alone = engine.infer([obs[k]], [TASKS[k]], [seeds[k]])[0]
+        np.testing.assert_allclose(together[k], alone, atol=1e-5)
+    mixed = engine.infer([obs[2], obs[0]], [TASKS[2], TASKS[0]], [seeds[2], seeds[0]])
+    np.testing.assert_allclose(mixed[0], together[2], atol=1e-5)
+
+
+def assert_prompt_and_noise_change_the_chunk(engine: PolicyEngine) -> None:
+    """Two prompts, and two robots' noise at the same chunk number, give different chunks; the
+    same request twice gives the same chunk."""
+    obs = observation(0, 0)
+    seed = noise_seed("robot0", 1)
+    a, b = engine.infer([obs, obs], [TASKS[0], TASKS[1]], [seed, seed])
+    assert np.abs(a - b).max() > 1e-4, "two prompts gave the same chunk"
+    c, d = engine.infer([obs, obs], [TASKS[0], TASKS[0]], [noise_seed("robot0", 1), noise_seed("robot1", 1)])
+    assert np.abs(c - d).max() > 1e-3, "two noise seeds gave the same chunk"
+    np.testing.assert_array_equal(engine.infer([obs], [TASKS[0]], [seed]), engine.infer([obs], [TASKS[0]], [seed]))
