@@ -1,8 +1,11 @@
 """Robot side: the action buffer, the client loop with armory_sim robots against a real server,
-starvation under a slow server, reconnects without stale chunks, refused registrations."""
+starvation under a slow server, reconnects without stale chunks, refused registrations, clock-sync
+answers, a full server waited for, fleet-policy grants."""
 
 from __future__ import annotations
 
+import itertools
+import logging
 import socket
 import threading
 import time
@@ -10,14 +13,20 @@ import time
 import numpy as np
 import pytest
 
+from lerobot_armory.bench.load import FEATURES as ECHO_FEATURES
+from lerobot_armory.bench.load import echo_server
 from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RegistrationRefused, RobotIdentity
+from lerobot_armory.robot.connection import Connection, Registration
 from lerobot_armory.robot.features import FeatureMap
+from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ArmoryServer
 from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.sim.network import LogNormalDelay
 from lerobot_armory.wire import FeatureSpec
 
 SIM_FEATURES = [FeatureSpec("observation.state", "float32", (2,)), FeatureSpec("observation.images.front", "uint8", (32, 32, 3))]
@@ -78,9 +87,10 @@ class ConstEngine:
         return np.full((len(observations), self.horizon, 2), self.value, np.float32)
 
 
-def start_server(engine, port: int = 0, cap: int = 3) -> ArmoryServer:
+def start_server(engine, port: int = 0, cap: int = 3, **kwargs) -> ArmoryServer:
     info = PolicyInfo("test engine", SIM_FEATURES, ["x", "y"], 10)
-    return ArmoryServer(engine, info, LatencyProfile("t", (5.0, 6.0, 7.0)), EarliestDeadlineConfig(), cap, port=port).start()
+    profile = LatencyProfile("t", (5.0, 6.0, 7.0))
+    return ArmoryServer(engine, info, profile, EarliestDeadlineConfig(), cap, port=port, **kwargs).start()
 
 
 def sim_client(address: str, name: str, scene: str = "static", tier: str = "slow", h_max: int = 8, fps: float = 20.0, backoff=None):
@@ -269,3 +279,210 @@ def test_client_command_runs_and_writes_stats(tmp_path, capsys):
         assert key in stats
     assert stats["executed_steps"] > 0 and stats["chunks_received"] > 0
     assert "successes" in capsys.readouterr().out
+
+
+# ---- clock sync requests ---------------------------------------------------------------------
+
+
+class FakeStreamCall:
+    """Stands for the gRPC stream call: yields the given server messages (noting when), then ends."""
+
+    def __init__(self, messages: list[pb.ServerMessage], clock) -> None:
+        self.messages, self.clock, self.yielded_at = messages, clock, []
+
+    def __iter__(self):
+        for msg in self.messages:
+            self.yielded_at.append(self.clock())
+            yield msg
+
+    def cancel(self) -> None:
+        pass
+
+
+def fake_stream_connection(messages: list[pb.ServerMessage], clock, network=None) -> tuple[Connection, FakeStreamCall]:
+    """A Connection whose stream is ``messages`` (no server: the channel is never used)."""
+    conn = Connection("127.0.0.1:1", clock=clock, network=network)
+    call = FakeStreamCall(messages, clock)
+    conn.stub = type("FakeStub", (), {"Stream": lambda self, requests, metadata=None: call})()
+    first_sync = pb.ClockSync(client_send_time=1.0, client_recv_time=2.0)
+    conn.registration = Registration("session", ["x", "y"], 10, "fake", [], first_sync)
+    return conn, call
+
+
+def sync_request(sync_id: int, server_send_time: float) -> pb.ServerMessage:
+    return pb.ServerMessage(sync_request=pb.ClockSyncRequest(sync_id=sync_id, server_send_time=server_send_time))
+
+
+def test_sync_request_is_answered_at_once_with_robot_clock_stamps():
+    ticks = itertools.count(100.0, 0.5)  # a robot clock nowhere near the server's, advancing on every read
+    conn, _ = fake_stream_connection([sync_request(7, 5000.0)], clock=lambda: next(ticks))
+    try:
+        conn.open_stream(on_chunk=lambda chunk: None)
+        assert conn.closed.wait(5)
+        first, answer = conn._outgoing.get(timeout=1), conn._outgoing.get(timeout=1)
+        assert first.clock_sync.sync_id == 0  # the registration round trip goes first, as before
+        sync = answer.clock_sync
+        assert answer.WhichOneof("kind") == "clock_sync" and sync.sync_id == 7
+        assert sync.server_send_time == 5000.0  # echoed
+        assert 100.0 <= sync.client_recv_time < sync.client_send_time < 1000.0  # robot clock, received before sent
+        assert conn._outgoing.empty()
+    finally:
+        conn.close()
+
+
+def test_sync_answer_is_stamped_after_the_emulated_downlink_and_uplink():
+    down, up = 0.08, 0.05
+    network = NetworkEmulator(uplink=LogNormalDelay(up, 0.0), downlink=LogNormalDelay(down, 0.0))
+    conn, call = fake_stream_connection([sync_request(3, 1.0)], clock=time.monotonic, network=network)
+    try:
+        conn.open_stream(on_chunk=lambda chunk: None)
+        conn._outgoing.get(timeout=1)  # the registration sync, queued directly
+        sync = conn._outgoing.get(timeout=2).clock_sync
+        assert sync.sync_id == 3
+        assert sync.client_recv_time - call.yielded_at[0] >= down  # seen when a chunk would be
+        assert sync.client_send_time - sync.client_recv_time >= up  # stamped when it enters the stream
+    finally:
+        conn.close()
+
+
+# ---- a full server ---------------------------------------------------------------------------
+
+
+def light_client(address: str, name: str, backoff: Backoff) -> ArmoryClient:
+    state = np.zeros(4, np.float32)
+    identity = RobotIdentity(name, fps=20.0, h_min=2, h_max=8)
+    observe = lambda: {"observation.state": state}
+    return ArmoryClient(address, identity, ECHO_FEATURES, observe=observe, act=lambda a: None, backoff=backoff)
+
+
+def test_a_full_server_is_waited_for_then_joined(caplog):
+    caplog.set_level(logging.WARNING, logger="lerobot_armory.robot.client")
+    server = echo_server(max_robots=1)
+    first = light_client(server.address, "squatter", Backoff(0.1, 0.3))
+    second = light_client(server.address, "waiting", Backoff(0.1, 0.3))
+    try:
+        first_thread, _ = run_in_thread(first, 0.0)  # runs until closed: holds the only slot
+        deadline = time.monotonic() + 5
+        while not first.connected and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert first.connected
+
+        impatient = light_client(server.address, "impatient", Backoff(0.1, 0.2, give_up_s=1.0))
+        with pytest.raises(ConnectionError, match="RESOURCE_EXHAUSTED.*gave up"):
+            impatient.connect()  # retried (not refused) until give_up_s
+
+        outcome: dict[str, BaseException | None] = {}
+
+        def connect() -> None:
+            try:
+                second.connect()
+                outcome["error"] = None
+            except BaseException as exc:  # noqa: BLE001 - the test reports whatever it was
+                outcome["error"] = exc
+
+        waiting = threading.Thread(target=connect, daemon=True)
+        waiting.start()
+        time.sleep(1.5)
+        assert waiting.is_alive() and not outcome, f"a full server must be waited for, got {outcome}"
+        assert not second.connected
+        reasons = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert any("RESOURCE_EXHAUSTED" in m and "max_robots" in m and "retrying" in m for m in reasons), reasons
+
+        first.close()
+        first_thread.join(5)
+        waiting.join(5)
+        assert outcome == {"error": None}, outcome
+        assert second.connected
+    finally:
+        first.close()
+        second.close()
+        server.stop(0.5)
+
+
+def test_client_command_waits_for_a_full_server_until_give_up(capsys):
+    from lerobot_armory.robot.cli import main
+
+    server = start_server(ConstEngine(0.0), max_robots=1)
+    squatter, _, _ = sim_client(server.address, "squatter")
+    try:
+        squatter.connect()
+        start = time.monotonic()
+        with pytest.raises(SystemExit) as info:
+            main(
+                [
+                    "--robot.type=armory_sim", "--robot.image_size=32", f"--server_address={server.address}",
+                    "--h_min=1", "--h_max=8", "--give_up_s=1.0", "--backoff.initial_s=0.1", "--backoff.max_s=0.2",
+                ]
+            )  # fmt: skip
+        assert info.value.code == 1
+        assert time.monotonic() - start >= 0.8  # it retried rather than exiting at the first refusal
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert "RESOURCE_EXHAUSTED" in last and "gave up" in last, last
+    finally:
+        squatter.close()
+        server.stop(0.5)
+
+
+# ---- fleet-policy grants ---------------------------------------------------------------------
+
+
+def test_registration_reads_the_grant_or_none():
+    response = pb.RegisterResponse(session_id="s", action_names=["x", "y"], chunk_size=10, policy="p")
+    assert Registration.from_response(response, pb.ClockSync()).granted is None  # a server without fleet policies
+    grant = pb.Grant(weight=0.5, tier="fast", fps=30.0, h_min=2, h_max=6, max_device_share=0.25, rule="robot:a")
+    response.granted.CopyFrom(grant)
+    reg = Registration.from_response(response, pb.ClockSync(sync_id=0, client_recv_time=3.0))
+    assert reg.granted == grant
+    assert (reg.session_id, reg.action_dim, reg.clock_sync.client_recv_time) == ("s", 2, 3.0)
+
+
+@pytest.fixture
+def grant_injected(monkeypatch):
+    """Makes every registration carry ``holder["grant"]``, whatever the server sends (it may not send one yet)."""
+    holder: dict[str, pb.Grant] = {}
+    original = Connection.register
+
+    def register(self, *args, **kwargs):
+        reg = original(self, *args, **kwargs)
+        reg.granted = holder["grant"]
+        return reg
+
+    monkeypatch.setattr(Connection, "register", register)
+    return holder
+
+
+def test_grant_is_logged_and_a_smaller_h_max_is_used(grant_injected, caplog):
+    caplog.set_level(logging.INFO, logger="lerobot_armory.robot.client")
+    grant_injected["grant"] = pb.Grant(weight=0.5, tier="slow", fps=20.0, h_min=2, h_max=5, rule="robot:capped")
+    server = start_server(ConstEngine(0.0))
+    client, _, _ = sim_client(server.address, "capped", h_max=8, fps=20.0)
+    try:
+        client.connect()
+        assert client.buffer.h_max == 5  # the server plans chunks for the granted horizon
+        assert client.granted is not None and client.granted.rule == "robot:capped"
+        infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+        warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert any("granted" in m and "robot:capped" in m and "h_max 5" in m for m in infos), infos
+        assert len(warnings) == 1, warnings
+        assert "weight asked 1 granted 0.5" in warnings[0] and "h_max asked 8 granted 5" in warnings[0]
+        assert "tier" not in warnings[0] and "h_min" not in warnings[0]  # only what changed
+    finally:
+        client.close()
+        server.stop(0.5)
+
+
+def test_grant_at_another_fps_is_refused_and_the_session_given_back(grant_injected):
+    grant_injected["grant"] = pb.Grant(weight=1.0, tier="slow", fps=10.0, h_min=2, h_max=8, rule="default")
+    server = start_server(ConstEngine(0.0))
+    client, _, _ = sim_client(server.address, "too-fast", fps=20.0)
+    try:
+        with pytest.raises(RegistrationRefused, match="granted fps 10 but this robot runs at fps 20"):
+            client.connect()
+        assert not client.connected
+        deadline = time.monotonic() + 3
+        while server.fleet.sessions and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not server.fleet.sessions  # given back at once, not left to expire
+    finally:
+        client.close()
+        server.stop(0.5)

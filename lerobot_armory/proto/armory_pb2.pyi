@@ -63,7 +63,7 @@ class RegisterRequest(_message.Message):
     def __init__(self, robot_id: _Optional[str] = ..., task: _Optional[str] = ..., fps: _Optional[float] = ..., h_min: _Optional[int] = ..., h_max: _Optional[int] = ..., weight: _Optional[float] = ..., tier: _Optional[str] = ..., features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., client_send_time: _Optional[float] = ..., auth_token: _Optional[str] = ...) -> None: ...
 
 class RegisterResponse(_message.Message):
-    __slots__ = ("session_id", "action_names", "chunk_size", "action_dim", "server_recv_time", "server_send_time", "policy", "expected_features", "max_message_bytes")
+    __slots__ = ("session_id", "action_names", "chunk_size", "action_dim", "server_recv_time", "server_send_time", "policy", "expected_features", "max_message_bytes", "granted")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     ACTION_NAMES_FIELD_NUMBER: _ClassVar[int]
     CHUNK_SIZE_FIELD_NUMBER: _ClassVar[int]
@@ -73,6 +73,7 @@ class RegisterResponse(_message.Message):
     POLICY_FIELD_NUMBER: _ClassVar[int]
     EXPECTED_FEATURES_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
+    GRANTED_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     action_names: _containers.RepeatedScalarFieldContainer[str]
     chunk_size: int
@@ -82,19 +83,48 @@ class RegisterResponse(_message.Message):
     policy: str
     expected_features: _containers.RepeatedCompositeFieldContainer[TensorSpec]
     max_message_bytes: int
-    def __init__(self, session_id: _Optional[str] = ..., action_names: _Optional[_Iterable[str]] = ..., chunk_size: _Optional[int] = ..., action_dim: _Optional[int] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., policy: _Optional[str] = ..., expected_features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., max_message_bytes: _Optional[int] = ...) -> None: ...
+    granted: Grant
+    def __init__(self, session_id: _Optional[str] = ..., action_names: _Optional[_Iterable[str]] = ..., chunk_size: _Optional[int] = ..., action_dim: _Optional[int] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., policy: _Optional[str] = ..., expected_features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., max_message_bytes: _Optional[int] = ..., granted: _Optional[_Union[Grant, _Mapping]] = ...) -> None: ...
+
+class Grant(_message.Message):
+    __slots__ = ("weight", "tier", "fps", "h_min", "h_max", "max_device_share", "rule")
+    WEIGHT_FIELD_NUMBER: _ClassVar[int]
+    TIER_FIELD_NUMBER: _ClassVar[int]
+    FPS_FIELD_NUMBER: _ClassVar[int]
+    H_MIN_FIELD_NUMBER: _ClassVar[int]
+    H_MAX_FIELD_NUMBER: _ClassVar[int]
+    MAX_DEVICE_SHARE_FIELD_NUMBER: _ClassVar[int]
+    RULE_FIELD_NUMBER: _ClassVar[int]
+    weight: float
+    tier: str
+    fps: float
+    h_min: int
+    h_max: int
+    max_device_share: float
+    rule: str
+    def __init__(self, weight: _Optional[float] = ..., tier: _Optional[str] = ..., fps: _Optional[float] = ..., h_min: _Optional[int] = ..., h_max: _Optional[int] = ..., max_device_share: _Optional[float] = ..., rule: _Optional[str] = ...) -> None: ...
 
 class ClockSync(_message.Message):
-    __slots__ = ("client_send_time", "server_recv_time", "server_send_time", "client_recv_time")
+    __slots__ = ("client_send_time", "server_recv_time", "server_send_time", "client_recv_time", "sync_id")
     CLIENT_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
     SERVER_RECV_TIME_FIELD_NUMBER: _ClassVar[int]
     SERVER_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
     CLIENT_RECV_TIME_FIELD_NUMBER: _ClassVar[int]
+    SYNC_ID_FIELD_NUMBER: _ClassVar[int]
     client_send_time: float
     server_recv_time: float
     server_send_time: float
     client_recv_time: float
-    def __init__(self, client_send_time: _Optional[float] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., client_recv_time: _Optional[float] = ...) -> None: ...
+    sync_id: int
+    def __init__(self, client_send_time: _Optional[float] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., client_recv_time: _Optional[float] = ..., sync_id: _Optional[int] = ...) -> None: ...
+
+class ClockSyncRequest(_message.Message):
+    __slots__ = ("sync_id", "server_send_time")
+    SYNC_ID_FIELD_NUMBER: _ClassVar[int]
+    SERVER_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
+    sync_id: int
+    server_send_time: float
+    def __init__(self, sync_id: _Optional[int] = ..., server_send_time: _Optional[float] = ...) -> None: ...
 
 class Observation(_message.Message):
     __slots__ = ("index", "capture_time", "tensors")
@@ -163,11 +193,15 @@ class Notice(_message.Message):
         REJECTED_REPORT: _ClassVar[Notice.Kind]
         INFERENCE_FAILED: _ClassVar[Notice.Kind]
         SHUTDOWN: _ClassVar[Notice.Kind]
+        DROPPED: _ClassVar[Notice.Kind]
+        CLOCK: _ClassVar[Notice.Kind]
     INFO: Notice.Kind
     REJECTED_OBSERVATION: Notice.Kind
     REJECTED_REPORT: Notice.Kind
     INFERENCE_FAILED: Notice.Kind
     SHUTDOWN: Notice.Kind
+    DROPPED: Notice.Kind
+    CLOCK: Notice.Kind
     KIND_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -177,9 +211,11 @@ class Notice(_message.Message):
     def __init__(self, kind: _Optional[_Union[Notice.Kind, str]] = ..., message: _Optional[str] = ..., index: _Optional[int] = ...) -> None: ...
 
 class ServerMessage(_message.Message):
-    __slots__ = ("chunk", "notice")
+    __slots__ = ("chunk", "notice", "sync_request")
     CHUNK_FIELD_NUMBER: _ClassVar[int]
     NOTICE_FIELD_NUMBER: _ClassVar[int]
+    SYNC_REQUEST_FIELD_NUMBER: _ClassVar[int]
     chunk: ActionChunk
     notice: Notice
-    def __init__(self, chunk: _Optional[_Union[ActionChunk, _Mapping]] = ..., notice: _Optional[_Union[Notice, _Mapping]] = ...) -> None: ...
+    sync_request: ClockSyncRequest
+    def __init__(self, chunk: _Optional[_Union[ActionChunk, _Mapping]] = ..., notice: _Optional[_Union[Notice, _Mapping]] = ..., sync_request: _Optional[_Union[ClockSyncRequest, _Mapping]] = ...) -> None: ...

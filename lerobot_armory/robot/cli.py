@@ -13,7 +13,8 @@ Every robot type is selectable (``--help`` lists them): each one LeRobot ships (
 (``armory_sim``, ``piper``); see :mod:`lerobot_armory.robot.robot_types`. The robot is built with
 LeRobot's ``make_robot_from_config``. Exit codes: 0 done; 1 robot unavailable (missing hardware,
 port, permission or SDK: one line naming the robot and its port), registration refused (the
-server's reason, or a policy whose action size does not fit the robot) or server lost for good;
+server's reason, or a policy whose action size does not fit the robot) or server lost for good
+(unreachable or full past ``--give_up_s``: a full server is waited for, like an unreachable one);
 2 bad command line; 130 interrupted.
 """
 
@@ -65,7 +66,7 @@ class ClientConfig:
         duration_s: seconds to run (0 = until Ctrl-C).
         stats_path: write the run's stats JSON here at exit.
         jpeg_quality: send camera images as JPEG of this quality (default: raw bytes).
-        give_up_s: stop retrying an unreachable server after this long (0 = never).
+        give_up_s: stop retrying an unreachable or full server after this long (0 = never).
         tls_ca: PEM file of the CA that signed the server's certificate (enables TLS).
         auth_token_file: file whose first line is this robot's token.
         log_level: debug, info, warning, error.
@@ -191,7 +192,7 @@ def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, An
     Raises:
         RobotUnavailable: the robot could not be built, connected or driven (one-line reason).
         RegistrationRefused: the server refused, or its policy's actions do not fit the robot.
-        ConnectionError: the server could not be reached within ``give_up_s``.
+        ConnectionError: the server could not be reached, or stayed full, within ``give_up_s``.
     """
     from lerobot.robots.utils import make_robot_from_config
 

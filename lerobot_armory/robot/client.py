@@ -17,6 +17,7 @@ so a LeRobot robot, a simulated robot or a test double plug in the same way.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -34,8 +35,15 @@ from lerobot_armory.robot.netem import NetworkEmulator
 log = logging.getLogger(__name__)
 
 REPORT_EVERY_S = 0.2
-# Registration answers that mean "try again later" rather than "you are wrong".
-RETRYABLE = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.ALREADY_EXISTS)
+# Registration answers that mean "try again later" rather than "you are wrong". RESOURCE_EXHAUSTED:
+# the server is full (--max_robots, or slots held by registrations that never streamed and expire):
+# a slot frees up when another robot leaves, so the robot waits its turn instead of exiting.
+RETRYABLE = (
+    grpc.StatusCode.UNAVAILABLE,
+    grpc.StatusCode.DEADLINE_EXCEEDED,
+    grpc.StatusCode.ALREADY_EXISTS,
+    grpc.StatusCode.RESOURCE_EXHAUSTED,
+)
 
 
 class RegistrationRefused(RuntimeError):
@@ -129,6 +137,7 @@ class ArmoryClient:
         self.notices: list[str] = []
         self.policy: str = ""
         self.chunk_size: int = 0
+        self.granted: pb.Grant | None = None  # the fleet policy's grant of the current session, if the server sent one
 
     # ---- connection --------------------------------------------------------------------------
 
@@ -170,26 +179,66 @@ class ArmoryClient:
         except grpc.RpcError as exc:
             conn.close()
             if exc.code() in RETRYABLE:
-                raise ConnectionError(f"server {self.address} not ready: {exc.code().name}: {exc.details()}") from None
+                raise ConnectionError(f"server {self.address} busy or not ready: {exc.code().name}: {exc.details()}") from None
             raise RegistrationRefused(f"{exc.code().name}: {exc.details()}") from None
-        if self.check_registration is not None:
-            try:
+        try:
+            h_max = self._accept_grant(reg.granted)
+            if self.check_registration is not None:
                 self.check_registration(reg)
-            except RegistrationRefused:
-                conn.end_session()
-                raise
+        except RegistrationRefused:
+            conn.end_session()
+            raise
         with self._lock:
             self._epoch += 1
             epoch = self._epoch
             self.buffer.clear()  # nothing from an earlier session may ever run
+            self.buffer.h_max = h_max  # a reconnect may be granted another horizon than the last session
             self.connection = conn
-        self.policy, self.chunk_size = reg.policy, reg.chunk_size
+        self.policy, self.chunk_size, self.granted = reg.policy, reg.chunk_size, reg.granted
         conn.open_stream(
             lambda chunk: self._on_chunk(epoch, chunk),
             self._on_notice,
             lambda error: self._on_close(epoch, error),
         )
         log.info("registered as %s with %s (H=%d), session %d", ident.robot_id, reg.policy, reg.chunk_size, epoch)
+
+    def _accept_grant(self, granted: pb.Grant | None) -> int:
+        """Log what the fleet policy granted; returns the h_max the action buffer must use.
+
+        The robot's weight, tier and horizons are requests the operator's policy may change: the
+        robot follows the grant, since the server schedules by it. Its fps is not negotiable (the
+        controller rate is physical), so a grant at another rate is refused.
+        """
+        ident = self.identity
+        if granted is None:
+            return ident.h_max  # a server without fleet policies: the request is what it uses
+        log.info(
+            "granted by fleet policy (%s): weight %g, tier %s, fps %g, h_min %d, h_max %d, device share %g",
+            granted.rule or "no rule named", granted.weight, granted.tier, granted.fps, granted.h_min, granted.h_max,
+            granted.max_device_share,
+        )  # fmt: skip
+        if not math.isclose(granted.fps, ident.fps, rel_tol=1e-9):
+            raise RegistrationRefused(
+                f"the server granted fps {granted.fps:g} but this robot runs at fps {ident.fps:g}: "
+                "the control rate cannot change, fix --fps or the server's fleet policy"
+            )
+        same_weight = math.isclose(granted.weight, ident.weight, rel_tol=1e-9)
+        changed = [
+            f"{name} asked {asked} granted {got}"
+            for name, asked, got, same in (
+                ("weight", f"{ident.weight:g}", f"{granted.weight:g}", same_weight),
+                ("tier", ident.tier, granted.tier, granted.tier == ident.tier),
+                ("h_min", ident.h_min, granted.h_min, granted.h_min == ident.h_min),
+                ("h_max", ident.h_max, granted.h_max, granted.h_max == ident.h_max),
+            )
+            if not same
+        ]
+        if changed:
+            rule = granted.rule or "no rule named"
+            log.warning("the fleet policy (%s) changed this robot's request: %s", rule, "; ".join(changed))
+        # The server sends chunks for the granted horizon: executing beyond it would outrun what it
+        # plans for. A larger grant is not taken either: h_max is also the robot's own safety limit.
+        return min(ident.h_max, granted.h_max) if granted.h_max > 0 else ident.h_max
 
     def _on_chunk(self, epoch: int, chunk: ReceivedChunk) -> None:
         with self._lock:
@@ -200,7 +249,9 @@ class ArmoryClient:
 
     def _on_notice(self, notice: pb.Notice) -> None:
         self.notices.append(notice.message)
-        level = logging.INFO if notice.kind == pb.Notice.SHUTDOWN else logging.WARNING
+        # SHUTDOWN and CLOCK are expected events (a reconnect or a sync request follows); DROPPED
+        # (the server ended this session) is followed by the stream's close, which reconnects.
+        level = logging.INFO if notice.kind in (pb.Notice.SHUTDOWN, pb.Notice.CLOCK) else logging.WARNING
         log.log(level, "server: %s", notice.message)
 
     def _on_close(self, epoch: int, error: grpc.RpcError | None) -> None:

@@ -49,6 +49,25 @@ class Registration:
     expected_features: list[FeatureSpec]
     clock_sync: pb.ClockSync
     action_dim: int = 0  # length of each action vector (0: a server that did not say)
+    granted: pb.Grant | None = None  # what the fleet policy granted (None: a server that did not say)
+
+    @classmethod
+    def from_response(cls, response: pb.RegisterResponse, clock_sync: pb.ClockSync) -> Registration:
+        """Read the server's answer (``clock_sync`` is the registration round trip, completed by the robot)."""
+        granted = None
+        if response.HasField("granted"):
+            granted = pb.Grant()
+            granted.CopyFrom(response.granted)  # a copy: the registration need not keep the whole response alive
+        return cls(
+            response.session_id,
+            list(response.action_names),
+            response.chunk_size,
+            response.policy,
+            [FeatureSpec.from_proto(f) for f in response.expected_features],
+            clock_sync,
+            response.action_dim or len(response.action_names),
+            granted,
+        )
 
 
 class Connection:
@@ -129,15 +148,7 @@ class Connection:
             server_send_time=response.server_send_time,
             client_recv_time=self.clock(),
         )
-        self.registration = Registration(
-            response.session_id,
-            list(response.action_names),
-            response.chunk_size,
-            response.policy,
-            [FeatureSpec.from_proto(f) for f in response.expected_features],
-            sync,
-            response.action_dim or len(response.action_names),
-        )
+        self.registration = Registration.from_response(response, sync)
         return self.registration
 
     def open_stream(
@@ -167,6 +178,8 @@ class Connection:
                             deliver()
                         else:
                             self.network.receive(deliver)
+                    elif kind == "sync_request":
+                        self._answer_sync(msg.sync_request)
                     elif kind == "notice" and on_notice is not None:
                         on_notice(msg.notice)
             except grpc.RpcError as exc:
@@ -180,6 +193,32 @@ class Connection:
 
         self._receiver = threading.Thread(target=receive, name="armory-receive", daemon=True)
         self._receiver.start()
+
+    def _answer_sync(self, request: pb.ClockSyncRequest) -> None:
+        """Answer the server's clock-exchange request at once, through the same path as everything else.
+
+        The request is "received" when the robot would see a chunk sent at the same moment (after
+        the emulated downlink) and the answer is stamped when it enters the stream (after the
+        emulated uplink): the exchange then measures the delays observations and chunks really see.
+        """
+
+        def arrived() -> None:
+            recv = self.clock()
+            self._enqueue(
+                lambda: pb.RobotMessage(
+                    clock_sync=pb.ClockSync(
+                        sync_id=request.sync_id,
+                        client_recv_time=recv,
+                        client_send_time=self.clock(),
+                        server_send_time=request.server_send_time,
+                    )
+                )
+            )
+
+        if self.network is None:
+            arrived()
+        else:
+            self.network.receive(arrived)
 
     def _stream_metadata(self) -> tuple[tuple[str, str], ...]:
         assert self.registration is not None, "register first"
@@ -222,11 +261,17 @@ class Connection:
         t = self.clock() if capture_time is None else capture_time
         self._enqueue(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors)))
 
-    def _enqueue(self, msg: pb.RobotMessage) -> None:
+    def _enqueue(self, msg: pb.RobotMessage | Callable[[], pb.RobotMessage]) -> None:
+        """Send ``msg`` after the emulated uplink delay, if any.
+
+        A callable is built only when the message enters the stream, so that send-time stamps in
+        it (a clock sync's) are taken after the emulated delay, not before.
+        """
+        build = msg if callable(msg) else lambda: msg
         if self.network is None:
-            self._outgoing.put(msg)
+            self._outgoing.put(build())
         else:
-            self.network.send(lambda: self._outgoing.put(msg))
+            self.network.send(lambda: self._outgoing.put(build()))
 
     def send_raw(self, msg: pb.RobotMessage) -> None:
         """Queue any message (tests use it to send malformed ones)."""
