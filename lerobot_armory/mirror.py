@@ -28,8 +28,33 @@ from lerobot_armory.errors import ConfigError
 # (t_arrival == tick time, up to float rounding) counts as arrived at that tick (SPEC: t_arrival
 # <= tick time).
 _EPS = 1e-9
+# Slack on offsets and times for float rounding and scheduling noise (seconds).
+_OFFSET_TOLERANCE_S = 0.005
 
 TIERS = ("fast", "slow")
+
+# Physical bounds of a robot's declared rates: beyond them no controller exists and the tick
+# arithmetic (1 / fps, ticks * fps) leaves the floats (fps = 1e308 made ``math.ceil`` raise).
+MIN_FPS = 0.01
+MAX_FPS = 1000.0
+MAX_WEIGHT = 1e6
+
+# What robot-supplied times may claim (SPEC §2, edge checks). A robot's one-way uplink is never
+# believed above MAX_UPLINK_S: an observation "captured" earlier than that before it reached the
+# server is treated as a clock fault, not as an old observation, so a lying clock can move its
+# robot's predicted deadline by at most that much (less once server-measured round trips exist).
+MAX_UPLINK_S = 0.5
+MIN_UPLINK_WINDOW_S = 0.02
+# Exchanges whose round trip is negative (beyond rounding) or longer than this are inconsistent.
+MAX_ROUND_TRIP_S = 2.0
+# Honest network jitter reorders observations by less than this; a capture time older than the
+# latest by more is a clock fault (a step back), not a reordering.
+REORDER_WINDOW_S = 1.0
+# Consecutive implausible times before the robot's clock is declared stepped and re-synchronised.
+CLOCK_FAULTS_FOR_STEP = 3
+# Progress bound: beyond real time at the declared fps, an index may run ahead by at most this much
+# (network jitter bunches honest observations; a lying index gains at most this).
+PROGRESS_SLACK_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -58,8 +83,8 @@ class RobotSpec:
     def __post_init__(self) -> None:
         if not self.robot_id:
             raise ConfigError("robot_id", "must be a non-empty string")
-        if not (isinstance(self.fps, (int, float)) and math.isfinite(self.fps) and self.fps > 0):
-            raise ConfigError("fps", f"must be a positive number of steps per second, got {self.fps!r}")
+        if not (isinstance(self.fps, (int, float)) and MIN_FPS <= self.fps <= MAX_FPS):
+            raise ConfigError("fps", f"must be a number of steps per second in [{MIN_FPS:g}, {MAX_FPS:g}], got {self.fps!r}")
         if self.chunk_size < 1:
             raise ConfigError("chunk_size", f"must be >= 1, got {self.chunk_size}")
         if self.h_min < 0:
@@ -70,8 +95,8 @@ class RobotSpec:
             raise ConfigError("h_min", f"h_min={self.h_min} is larger than h_max={self.h_max}")
         if self.h_max > self.chunk_size:
             raise ConfigError("h_max", f"h_max={self.h_max} is larger than the chunk size H={self.chunk_size}")
-        if not (math.isfinite(self.weight) and self.weight > 0):
-            raise ConfigError("weight", f"must be a positive number, got {self.weight!r}")
+        if not (0 < self.weight <= MAX_WEIGHT):
+            raise ConfigError("weight", f"must be a positive number up to {MAX_WEIGHT:g}, got {self.weight!r}")
         if self.tier not in TIERS:
             raise ConfigError("tier", f"must be one of {', '.join(TIERS)}, got {self.tier!r}")
 
@@ -210,29 +235,93 @@ class DelayEstimator:
 
     Observations and execution reports give one exchange per served chunk; registration gives
     the first one. Running averages (EWMA with weight ``alpha``) smooth jitter.
+
+    Robustness (the robot stamps two of the four times, and may lie or have its clock stepped):
+    an exchange with a non-finite time or an impossible round trip is refused; an exchange whose
+    offset disagrees with the estimate by more than both round trips allow is an outlier and is
+    not folded in (an honest exchange's offset is off the true one by at most half its round
+    trip, so honest jitter is never refused); ``CLOCK_FAULTS_FOR_STEP`` outliers in a row that
+    agree with one another are a clock step: the estimate restarts from them. ``server_round_trip``
+    folds in round trips the server timed on its own clock (its sync requests), which bound what
+    the robot's stamps may claim.
     """
 
     alpha: float = 0.1
     offset_s: float = 0.0
     round_trip_s: float = 0.0
     samples: int = 0
+    outliers: int = 0  # exchanges refused as outliers or inconsistent, in total
+    steps: int = 0  # clock steps detected
+    _pending: list[float] = field(default_factory=list)  # offsets of the current run of outliers
+    _server_rtts: list[float] = field(default_factory=list)  # recent server-timed round trips
 
-    def add_exchange(self, t_robot_send: float, t_server_recv: float, t_server_send: float, t_robot_recv: float) -> None:
-        """Fold in one timestamp exchange (see class docstring)."""
+    def add_exchange(self, t_robot_send: float, t_server_recv: float, t_server_send: float, t_robot_recv: float) -> str:
+        """Fold in one timestamp exchange (see class docstring).
+
+        Returns ``"ok"`` (folded in), ``"refused"`` (non-finite or impossible round trip),
+        ``"outlier"`` (disagrees with the estimate; not folded in) or ``"step"`` (a run of
+        agreeing outliers: the estimate restarted from them).
+        """
         offset = ((t_server_recv - t_robot_send) + (t_server_send - t_robot_recv)) / 2.0
-        rtt = max(0.0, (t_robot_recv - t_robot_send) - (t_server_send - t_server_recv))
+        rtt = (t_robot_recv - t_robot_send) - (t_server_send - t_server_recv)
+        if not (math.isfinite(offset) and math.isfinite(rtt)) or abs(rtt) > MAX_ROUND_TRIP_S:
+            self.outliers += 1
+            return "refused"
+        rtt = min(max(0.0, rtt), self.round_trip_bound())
         if self.samples == 0:
             self.offset_s, self.round_trip_s = offset, rtt
-        else:
-            self.offset_s += self.alpha * (offset - self.offset_s)
-            self.round_trip_s += self.alpha * (rtt - self.round_trip_s)
+            self.samples = 1
+            return "ok"
+        if abs(offset - self.offset_s) > (rtt + self.round_trip_s) / 2.0 + _OFFSET_TOLERANCE_S:
+            self.outliers += 1
+            pending = self._pending
+            if pending and abs(offset - pending[-1]) > rtt + _OFFSET_TOLERANCE_S:
+                pending.clear()  # the outliers do not agree with each other: noise, not a step
+            pending.append(offset)
+            if len(pending) < CLOCK_FAULTS_FOR_STEP:
+                return "outlier"
+            self.steps += 1
+            self.offset_s = sorted(pending)[len(pending) // 2]
+            self.round_trip_s = rtt
+            pending.clear()
+            return "step"
+        self._pending.clear()
+        self.offset_s += self.alpha * (offset - self.offset_s)
+        self.round_trip_s += self.alpha * (rtt - self.round_trip_s)
         self.samples += 1
+        return "ok"
+
+    def server_round_trip(self, rtt: float) -> None:
+        """A round trip the server timed itself (request sent → answer received, server clock):
+        an upper bound of the true one that no robot stamp can inflate without answering late."""
+        if math.isfinite(rtt) and rtt >= 0.0:
+            self._server_rtts.append(min(rtt, MAX_ROUND_TRIP_S))
+            del self._server_rtts[:-8]
+            self.round_trip_s = min(self.round_trip_s, self.round_trip_bound())
+
+    def round_trip_bound(self) -> float:
+        """The longest round trip the robot's stamps may claim: the longest recent server-timed
+        one, or ``2 * MAX_UPLINK_S`` before any."""
+        return max(self._server_rtts) if self._server_rtts else 2.0 * MAX_UPLINK_S
+
+    def uplink_window_s(self) -> float:
+        """How long before its receipt an observation may plausibly have been captured."""
+        return min(MAX_UPLINK_S, max(MIN_UPLINK_WINDOW_S, self.round_trip_bound()))
 
     def seed_offset(self, t_robot: float, t_server: float) -> None:
         """Before any exchange, take the clock offset from one one-way message assuming zero
         delay; the first real exchange replaces it (it is not counted as a sample)."""
-        if self.samples == 0:
+        if self.samples == 0 and math.isfinite(t_server - t_robot):
             self.offset_s = t_server - t_robot
+
+    def restart(self, t_robot: float, t_server: float) -> None:
+        """The robot's clock stepped: forget the offset and seed it again from one message
+        (robot-clock ``t_robot`` received at ``t_server``, less the known one-way delay); the
+        next exchanges refine it. Delay estimates are kept (a clock step does not move packets)."""
+        self.samples = 0
+        self._pending.clear()
+        self.steps += 1
+        self.seed_offset(t_robot, t_server - self.one_way_s)
 
     @property
     def one_way_s(self) -> float:
@@ -359,28 +448,89 @@ class RobotMirror:
     obs_recv: float = 0.0  # server-clock receipt time of that observation
     last_served_index: int | None = None
     queue: list[Chunk] = field(default_factory=list)  # Q_j
+    clock_faults: int = 0  # implausible robot times in a row (reset by a plausible one)
+    needs_sync: bool = False  # the clock looked stepped: the owner should request a fresh exchange
+    clamped_indices: int = 0  # observations whose claimed index ran ahead of what the server saw
     _next_chunk_id: int = 0
+    _progress_credit: float = 0.0  # steps the robot may still claim beyond elapsed real time
 
     # ---- events ------------------------------------------------------------------------------
 
     def on_observation(self, index: int, capture_time_robot: float, recv_time: float) -> bool:
         """Record an observation. Returns False (and changes nothing) if it is older than the
-        latest one (out-of-order delivery). Raises ValueError if its index goes backwards in time.
+        latest one (out-of-order delivery). Raises ValueError if its index goes backwards in time
+        or a time is not finite.
+
+        Nothing the robot claims is taken beyond what the server itself saw (SPEC §2, edge
+        checks): the capture instant is placed at most ``uplink_window_s`` before its receipt
+        (an implausible one counts as a clock fault, and ``CLOCK_FAULTS_FOR_STEP`` in a row
+        restart the clock offset and raise ``needs_sync``), and the index is capped by the chunks
+        sent to the robot (it cannot execute actions it never got) and by elapsed time at its
+        fps plus ``PROGRESS_SLACK_S``, so an index or a clock that runs ahead buys nothing.
         """
+        if not (math.isfinite(capture_time_robot) and math.isfinite(recv_time)):
+            raise ValueError("capture time is not a finite number")
         if self.obs_index is not None:
-            if capture_time_robot <= self.obs_capture_robot:
-                return False
-            if index < self.obs_index:
-                raise ValueError(
-                    f"action index went backwards: {index} after {self.obs_index} "
-                    f"(indices only increase when the robot executes)"
-                )
+            if capture_time_robot > self.obs_capture_robot:
+                if index < self.obs_index:
+                    raise ValueError(
+                        f"action index went backwards: {index} after {self.obs_index} "
+                        f"(indices only increase when the robot executes)"
+                    )
+            else:
+                # Not newer: a reordered observation (drop it), unless it is far older than jitter
+                # explains, which is the robot's clock stepping back: after a run of those the
+                # offset restarts and the observation is taken.
+                if self.obs_capture_robot - capture_time_robot <= REORDER_WINDOW_S or index < self.obs_index:
+                    return False
+                if not self._clock_fault(capture_time_robot, recv_time):
+                    return False
+        index = self._bounded_index(index, recv_time)
         self.obs_index = index
         self.obs_capture_robot = capture_time_robot
-        self.obs_anchor = self.estimator.to_server_time(capture_time_robot)
+        self.obs_anchor = self._anchor(capture_time_robot, recv_time)
         self.obs_recv = recv_time
         self._prune(index)
         return True
+
+    def _anchor(self, capture_robot: float, recv: float) -> float:
+        """The capture instant on the server clock, inside ``[recv - window, recv]``."""
+        est = self.estimator
+        anchor = est.to_server_time(capture_robot)
+        window = est.uplink_window_s()
+        if recv - window - _OFFSET_TOLERANCE_S <= anchor <= recv + est.round_trip_s + _OFFSET_TOLERANCE_S:
+            self.clock_faults = 0
+            return min(recv, max(recv - window, anchor))
+        self._clock_fault(capture_robot, recv)
+        return recv - est.one_way_s  # the server's own estimate (equal to the above after a restart)
+
+    def _clock_fault(self, t_robot: float, recv: float) -> bool:
+        """A robot time the server cannot believe. A run of them means the robot's clock stepped
+        (or lies): restart the offset from this message and ask for a fresh exchange (returns True)."""
+        self.clock_faults += 1
+        if self.clock_faults < CLOCK_FAULTS_FOR_STEP:
+            return False
+        self.estimator.restart(t_robot, recv)
+        self.clock_faults = 0
+        self.needs_sync = True
+        return True
+
+    def _bounded_index(self, claimed: int, recv: float) -> int:
+        """The claimed index, capped by what the server saw (see :meth:`on_observation`)."""
+        burst = PROGRESS_SLACK_S * self.spec.fps + 1.0
+        if self.obs_index is None:
+            self._progress_credit = burst
+            return claimed
+        previous = self.obs_index
+        elapsed = max(0.0, recv - self.obs_recv)
+        self._progress_credit = min(burst, self._progress_credit + elapsed * self.spec.fps)
+        sent = [(c.i_start, c.end, 0) for c in self.queue]
+        cap = min(reach(previous, sent, 0), previous + int(self._progress_credit + _EPS))
+        index = min(claimed, cap)
+        if index < claimed:
+            self.clamped_indices += 1
+        self._progress_credit -= index - previous
+        return index
 
     def on_dispatch(self, t_done: float) -> Chunk:
         """The robot's latest observation goes into a batch that finishes at ``t_done``.
@@ -412,17 +562,26 @@ class RobotMirror:
         t_obs_recv: float,
         t_chunk_send: float,
         t_arrival_robot: float,
-    ) -> None:
+        t_report_recv: float = math.inf,
+    ) -> bool:
         """The robot reports that chunk ``chunk_id`` (made from the observation captured at
         ``t_capture_robot``, received at ``t_obs_recv`` and answered at ``t_chunk_send`` on the
         server clock) reached it at ``t_arrival_robot`` (robot clock). This is one delay exchange;
-        the chunk's arrival is now known exactly and replaces the estimate.
+        the chunk's arrival is now known and replaces the estimate.
+
+        The arrival is believed only between the chunk's sending and the report's receipt
+        (``t_report_recv``, server clock): a chunk cannot arrive before it left, nor be reported
+        before it arrived. Returns False when the exchange was refused as implausible.
         """
-        self.estimator.add_exchange(t_capture_robot, t_obs_recv, t_chunk_send, t_arrival_robot)
+        verdict = self.estimator.add_exchange(t_capture_robot, t_obs_recv, t_chunk_send, t_arrival_robot)
+        if verdict == "refused":
+            return False
+        arrival = self.estimator.to_server_time(t_arrival_robot)
         for chunk in self.queue:
             if chunk.chunk_id == chunk_id:
-                chunk.t_arrival = self.estimator.to_server_time(t_arrival_robot)
+                chunk.t_arrival = min(max(arrival, t_chunk_send), t_report_recv)
                 break
+        return verdict != "outlier"
 
     def _prune(self, index: int) -> None:
         if any(c.end <= index for c in self.queue):

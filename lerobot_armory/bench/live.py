@@ -169,6 +169,10 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
         f"--max_batch_size={cap}", f"--batch_log={batch_log}", "--status_interval_s=0", "--log_level=warning",
         *shlex.split(cfg.policy_args),
     ]  # fmt: skip
+    # The operator grants the weights the bench's robots ask for (without a policy every weight is 1).
+    policy_file = run_dir / "fleet_policy.json"
+    policy_file.write_text(json.dumps({"robots": {s.robot_id: {"max_weight": s.weight} for s in specs if s.weight != 1.0}}))
+    args.append(f"--fleet.policy={policy_file}")
     measured = run_dir / "profile.json"  # real timing: profiled at start-up, saved, replayed by the simulator
     if scheduler == "lookahead":
         args.append(f"--scheduler.depth={cfg.depth}")

@@ -32,6 +32,7 @@ from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
 from lerobot_armory.server.fleet import Fleet
+from lerobot_armory.server.fleet_policy import FleetPolicy
 from lerobot_armory.server.logs import configure_logging
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
 from lerobot_armory.server.metrics import ServerMetrics
@@ -40,6 +41,16 @@ from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServ
 
 log = logging.getLogger("lerobot_armory.server")
 T = TypeVar("T")
+
+
+@dataclass
+class FleetOptions:
+    """``--fleet.policy=FILE``: the operator's fleet policy (None: the built-in default)."""
+
+    policy: str | None = None
+
+    def load(self) -> FleetPolicy:
+        return FleetPolicy.load(self.policy) if self.policy else FleetPolicy.builtin()
 
 
 @dataclass
@@ -73,6 +84,9 @@ class ServerConfig:
         tls_cert / tls_key: PEM files; with both, the gRPC port speaks TLS only.
         auth_token_file: robots must present a token from this file (see server/security.py).
         max_obs_rate_hz: observations per second a robot may send (0: unlimited).
+        fleet: ``--fleet.policy=FILE`` (YAML or JSON): what each robot may be granted (weight,
+            tier, fps and horizon bounds, device share); see server/fleet_policy.py. Without it
+            every robot's weight is capped at 1.
     """
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
@@ -95,6 +109,7 @@ class ServerConfig:
     tls_key: str | None = None
     auth_token_file: str | None = None
     max_obs_rate_hz: float = 200.0
+    fleet: FleetOptions = field(default_factory=lambda: FleetOptions())
 
     def validate(self) -> None:
         if self.max_batch_size < 1:
@@ -142,6 +157,7 @@ class ArmoryServer:
         tls: tuple[bytes, bytes] | None = None,
         max_obs_rate_hz: float = 0.0,
         learn_latency: bool = False,
+        fleet_policy: FleetPolicy | None = None,
     ) -> None:
         self.policy = policy
         self.profile = profile
@@ -156,7 +172,7 @@ class ArmoryServer:
         self.loop = ServingLoop(
             self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None
         )
-        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz)
+        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy)
         self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
         self.batch_listeners.append(self.metrics.on_batch)
         self._tls = tls
@@ -297,6 +313,7 @@ def latency_learning(cfg: ServerConfig, profile: LatencyProfile) -> tuple[bool, 
 def serve(cfg: ServerConfig) -> None:
     """Build everything, print the summary, serve until a signal."""
     cfg.validate()
+    fleet_policy = cfg.fleet.load()  # before the model loads: a bad file is one line, at once
     tune_process()
     configure_logging(cfg.log_level, cfg.log_format)
     log.info("loading policy %s ...", cfg.policy.path)
@@ -315,11 +332,15 @@ def serve(cfg: ServerConfig) -> None:
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
+    if auth is not None and tls is None:
+        log.warning(
+            "auth tokens travel in plaintext (no --tls_cert/--tls_key): anyone on the network path can read and reuse them"
+        )
     learn, learn_why = latency_learning(cfg, profile)
     server = ArmoryServer(
         serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
         int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
-        learn_latency=learn,
+        learn_latency=learn, fleet_policy=fleet_policy,
     )  # fmt: skip
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
@@ -335,6 +356,7 @@ def serve(cfg: ServerConfig) -> None:
         f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
         f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
+        f"  fleet policy: {fleet_policy.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{cfg.metrics_port}/metrics' if cfg.metrics_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
         f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})",

@@ -9,6 +9,7 @@ inference after, the lock.
 from __future__ import annotations
 
 import collections
+import hmac
 import math
 import threading
 import uuid
@@ -20,7 +21,23 @@ import numpy as np
 
 from lerobot_armory.mirror import Chunk, RobotMirror, RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.server.security import RateLimiter
 from lerobot_armory.wire import FeatureSpec
+
+# A registration that has not opened its stream within this long is dropped (and, when the fleet
+# is full, the oldest such registration makes room for a new one at once).
+STALE_SESSION_S = 5.0
+# Clock exchanges the server starts itself: one at stream start, then every SYNC_INTERVAL_S; a
+# suspected clock step asks again at once (at most once per SYNC_MIN_GAP_S).
+SYNC_INTERVAL_S = 10.0
+SYNC_MIN_GAP_S = 1.0
+MAX_PENDING_SYNCS = 4
+# Execution reports: a robot sends ~5 a second; each receipt names a chunk in ``sent`` (bounded
+# by SENT_TABLE), so a report's first SENT_TABLE receipts are all that can mean anything.
+SENT_TABLE = 64
+REPORT_RATE_HZ = 20.0
+# Device time accounting for the fleet policy's max_device_share: a decayed sum over this window.
+SHARE_WINDOW_S = 10.0
 
 
 class FleetError(Exception):
@@ -31,42 +48,64 @@ class FleetError(Exception):
         self.code = code
 
 
+# What one robot's outbox may hold: a robot that never reads its stream costs at most this much
+# server memory (notices are short: their text is cut at MAX_NOTICE_CHARS).
+OUTBOX_CHUNKS = 8
+OUTBOX_NOTICES = 16
+MAX_NOTICE_CHARS = 300
+
+
 class Outbox:
     """Messages waiting to be written to one robot's stream.
 
-    Never blocks the producer (the serving loop): if the robot stops reading, older *chunks* are
-    dropped once ``limit`` messages wait — a newer chunk supersedes them anyway — while notices
-    are kept. ``get`` returns None once closed and drained.
+    Never blocks the producer (the serving loop) and never grows without bound: if the robot stops
+    reading, the oldest *chunk* is dropped once ``limit`` messages wait (a newer chunk supersedes
+    it anyway), and the oldest *notice* once ``notice_limit`` notices wait. ``get`` returns None
+    once closed and drained.
     """
 
-    def __init__(self, limit: int = 8) -> None:
+    def __init__(self, limit: int = OUTBOX_CHUNKS, notice_limit: int = OUTBOX_NOTICES) -> None:
         self._items: collections.deque[pb.ServerMessage] = collections.deque()
         self._cond = threading.Condition()
         self._closed = False
         self.limit = limit
+        self.notice_limit = notice_limit
+        self._notices = 0
         self.dropped_chunks = 0
+        self.dropped_notices = 0
 
     def put(self, msg: pb.ServerMessage) -> None:
         with self._cond:
             if self._closed:
                 return
             self._items.append(msg)
-            while len(self._items) > self.limit:
-                for k, old in enumerate(self._items):
-                    if old.WhichOneof("kind") == "chunk":
-                        del self._items[k]
-                        self.dropped_chunks += 1
-                        break
-                else:
-                    break
+            if msg.WhichOneof("kind") != "chunk":
+                self._notices += 1
+                if self._notices > self.notice_limit and self._drop_oldest(lambda kind: kind != "chunk"):
+                    self._notices -= 1
+                    self.dropped_notices += 1
+            while len(self._items) > self.limit + self._notices and self._drop_oldest(lambda kind: kind == "chunk"):
+                self.dropped_chunks += 1
             self._cond.notify()
+
+    def _drop_oldest(self, kind_matches: Callable[[str | None], bool]) -> bool:
+        for k, old in enumerate(self._items):
+            if kind_matches(old.WhichOneof("kind")):
+                del self._items[k]
+                return True
+        return False
 
     def get(self, timeout: float | None = None) -> pb.ServerMessage | None:
         with self._cond:
             while not self._items and not self._closed:
                 if not self._cond.wait(timeout):
                     return None
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            msg = self._items.popleft()
+            if msg.WhichOneof("kind") != "chunk":
+                self._notices -= 1
+            return msg
 
     def close(self) -> None:
         with self._cond:
@@ -113,6 +152,18 @@ class RobotSession:
     rate: Any = None  # the session's observation RateLimiter, if limits are on
     rate_notified: float = 0.0
     first_executed: collections.Counter = field(default_factory=collections.Counter)
+    # who registered it (a digest of the token; None without auth) and what the policy granted
+    credential: bytes | None = None
+    grant: pb.Grant | None = None
+    # the registration round trip's server stamps (the robot completes it with a ClockSync)
+    register_stamps: tuple[float, float] | None = None
+    pending_syncs: dict[int, float] = field(default_factory=dict)  # sync_id -> server send time
+    next_sync_id: int = 1
+    next_sync_at: float = 0.0
+    report_rate: RateLimiter = field(default_factory=lambda: RateLimiter(REPORT_RATE_HZ))
+    # decayed device seconds spent on this robot (max_device_share) and when last decayed
+    device_s: float = 0.0
+    device_t: float = 0.0
 
     @property
     def robot_id(self) -> str:
@@ -127,7 +178,7 @@ class RobotSession:
 class Fleet:
     """All sessions, in registration order, behind one condition variable."""
 
-    def __init__(self, clock: Callable[[], float], max_robots: int = 64, stale_session_s: float = 30.0) -> None:
+    def __init__(self, clock: Callable[[], float], max_robots: int = 64, stale_session_s: float = STALE_SESSION_S) -> None:
         self.clock = clock
         self.max_robots = max_robots
         self.stale_session_s = stale_session_s
@@ -137,9 +188,19 @@ class Fleet:
 
     # ---- membership --------------------------------------------------------------------------
 
-    def register(self, spec: RobotSpec, task: str, features: dict[str, FeatureSpec]) -> RobotSession:
+    def register(
+        self,
+        spec: RobotSpec,
+        task: str,
+        features: dict[str, FeatureSpec],
+        credential: bytes | None = None,
+        grant: pb.Grant | None = None,
+        register_recv: float | None = None,
+    ) -> RobotSession:
         """Add a robot. A robot id already *streaming* is refused; a stale registration of the
-        same id (never streamed, or its stream ended) is replaced."""
+        same id (never streamed, or its stream ended) is replaced. Registrations that never open
+        a stream hold no slot for long: they expire after ``stale_session_s``, and a full fleet
+        drops the oldest of them to make room (so squatting the slots buys nothing)."""
         with self.cond:
             if self.stopping:
                 raise FleetError("UNAVAILABLE", "the server is shutting down")
@@ -150,21 +211,41 @@ class Fleet:
                     self._drop(sid)
             self._expire_unstreamed()
             if len(self.sessions) >= self.max_robots:
-                raise FleetError("RESOURCE_EXHAUSTED", f"the server already serves {self.max_robots} robots (--max_robots)")
-            session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), self.clock())
+                waiting = [sid for sid, s in self.sessions.items() if not s.streaming]
+                if not waiting:
+                    raise FleetError(
+                        "RESOURCE_EXHAUSTED", f"the server already serves {self.max_robots} robots (--max_robots); retry later"
+                    )
+                self._drop(waiting[0])  # dicts keep insertion order: the oldest registration
+            now = self.clock()
+            session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, credential=credential, grant=grant)
+            session.register_stamps = (now if register_recv is None else register_recv, now)
             self.sessions[session.session_id] = session
             return session
 
-    def attach(self, session_id: str) -> RobotSession:
-        """Mark a session's stream open (one stream per session)."""
+    def attach(self, session_id: str, credential: bytes | None = None) -> RobotSession:
+        """Mark a session's stream open (one stream per session, by the credential that
+        registered it)."""
         with self.cond:
             session = self.sessions.get(session_id)
             if session is None:
                 raise FleetError("FAILED_PRECONDITION", "unknown or expired session: call Register first")
+            if session.credential is not None and not hmac.compare_digest(session.credential, credential or b""):
+                raise FleetError("PERMISSION_DENIED", "this session was registered with another credential")
             if session.streaming:
                 raise FleetError("ALREADY_EXISTS", f"robot {session.robot_id!r} already has an open stream")
             session.streaming = True
             return session
+
+    def quarantine(self, session: RobotSession, reason: str) -> None:
+        """End one robot's session because of something it sent (never the loop's problem): it
+        is told why, its stream closes, and it may register again."""
+        with self.cond:
+            if self.sessions.get(session.session_id) is not session:
+                return
+            session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.DROPPED, message=reason[:MAX_NOTICE_CHARS])))
+            self._drop(session.session_id)
+            self.cond.notify_all()
 
     def detach(self, session_id: str) -> None:
         """The stream ended: forget the robot (a reconnecting robot registers again)."""
@@ -205,36 +286,107 @@ class Fleet:
                 self.cond.notify_all()
             return True
 
-    def on_clock_sync(self, session: RobotSession, msg: pb.ClockSync) -> None:
-        with self.cond:
-            session.mirror.estimator.add_exchange(
-                msg.client_send_time, msg.server_recv_time, msg.server_send_time, msg.client_recv_time
-            )
+    def on_clock_sync(self, session: RobotSession, msg: pb.ClockSync, recv: float) -> str | None:
+        """Fold a clock exchange in; returns why it was refused (None: taken).
 
-    def on_report(self, session: RobotSession, report: pb.ExecutionReport) -> None:
-        """Fold an execution report into the mirror (delay exchanges) and the counters."""
+        The server side of an exchange is always the server's own stamps (those of the
+        registration, or of the ClockSyncRequest answered), never the times the robot echoes.
+        """
+        a, r = msg.client_send_time, msg.client_recv_time
+        if not (math.isfinite(a) and math.isfinite(r)):
+            return "clock sync refused: a time is not a finite number"
+        with self.cond:
+            estimator = session.mirror.estimator
+            if msg.sync_id == 0:
+                if session.register_stamps is None:
+                    return "clock sync refused: the registration exchange was already completed"
+                (b, s), session.register_stamps = session.register_stamps, None
+                verdict = estimator.add_exchange(a, b, s, r)
+            else:
+                sent = session.pending_syncs.pop(int(msg.sync_id), None)
+                if sent is None:
+                    return f"clock sync refused: no pending request {msg.sync_id}"
+                # Answer to our request: we sent at `sent`, the robot got it at r and answered at a,
+                # we received at recv. In add_exchange's terms the robot "sent" a and "received" r.
+                if a < r:
+                    return "clock sync refused: the answer left before the request arrived"
+                estimator.server_round_trip(recv - sent)
+                verdict = estimator.add_exchange(a, recv, sent, r)
+        if verdict == "refused":
+            return "clock sync refused: its round trip is impossible"
+        return None
+
+    def sync_request(self, session: RobotSession, now: float) -> pb.ServerMessage | None:
+        """A ClockSyncRequest to send now, if one is due (stream start, every SYNC_INTERVAL_S,
+        or at once after a suspected clock step), stamped with ``now``."""
+        with self.cond:
+            if session.mirror.needs_sync and now - session.next_sync_at + SYNC_INTERVAL_S >= SYNC_MIN_GAP_S:
+                session.mirror.needs_sync = False
+            elif now < session.next_sync_at:
+                return None
+            session.next_sync_at = now + SYNC_INTERVAL_S
+            sync_id = session.next_sync_id
+            session.next_sync_id += 1
+            session.pending_syncs[sync_id] = now
+            while len(session.pending_syncs) > MAX_PENDING_SYNCS:  # a robot that never answers
+                session.pending_syncs.pop(next(iter(session.pending_syncs)))
+            return pb.ServerMessage(sync_request=pb.ClockSyncRequest(sync_id=sync_id, server_send_time=now))
+
+    def on_report(self, session: RobotSession, report: pb.ExecutionReport, recv: float) -> int:
+        """Fold an execution report into the mirror (delay exchanges) and the counters.
+
+        Only the first ``SENT_TABLE`` receipts are read (no more chunks can be awaiting a report),
+        so the fleet lock is held for a bounded time whatever the report's size. Returns how many
+        receipts were refused as implausible.
+        """
+        receipts = [(int(c.chunk_id), float(c.arrival_time), int(c.first_executed_index)) for c in report.chunks[:SENT_TABLE]]
+        refused = 0
         with self.cond:
             mirror = session.mirror
-            for receipt in report.chunks:
-                record = session.sent.pop(receipt.chunk_id, None)
+            for chunk_id, arrival, first in receipts:
+                record = session.sent.pop(chunk_id, None)
                 if record is None:
                     continue
-                mirror.on_report(receipt.chunk_id, record.capture_robot, record.obs_recv, record.send_time, receipt.arrival_time)
-                key = "unused" if receipt.first_executed_index < 0 else str(receipt.first_executed_index)
+                if not mirror.on_report(chunk_id, record.capture_robot, record.obs_recv, record.send_time, arrival, recv):
+                    refused += 1
+                key = "unused" if first < 0 else str(min(first, session.spec.chunk_size))
                 session.first_executed[key] += 1
             session.reported_executed = int(report.executed_steps)
             session.reported_starved = int(report.starved_steps)
             session.reported_index = int(report.index)
-            if mirror.obs_index is not None and math.isfinite(report.report_time):
-                predicted = mirror.predicted_index(mirror.estimator.to_server_time(report.report_time))
-                session.index_error = abs(predicted - int(report.index))
+            if mirror.obs_index is not None:
+                window = mirror.estimator.uplink_window_s()
+                t = min(recv, max(recv - window, mirror.estimator.to_server_time(report.report_time)))
+                session.index_error = abs(mirror.predicted_index(t) - int(report.index))
+        return refused
+
+    # ---- device share (the fleet policy's max_device_share) ----------------------------------
+
+    def charge_device(self, sessions: list[RobotSession], seconds: float, t_end: float) -> None:
+        """Book ``seconds`` of device time, split evenly, on the batch's robots (lock held)."""
+        for session in sessions:
+            self._decay(session, t_end)
+            session.device_s += seconds / max(1, len(sessions))
+
+    def over_share(self, session: RobotSession, now: float) -> bool:
+        """Whether the robot used more than its granted share of device time lately (lock held)."""
+        if session.grant is None or session.grant.max_device_share >= 1.0:
+            return False
+        self._decay(session, now)
+        return session.device_s > session.grant.max_device_share * SHARE_WINDOW_S
+
+    @staticmethod
+    def _decay(session: RobotSession, now: float) -> None:
+        if now > session.device_t:
+            session.device_s *= math.exp(-(now - session.device_t) / SHARE_WINDOW_S)
+            session.device_t = now
 
     # ---- the serving loop's side -------------------------------------------------------------
 
     def record_sent(self, session: RobotSession, chunk: Chunk, capture_robot: float, obs_recv: float, send_time: float) -> None:
         session.sent[chunk.chunk_id] = ChunkRecord(capture_robot, obs_recv, send_time)
         # Keep the table bounded for robots that never report.
-        if len(session.sent) > 64:
+        if len(session.sent) > SENT_TABLE:
             session.sent.pop(next(iter(session.sent)))
         session.chunks_sent += 1
         session.last_chunk_time = send_time

@@ -95,6 +95,7 @@ class LoopStats:
     # for a core (on a loaded 2-core machine wall time mostly measures those).
     decision_cpu_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
     dropped_not_useful: int = 0
+    failed_decisions: int = 0  # decisions the scheduler could not make (served in order instead)
     busy_s: float = 0.0
     idle_with_work_s: float = 0.0
     started: float = 0.0
@@ -168,25 +169,23 @@ class ServingLoop:
             while True:
                 if fleet.stopping:
                     return None
-                sessions = fleet.active()
+                now = fleet.clock()
+                # A robot over its granted share of device time waits until the share decays.
+                sessions = [s for s in fleet.active() if not fleet.over_share(s, now)]
                 if any(s.mirror.is_useful() for s in sessions):
                     break
-                fleet.cond.wait(0.25)
-            now = fleet.clock()
+                fleet.cond.wait(0.05 if len(sessions) < len(fleet.active()) else 0.25)
             if self._last_end is not None and self._work_at_last_end:
                 self.stats.idle_with_work_s += max(0.0, now - self._last_end)
-            mirrors = [s.mirror for s in sessions]
             t0, c0 = time.perf_counter(), time.thread_time()
-            chosen = self.scheduler.select(mirrors, now)
+            chosen = self._select(sessions, now)
             decision_ms = (time.perf_counter() - t0) * 1000.0
             self.stats.decision_ms.append(decision_ms)
             self.stats.decision_cpu_ms.append((time.thread_time() - c0) * 1000.0)
-            check_batch(chosen, self.scheduler.max_batch_size, type(self.scheduler).__name__)
-            by_mirror = {id(s.mirror): s for s in sessions}
-            t_done_estimate = now + self.scheduler.d_infer[len(chosen) - 1]
+            t_done_estimate = now + self.scheduler.d_infer[len(chosen) - 1] if chosen else now
             items = []
-            for mirror in chosen:
-                session = by_mirror[id(mirror)]
+            for session in chosen:
+                mirror = session.mirror
                 # The latest observation is read now; a request that stopped being useful since
                 # the decision (cannot happen under this lock, but the rule is the engine's) is dropped.
                 if session.latest is None or not mirror.is_useful():
@@ -196,6 +195,41 @@ class ServingLoop:
                 chunk = mirror.on_dispatch(t_done_estimate)
                 items.append(WorkItem(session, session.latest, chunk, previous, mirror.obs_capture_robot, mirror.obs_recv))
             return items, decision_ms
+
+    def _select(self, sessions: list[RobotSession], now: float) -> list[RobotSession]:
+        """The scheduler's batch as sessions. Whatever a robot sent, a failing decision never
+        stops the loop: the robots whose mirror cannot be evaluated are dropped (told why) and the
+        decision is retried; if it still fails, the first useful robots are served in order."""
+        for attempt in range(2):
+            try:
+                chosen = self.scheduler.select([s.mirror for s in sessions], now)
+                check_batch(chosen, self.scheduler.max_batch_size, type(self.scheduler).__name__)
+                by_mirror = {id(s.mirror): s for s in sessions}
+                return [by_mirror[id(m)] for m in chosen]
+            except Exception as exc:  # noqa: BLE001 - isolated below; the loop must go on
+                error = exc
+                if attempt == 0:
+                    sessions = self._quarantine_broken(sessions, now)
+        self.stats.failed_decisions += 1
+        log.error("%s failed to decide (%s: %s); serving the first useful robots in order", type(self.scheduler).__name__,
+                  type(error).__name__, error)  # fmt: skip
+        return [s for s in sessions if s.mirror.is_useful()][: self.scheduler.max_batch_size]
+
+    def _quarantine_broken(self, sessions: list[RobotSession], now: float) -> list[RobotSession]:
+        """Evaluate every mirror the way schedulers do; drop the robots whose mirror raises."""
+        kept = []
+        for session in sessions:
+            mirror = session.mirror
+            try:
+                mirror.deadline()
+                mirror.predicted_index(now)
+                mirror.window_view(now, 1.0).executed()
+            except Exception as exc:  # noqa: BLE001 - this robot's state is broken, not the loop
+                log.error("dropping robot %s: its state cannot be scheduled (%s: %s)", session.robot_id, type(exc).__name__, exc)
+                self.fleet.quarantine(session, f"your session was ended: the server cannot schedule your state ({type(exc).__name__})")
+                continue
+            kept.append(session)
+        return kept
 
     def _serve(self, items: list[WorkItem], decision_ms: float) -> None:
         fleet = self.fleet
@@ -232,6 +266,7 @@ class ServingLoop:
                 )
                 fleet.record_sent(session, it.chunk, it.capture_robot, it.obs_recv, t_done)
                 session.outbox.put(msg)
+            fleet.charge_device([it.session for it in items], t_done - t_start, t_done)
             self._finish(size, t_start, t_done)
             fleet.cond.notify_all()
         if self.latency is not None:

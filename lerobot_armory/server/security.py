@@ -1,12 +1,15 @@
 """Authentication tokens, TLS material and per-robot rate limits.
 
 Tokens come from ``--auth_token_file``: one token per line is a fleet token any robot may use;
-``ROBOT_ID TOKEN`` binds a token to one robot id. Blank lines and ``#`` comments are ignored.
+``@NAME TOKEN`` is a fleet token with a name (the fleet policy can give it its own rule);
+``ROBOT_ID TOKEN`` binds a token to one robot id, and that id is then *only* reachable with its own
+token (a fleet token cannot register it). Blank lines and ``#`` comments are ignored.
 Comparisons are constant-time; tokens are never logged.
 """
 
 from __future__ import annotations
 
+import hashlib
 import hmac
 import threading
 import time
@@ -16,12 +19,28 @@ from pathlib import Path
 from lerobot_armory.errors import ConfigError
 
 
+@dataclass(frozen=True)
+class Credential:
+    """Who a token proved to be: ``name`` is ``robot:ID``, ``token:NAME`` or ``fleet``; ``group``
+    names a fleet policy token rule (``@NAME`` lines) or is None; ``digest`` binds a session to
+    the token that registered it without keeping the token."""
+
+    name: str
+    group: str | None
+    digest: bytes
+
+
+def token_digest(token: str) -> bytes:
+    return hashlib.sha256(token.encode()).digest()
+
+
 @dataclass
 class AuthTokens:
-    """Fleet-wide and per-robot tokens."""
+    """Fleet-wide (optionally named) and per-robot tokens."""
 
     fleet: list[str] = field(default_factory=list)
     per_robot: dict[str, str] = field(default_factory=dict)
+    named: dict[str, str] = field(default_factory=dict)  # name -> fleet token
 
     @classmethod
     def load(cls, path: str, field_name: str = "auth_token_file") -> AuthTokens:
@@ -37,27 +56,41 @@ class AuthTokens:
             parts = line.split()
             if len(parts) == 1:
                 tokens.fleet.append(parts[0])
+            elif len(parts) == 2 and parts[0].startswith("@") and len(parts[0]) > 1:
+                tokens.named[parts[0][1:]] = parts[1]
             elif len(parts) == 2:
                 tokens.per_robot[parts[0]] = parts[1]
             else:
-                raise ConfigError(field_name, f"{path}:{n}: expected 'TOKEN' or 'ROBOT_ID TOKEN'")
-        if not tokens.fleet and not tokens.per_robot:
+                raise ConfigError(field_name, f"{path}:{n}: expected 'TOKEN', '@NAME TOKEN' or 'ROBOT_ID TOKEN'")
+        if not tokens.fleet and not tokens.per_robot and not tokens.named:
             raise ConfigError(field_name, f"{path} holds no token")
-        for t in [*tokens.fleet, *tokens.per_robot.values()]:
+        for t in [*tokens.fleet, *tokens.per_robot.values(), *tokens.named.values()]:
             if len(t) < 16:
                 raise ConfigError(field_name, f"{path}: tokens must be at least 16 characters")
         return tokens
 
-    def check(self, robot_id: str, token: str) -> bool:
-        """True if ``token`` is valid for ``robot_id`` (constant-time comparisons)."""
-        ok = False
+    def identify(self, robot_id: str, token: str) -> Credential | None:
+        """The credential ``token`` proves for ``robot_id``, or None (constant-time comparisons).
+
+        An id with its own token accepts only that token: a fleet token cannot take it.
+        """
         given = token.encode()
-        for t in self.fleet:
-            ok |= hmac.compare_digest(t.encode(), given)
         bound = self.per_robot.get(robot_id)
         if bound is not None:
-            ok |= hmac.compare_digest(bound.encode(), given)
-        return ok
+            ok = hmac.compare_digest(bound.encode(), given)
+            return Credential(f"robot:{robot_id}", None, token_digest(token)) if ok else None
+        found: Credential | None = None
+        for t in self.fleet:
+            if hmac.compare_digest(t.encode(), given):
+                found = Credential("fleet", None, token_digest(token))
+        for name, t in self.named.items():
+            if hmac.compare_digest(t.encode(), given):
+                found = Credential(f"token:{name}", name, token_digest(token))
+        return found
+
+    def check(self, robot_id: str, token: str) -> bool:
+        """True if ``token`` is valid for ``robot_id`` (see :meth:`identify`)."""
+        return self.identify(robot_id, token) is not None
 
 
 def read_tls(cert: str | None, key: str | None) -> tuple[bytes, bytes] | None:

@@ -20,12 +20,13 @@ import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.mirror import MAX_FPS, MIN_FPS, TIERS, RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_grpc import add_armory_to_server
 from lerobot_armory.server.engine import check_features
-from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
-from lerobot_armory.server.security import AuthTokens, RateLimiter
+from lerobot_armory.server.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
+from lerobot_armory.server.fleet_policy import FleetPolicy, Request, describe_grant
+from lerobot_armory.server.security import AuthTokens, Credential, RateLimiter
 from lerobot_armory.wire import FeatureSpec, WireError, decode_all
 
 log = logging.getLogger(__name__)
@@ -35,6 +36,8 @@ TOKEN_KEY = "armory-token"
 SERVICE_NAME = "lerobot_armory.v1.Armory"
 MAX_ROBOT_ID = 128
 MAX_TASK = 4096
+# How often a stream's writer wakes to send a due clock-sync request when nothing else is queued.
+SYNC_POLL_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -57,44 +60,58 @@ class ArmoryService:
         max_message_bytes: int,
         auth: AuthTokens | None = None,
         max_obs_rate_hz: float = 0.0,
+        fleet_policy: FleetPolicy | None = None,
     ) -> None:
         self.fleet = fleet
         self.policy = policy
         self.max_message_bytes = max_message_bytes
         self.auth = auth
         self.max_obs_rate_hz = max_obs_rate_hz
+        self.fleet_policy = fleet_policy or FleetPolicy.builtin()
 
     # ---- Register ----------------------------------------------------------------------------
 
     def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
         recv = self.fleet.clock()
-        if self.auth is not None and not self.auth.check(request.robot_id, request.auth_token):
-            context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token")
+        credential: Credential | None = None
+        if self.auth is not None:
+            credential = self.auth.identify(request.robot_id, request.auth_token)
+            if credential is None:
+                context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
         problems = self._check_registration(request)
-        if problems:
+        asked = Request(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
+        grant = None
+        if not problems:
+            grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
+        if problems or grant is None:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
-        spec = RobotSpec(request.robot_id, request.fps, self.policy.chunk_size, request.h_min, request.h_max, request.weight, request.tier)
+        spec = RobotSpec(request.robot_id, grant.fps, self.policy.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
         features = {f.name: FeatureSpec.from_proto(f) for f in request.features}
         try:
-            session = self.fleet.register(spec, request.task, features)
+            session = self.fleet.register(
+                spec, request.task, features, credential.digest if credential else None, grant, register_recv=recv
+            )
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         if self.max_obs_rate_hz > 0:
             session.rate = RateLimiter(self.max_obs_rate_hz)
         log.info(
-            "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]) task=%r",
-            spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, request.task,
+            "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]; %s) task=%r",
+            spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, describe_grant(asked, grant),
+            request.task[:80],
         )  # fmt: skip
+        assert session.register_stamps is not None
         return pb.RegisterResponse(
             session_id=session.session_id,
             action_names=self.policy.action_names,
             chunk_size=self.policy.chunk_size,
             action_dim=len(self.policy.action_names),
-            server_recv_time=recv,
-            server_send_time=self.fleet.clock(),
+            server_recv_time=session.register_stamps[0],
+            server_send_time=session.register_stamps[1],
             policy=self.policy.description,
             expected_features=[f.to_proto() for f in self.policy.wire_features],
             max_message_bytes=self.max_message_bytes,
+            granted=grant,
         )
 
     def _check_registration(self, r: pb.RegisterRequest) -> list[str]:
@@ -107,16 +124,16 @@ class ArmoryService:
         # RobotSpec's own validation, one field at a time so that every problem is listed.
         fields = {"fps": r.fps, "h_min": r.h_min, "h_max": r.h_max, "weight": r.weight, "tier": r.tier}
         H = self.policy.chunk_size
-        if not (math.isfinite(r.fps) and r.fps > 0):
-            problems.append(f"fps must be > 0, got {fields['fps']}")
+        if not MIN_FPS <= r.fps <= MAX_FPS:
+            problems.append(f"fps must be in [{MIN_FPS:g}, {MAX_FPS:g}], got {fields['fps']}")
         if r.h_max < 1 or r.h_max > H:
             problems.append(f"h_max must be in [1, H={H}] (the policy's chunk size), got {r.h_max}")
         if r.h_min < 0 or r.h_min > max(r.h_max, 0):
             problems.append(f"h_min must be in [0, h_max={r.h_max}], got {r.h_min}")
         if not (math.isfinite(r.weight) and r.weight > 0):
             problems.append(f"weight must be > 0, got {r.weight}")
-        if r.tier not in ("fast", "slow"):
-            problems.append(f"tier must be 'fast' or 'slow', got {r.tier!r}")
+        if r.tier not in TIERS:
+            problems.append(f"tier must be one of {', '.join(TIERS)}, got {r.tier[:32]!r}")
         declared = []
         for f in r.features:
             if any(d < 0 for d in f.shape) or len(f.shape) > 8:
@@ -136,13 +153,15 @@ class ArmoryService:
     def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:  # noqa: N802
         metadata = dict(context.invocation_metadata())
         session_id = metadata.get(SESSION_KEY, "")
+        credential = None
         if self.auth is not None:
             with self.fleet.cond:
                 known = self.fleet.sessions.get(session_id)
-            if known is None or not self.auth.check(known.robot_id, metadata.get(TOKEN_KEY, "")):
+            credential = self.auth.identify(known.robot_id, metadata.get(TOKEN_KEY, "")) if known is not None else None
+            if credential is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token")
         try:
-            session = self.fleet.attach(session_id)
+            session = self.fleet.attach(session_id, credential.digest if credential else None)
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         log.info("stream open: %s", session.robot_id)
@@ -153,7 +172,11 @@ class ArmoryService:
         context.add_callback(session.outbox.close)  # client went away: stop writing
         try:
             while True:
-                msg = session.outbox.get(timeout=1.0)
+                # Stamped the moment it is handed to gRPC: the server side of the exchange is ours.
+                sync = self.fleet.sync_request(session, self.fleet.clock())
+                if sync is not None:
+                    yield sync
+                msg = session.outbox.get(timeout=SYNC_POLL_S)
                 if msg is None:
                     if session.outbox.closed:
                         return
@@ -175,7 +198,9 @@ class ArmoryService:
                 elif kind == "report":
                     self._report(session, msg.report)
                 elif kind == "clock_sync":
-                    self.fleet.on_clock_sync(session, msg.clock_sync)
+                    problem = self.fleet.on_clock_sync(session, msg.clock_sync, self.fleet.clock())
+                    if problem is not None:
+                        self._notice(session, pb.Notice.CLOCK, problem)
                 else:
                     self._notice(session, pb.Notice.INFO, "empty message ignored")
         except grpc.RpcError:
@@ -212,17 +237,30 @@ class ArmoryService:
             self._notice(session, pb.Notice.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)
 
     def _report(self, session: RobotSession, report: pb.ExecutionReport) -> None:
+        recv = self.fleet.clock()
+        if not session.report_rate.allow():
+            return  # a robot reports a few times a second; a flood is dropped before any work
         if not math.isfinite(report.report_time) or report.executed_steps < 0 or report.starved_steps < 0:
             self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite time or negative counts")
             return
-        if any(not math.isfinite(c.arrival_time) for c in report.chunks):
+        read = report.chunks[:SENT_TABLE]
+        if any(not math.isfinite(c.arrival_time) for c in read):
             self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite chunk arrival time")
             return
-        self.fleet.on_report(session, report)
+        if len(report.chunks) > SENT_TABLE:
+            self._notice(
+                session, pb.Notice.REJECTED_REPORT,
+                f"execution report has {len(report.chunks)} receipts; only the first {SENT_TABLE} were read",
+            )  # fmt: skip
+        refused = self.fleet.on_report(session, report, recv)
+        if refused:
+            self._notice(session, pb.Notice.CLOCK, f"{refused} chunk arrival time(s) implausible for the server's clock: not used")
 
     @staticmethod
     def _notice(session: RobotSession, kind: int, message: str, index: int = -1) -> None:
-        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=kind, message=message, index=index)))
+        # Cut: a message can echo what the robot sent (a tensor name), and notices wait in memory.
+        text = message if len(message) <= MAX_NOTICE_CHARS else message[: MAX_NOTICE_CHARS - 3] + "..."
+        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=kind, message=text, index=index)))
 
 
 @dataclass

@@ -1,0 +1,208 @@
+"""The operator's fleet policy (``--fleet.policy=FILE``): what each robot may be granted.
+
+A robot *requests* a weight, a tier, an fps and horizons at registration; the operator decides
+what it gets. The policy file (YAML or JSON) has a ``default`` rule and optional rules per robot
+id and per named token (``@NAME TOKEN`` lines of ``--auth_token_file``)::
+
+    default:                 # every robot without a more specific rule
+      max_weight: 1          # requested weights are capped here (never raised)
+      tiers: [fast, slow]    # a tier outside this list is granted the first one listed
+      fps: [1, 60]           # an fps outside these bounds is refused
+      h_min: [2, 50]         # requested h_min is raised/lowered into these bounds
+      h_max: [1, 50]         # requested h_max above the bound is lowered; below it, refused
+      max_device_share: 1.0  # fraction of device time the robot may use (1: no cap)
+    robots:
+      arm-07: {max_weight: 3, tiers: [fast]}
+    tokens:
+      lab-b: {max_weight: 2, max_device_share: 0.25}
+
+A robot rule beats a token rule, which beats ``default``; each gives only the fields it changes.
+Without a file every robot gets the built-in default: weight at most 1, its own tier, fps and
+horizons inside the physical bounds, no share cap. Registration answers with the grant.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import MAX_FPS, MAX_WEIGHT, MIN_FPS, TIERS
+from lerobot_armory.proto import armory_pb2 as pb
+
+FIELD = "fleet.policy"
+_BIG = 1 << 30
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one robot may be granted (see the module docstring for each field)."""
+
+    max_weight: float = 1.0
+    tiers: tuple[str, ...] = TIERS
+    fps: tuple[float, float] = (MIN_FPS, MAX_FPS)
+    h_min: tuple[int, int] = (0, _BIG)
+    h_max: tuple[int, int] = (1, _BIG)
+    max_device_share: float = 1.0
+
+    def merged(self, where: str, entry: Any) -> Rule:
+        """This rule with the fields ``entry`` (a mapping from the file) gives, checked."""
+        if not isinstance(entry, dict):
+            raise ConfigError(FIELD, f"{where}: expected a mapping of fields, got {type(entry).__name__}")
+        known = {f.name for f in fields(Rule)}
+        unknown = sorted(set(entry) - known)
+        if unknown:
+            raise ConfigError(FIELD, f"{where}: unknown field(s) {', '.join(map(str, unknown))} (known: {', '.join(sorted(known))})")
+        changes: dict[str, Any] = {}
+        if "max_weight" in entry:
+            changes["max_weight"] = _number(where, "max_weight", entry["max_weight"], 0.0, MAX_WEIGHT, open_low=True)
+        if "tiers" in entry:
+            tiers = entry["tiers"]
+            if not isinstance(tiers, list) or not tiers or any(t not in TIERS for t in tiers):
+                raise ConfigError(FIELD, f"{where}: tiers must be a non-empty list of {', '.join(TIERS)}, got {tiers!r}")
+            changes["tiers"] = tuple(tiers)
+        if "fps" in entry:
+            changes["fps"] = _bounds(where, "fps", entry["fps"], MIN_FPS, MAX_FPS, float)
+        for name in ("h_min", "h_max"):
+            if name in entry:
+                changes[name] = _bounds(where, name, entry[name], 0 if name == "h_min" else 1, _BIG, int)
+        if "max_device_share" in entry:
+            changes["max_device_share"] = _number(where, "max_device_share", entry["max_device_share"], 0.0, 1.0, open_low=True)
+        return replace(self, **changes)
+
+
+def _number(where: str, name: str, value: Any, low: float, high: float, open_low: bool = False) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value > high or value < low or (open_low and value == low):
+        lo = f"({low:g}" if open_low else f"[{low:g}"
+        raise ConfigError(FIELD, f"{where}: {name} must be a number in {lo}, {high:g}], got {value!r}")
+    return float(value)
+
+
+def _bounds(where: str, name: str, value: Any, low: float, high: float, kind: type) -> tuple:
+    if not (isinstance(value, list) and len(value) == 2):
+        raise ConfigError(FIELD, f"{where}: {name} must be [low, high], got {value!r}")
+    if kind is int and not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        raise ConfigError(FIELD, f"{where}: {name} bounds must be integers, got {value!r}")
+    lo, hi = (_number(where, name, v, low, high) for v in value)
+    if lo > hi:
+        raise ConfigError(FIELD, f"{where}: {name} lower bound {lo:g} is above the upper bound {hi:g}")
+    return (kind(lo), kind(hi))
+
+
+@dataclass(frozen=True)
+class Request:
+    """What a robot asks for at registration."""
+
+    robot_id: str
+    fps: float
+    h_min: int
+    h_max: int
+    weight: float
+    tier: str
+
+
+@dataclass
+class FleetPolicy:
+    """The default rule plus rules per robot id and per token name."""
+
+    default: Rule
+    robots: dict[str, Rule]
+    tokens: dict[str, Rule]
+    source: str = "built-in default"
+
+    @classmethod
+    def builtin(cls) -> FleetPolicy:
+        return cls(Rule(), {}, {})
+
+    @classmethod
+    def load(cls, path: str) -> FleetPolicy:
+        """Read a YAML (``.yaml``/``.yml``) or JSON policy file; every problem is one line."""
+        try:
+            text = Path(path).read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(FIELD, f"cannot read {path}: {exc}") from None
+        try:
+            if path.endswith((".yaml", ".yml")):
+                import yaml
+
+                data = yaml.safe_load(text)
+            else:
+                data = json.loads(text)
+        except Exception as exc:  # yaml.YAMLError / json.JSONDecodeError: one line either way
+            first = (str(exc).strip().splitlines() or [""])[0]
+            raise ConfigError(FIELD, f"{path} does not parse: {first}") from None
+        return cls.from_dict(data, path)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "<dict>") -> FleetPolicy:
+        if not isinstance(data, dict):
+            raise ConfigError(FIELD, f"{source}: expected a mapping with default / robots / tokens")
+        unknown = sorted(set(data) - {"default", "robots", "tokens"})
+        if unknown:
+            raise ConfigError(FIELD, f"{source}: unknown section(s) {', '.join(map(str, unknown))} (known: default, robots, tokens)")
+        default = Rule().merged(f"{source}: default", data.get("default") or {})
+        sections: dict[str, dict[str, Rule]] = {}
+        for section in ("robots", "tokens"):
+            entries = data.get(section) or {}
+            if not isinstance(entries, dict):
+                raise ConfigError(FIELD, f"{source}: {section} must map names to rules")
+            sections[section] = {str(k): default.merged(f"{source}: {section}.{k}", v) for k, v in entries.items()}
+        return cls(default, sections["robots"], sections["tokens"], source)
+
+    def describe(self) -> str:
+        """One line for the start-up summary."""
+        d = self.default
+        share = f", device share <= {d.max_device_share:g}" if d.max_device_share < 1 else ""
+        return (
+            f"{self.source}: weight <= {d.max_weight:g}, fps in [{d.fps[0]:g}, {d.fps[1]:g}]{share} by default; "
+            f"{len(self.robots)} robot rule(s), {len(self.tokens)} token rule(s)"
+        )
+
+    def rule_for(self, robot_id: str, token_name: str | None) -> tuple[Rule, str]:
+        """The rule that applies and its name (``robot:ID``, ``token:NAME`` or ``default``)."""
+        if robot_id in self.robots:
+            return self.robots[robot_id], f"robot:{robot_id}"
+        if token_name is not None and token_name in self.tokens:
+            return self.tokens[token_name], f"token:{token_name}"
+        return self.default, "default"
+
+    def grant(self, request: Request, token_name: str | None = None) -> tuple[pb.Grant | None, list[str]]:
+        """What ``request`` is granted, or None and every reason it is refused."""
+        rule, name = self.rule_for(request.robot_id, token_name)
+        problems = []
+        where = f"the fleet policy ({name})"
+        if not rule.fps[0] <= request.fps <= rule.fps[1]:
+            problems.append(f"fps {request.fps:g} is outside {where}'s [{rule.fps[0]:g}, {rule.fps[1]:g}]")
+        if request.h_max < rule.h_max[0]:
+            problems.append(f"h_max {request.h_max} is below {where}'s minimum {rule.h_max[0]}")
+        h_max = min(request.h_max, rule.h_max[1])
+        h_min = min(max(request.h_min, rule.h_min[0]), rule.h_min[1])
+        if h_min > h_max:
+            problems.append(f"h_min {h_min} (after {where}'s bounds) is above h_max {h_max}")
+        if problems:
+            return None, problems
+        tier = request.tier if request.tier in rule.tiers else rule.tiers[0]
+        weight = min(request.weight, rule.max_weight)
+        return pb.Grant(
+            weight=weight, tier=tier, fps=request.fps, h_min=h_min, h_max=h_max, max_device_share=rule.max_device_share, rule=name
+        ), []
+
+
+def describe_grant(request: Request, grant: pb.Grant) -> str:
+    """One phrase of what the robot asked and got, naming only what differs (for logs)."""
+    changed = [
+        f"{name} {asked:g}->{got:g}" if isinstance(asked, float) else f"{name} {asked}->{got}"
+        for name, asked, got in (
+            ("weight", request.weight, grant.weight),
+            ("tier", request.tier, grant.tier),
+            ("h_min", request.h_min, grant.h_min),
+            ("h_max", request.h_max, grant.h_max),
+        )
+        if asked != got
+    ]
+    share = f", device share <= {grant.max_device_share:g}" if grant.max_device_share < 1.0 else ""
+    return f"granted by {grant.rule}" + (f" ({', '.join(changed)})" if changed else " as requested") + share

@@ -1,0 +1,253 @@
+"""What a robot claims cannot break or bend the mirror: edge checks on times, indices and rates,
+robust clock offsets with step detection, the operator's fleet policy, bounded reports/notices."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import (
+    CLOCK_FAULTS_FOR_STEP,
+    MAX_UPLINK_S,
+    PROGRESS_SLACK_S,
+    DelayEstimator,
+    RobotMirror,
+    RobotSpec,
+)
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig
+from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.server.fleet import OUTBOX_NOTICES, Fleet, FleetError, Outbox
+from lerobot_armory.server.fleet_policy import FleetPolicy, Request
+from lerobot_armory.server.security import AuthTokens
+
+SPEC = RobotSpec("r", fps=20.0, chunk_size=10, h_min=0, h_max=10)
+
+
+def exchange(est: DelayEstimator, offset: float, up: float = 0.01, down: float = 0.01, t: float = 100.0) -> str:
+    """One exchange with a true clock offset (server - robot)."""
+    b = t + offset + up
+    return est.add_exchange(t, b, b + 0.001, b + 0.001 + down - offset)
+
+
+# ---- the delay estimator ---------------------------------------------------------------------
+
+
+def test_non_finite_or_impossible_exchange_is_refused():
+    est = DelayEstimator()
+    exchange(est, 5.0)
+    for bad in ((math.nan, 1.0, 1.0, 1.0), (1.0, math.inf, 1.0, 1.0), (0.0, 1e308, -1e308, 0.0), (0.0, 0.0, 0.0, 100.0)):
+        assert est.add_exchange(*bad) == "refused"
+    assert est.offset_s == pytest.approx(5.0, abs=1e-3) and est.samples == 1
+
+
+def test_isolated_outlier_is_not_folded_in_but_a_step_is_detected():
+    est = DelayEstimator()
+    for k in range(5):
+        assert exchange(est, 5.0, t=100.0 + k) == "ok"
+    assert exchange(est, 5.0 + 1e6, t=106.0) == "outlier"  # one lie: ignored
+    assert exchange(est, 5.0, t=107.0) == "ok"
+    assert est.offset_s == pytest.approx(5.0, abs=1e-3)
+    # The robot's clock steps by one hour: a run of agreeing outliers restarts the estimate.
+    verdicts = [exchange(est, 5.0 - 3600.0, t=108.0 + k) for k in range(CLOCK_FAULTS_FOR_STEP)]
+    assert verdicts == ["outlier"] * (CLOCK_FAULTS_FOR_STEP - 1) + ["step"]
+    assert est.offset_s == pytest.approx(5.0 - 3600.0, abs=1e-3)
+
+
+@settings(max_examples=200, deadline=None)
+@given(offset=st.floats(-1e4, 1e4), ups=st.lists(st.floats(0, 0.4), min_size=2, max_size=20), seed=st.integers(0, 10))
+def test_honest_jitter_is_never_an_outlier(offset, ups, seed):
+    est = DelayEstimator()
+    for k, up in enumerate(ups):
+        down = ups[(k + seed) % len(ups)]
+        assert exchange(est, offset, up, down, t=10.0 * k) == "ok"
+
+
+def test_server_round_trips_bound_what_the_robot_claims():
+    est = DelayEstimator()
+    est.server_round_trip(0.02)
+    exchange(est, 0.0, up=0.5, down=0.5)  # the robot's stamps claim a 1 s round trip
+    assert est.round_trip_s == pytest.approx(0.02)
+    assert est.uplink_window_s() == pytest.approx(0.02)
+
+
+# ---- the mirror's edge checks ----------------------------------------------------------------
+
+
+def test_absurd_capture_times_neither_raise_nor_move_the_anchor_far():
+    m = RobotMirror(SPEC)
+    m.estimator.add_exchange(0.0, 0.005, 0.005, 0.01)
+    assert m.on_observation(0, 1.0, 1.005)
+    for k, t in enumerate((1e308, -1e308, 1e12, -1e12, 1.0 + 1e6), start=1):
+        recv = 1.005 + 0.05 * k
+        m.on_observation(0, t, recv)
+        assert recv - MAX_UPLINK_S <= m.obs_anchor <= recv
+        assert math.isfinite(m.deadline()) and m.predicted_index(recv) >= 0
+    for bad in (math.nan, math.inf, -math.inf):
+        with pytest.raises(ValueError, match="finite"):
+            m.on_observation(1, bad, 2.0)
+
+
+def test_a_clock_lie_moves_the_deadline_by_at_most_the_uplink_window():
+    honest, liar = RobotMirror(SPEC), RobotMirror(SPEC)
+    for m in (honest, liar):
+        m.estimator.add_exchange(0.0, 0.005, 0.005, 0.01)
+        m.on_observation(0, 0.0, 0.005)
+        m.on_dispatch(0.1)
+    honest.on_observation(2, 0.3, 0.305)
+    liar.on_observation(2, 0.3 - 1e6, 0.305)  # claims it captured this a million seconds ago
+    assert honest.deadline() - liar.deadline() <= liar.estimator.uplink_window_s() + 1e-9
+
+
+def test_an_index_that_runs_ahead_is_capped_by_chunks_sent_and_elapsed_time():
+    m = RobotMirror(SPEC)
+    assert m.on_observation(0, 0.0, 0.0)
+    assert m.on_observation(500, 0.01, 0.01) and m.obs_index == 0  # no chunk sent: cannot have moved
+    m.on_dispatch(0.05)  # a chunk for [0, 10)
+    m.on_observation(10_000, 0.1, 0.1)
+    assert m.obs_index == 10  # at most the end of what was sent
+    m.on_dispatch(0.15)  # [10, 20)
+    m.on_observation(10_001, 0.16, 0.16)  # 0.06 s later: elapsed time at 20 fps + slack caps it
+    assert m.obs_index <= 10 + math.ceil((0.06 + PROGRESS_SLACK_S) * SPEC.fps) + 1
+    assert m.clamped_indices >= 3
+
+
+@settings(max_examples=100, deadline=None)
+@given(steps=st.lists(st.tuples(st.integers(0, 3), st.floats(0.04, 0.06)), min_size=1, max_size=60))
+def test_an_honest_index_is_never_clamped(steps):
+    """A robot that executes at most one step per tick, from chunks it was sent, keeps its index."""
+    m = RobotMirror(SPEC)
+    t, index = 0.0, 0
+    m.on_observation(0, t, t)
+    for executed, dt in steps:
+        m.on_dispatch(t)
+        t += dt
+        index = min(index + min(executed, 1), m.queue[-1].end)
+        assert m.on_observation(index, t, t + 0.003) and m.obs_index == index
+    assert m.clamped_indices == 0
+
+
+def test_a_clock_stepped_back_is_detected_and_the_robot_served_again():
+    m = RobotMirror(SPEC)
+    m.estimator.add_exchange(0.0, 0.005, 0.005, 0.01)
+    t = 0.0
+    for k in range(10):
+        m.on_dispatch(t) if m.is_useful() else None
+        m.on_observation(k, t, t + 0.005)
+        t += 0.05
+    accepted = []
+    for k in range(10, 20):  # the robot's clock jumps back one hour; it keeps executing
+        m.on_dispatch(t) if m.is_useful() else None
+        accepted.append(m.on_observation(k, t - 3600.0, t + 0.005))
+        t += 0.05
+    assert m.needs_sync and not all(accepted) and accepted[-1]
+    assert m.obs_index == 19 and abs(m.obs_anchor - (t - 0.05)) < 0.05
+
+
+@pytest.mark.parametrize("config", [RoundRobinConfig(), EarliestDeadlineConfig(), LookaheadConfig()], ids=["rr", "edf", "la"])
+def test_schedulers_decide_whatever_robots_claimed(config):
+    profile = LatencyProfile("t", (0.07, 0.1, 0.14))
+    scheduler = config.build(profile, 3)
+    mirrors = [RobotMirror(RobotSpec(f"r{k}", 20.0, 10, 0, 10)) for k in range(4)]
+    wild = [math.nan, 1e308, -1e308, 1e6, -1e6, 0.0]
+    for k, m in enumerate(mirrors):
+        m.estimator.add_exchange(0.0, wild[k] if math.isfinite(wild[k]) else 0.0, 0.0, 0.0)
+        for j, t in enumerate(wild):
+            try:
+                m.on_observation(j, t, 1.0 + 0.01 * j)
+            except ValueError:
+                pass
+    assert scheduler.select(mirrors, 2.0)
+
+
+# ---- fleet policy ----------------------------------------------------------------------------
+
+
+def test_builtin_policy_caps_weight_at_one_and_keeps_the_rest():
+    grant, problems = FleetPolicy.builtin().grant(Request("a", 20.0, 0, 10, 3.0, "fast"))
+    assert not problems
+    assert (grant.weight, grant.tier, grant.h_min, grant.h_max, grant.rule) == (1.0, "fast", 0, 10, "default")
+
+
+def test_policy_rules_by_robot_and_token(tmp_path):
+    path = tmp_path / "fleet.yaml"
+    path.write_text(
+        "default: {max_weight: 1, fps: [5, 60], h_min: [2, 50], tiers: [slow]}\n"
+        "robots:\n  arm-7: {max_weight: 3, tiers: [fast, slow]}\n"
+        "tokens:\n  lab-b: {max_weight: 2, max_device_share: 0.25}\n"
+    )
+    policy = FleetPolicy.load(str(path))
+    g, _ = policy.grant(Request("arm-7", 30.0, 0, 10, 5.0, "fast"))
+    assert (g.weight, g.tier, g.h_min, g.rule) == (3.0, "fast", 2, "robot:arm-7")  # h_min raised into bounds
+    g, _ = policy.grant(Request("x", 30.0, 4, 10, 5.0, "fast"), token_name="lab-b")
+    assert (g.weight, g.tier, g.max_device_share, g.rule) == (2.0, "slow", 0.25, "token:lab-b")
+    g, problems = policy.grant(Request("x", 200.0, 4, 1, 1.0, "slow"))
+    assert g is None and any("fps 200" in p for p in problems) and any("h_min 4" in p for p in problems)
+
+
+@pytest.mark.parametrize(
+    "data, needle",
+    [
+        ({"default": {"max_weigth": 2}}, "unknown field(s) max_weigth"),
+        ({"robots": {"a": {"fps": [60, 5]}}}, "lower bound 60 is above"),
+        ({"default": {"max_weight": -1}}, "max_weight must be a number"),
+        ({"default": {"tiers": ["turbo"]}}, "tiers must be"),
+        ({"defaults": {}}, "unknown section"),
+    ],
+)
+def test_bad_policy_is_one_line(tmp_path, data, needle):
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ConfigError) as info:
+        FleetPolicy.load(str(path))
+    assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+# ---- credentials, slots, outbox --------------------------------------------------------------
+
+
+def test_a_robot_with_its_own_token_cannot_be_taken_with_a_fleet_token(tmp_path):
+    path = tmp_path / "tokens"
+    path.write_text("fleet-token-0123456789\narm-1 arm1-token-0123456789\n@lab-b labb-token-0123456789\n")
+    auth = AuthTokens.load(str(path))
+    assert auth.identify("arm-1", "fleet-token-0123456789") is None
+    assert auth.identify("arm-1", "arm1-token-0123456789").name == "robot:arm-1"
+    assert auth.identify("arm-2", "fleet-token-0123456789").name == "fleet"
+    assert auth.identify("arm-2", "labb-token-0123456789").group == "lab-b"
+    assert auth.identify("arm-2", "arm1-token-0123456789") is None
+
+
+def test_session_is_bound_to_its_credential_and_squatters_make_room():
+    clock = [0.0]
+    fleet = Fleet(lambda: clock[0], max_robots=2)
+    a = fleet.register(RobotSpec("a", 20.0, 10, 0, 10), "", {}, credential=b"A")
+    with pytest.raises(FleetError) as info:
+        fleet.attach(a.session_id, b"B")
+    assert info.value.code == "PERMISSION_DENIED"
+    fleet.attach(a.session_id, b"A")
+    squat = fleet.register(RobotSpec("s1", 20.0, 10, 0, 10), "", {})
+    newcomer = fleet.register(RobotSpec("b", 20.0, 10, 0, 10), "", {})  # full: the unstreamed squatter leaves
+    assert squat.session_id not in fleet.sessions and newcomer.session_id in fleet.sessions
+    fleet.attach(newcomer.session_id)
+    with pytest.raises(FleetError) as info:
+        fleet.register(RobotSpec("c", 20.0, 10, 0, 10), "", {})
+    assert info.value.code == "RESOURCE_EXHAUSTED" and "retry" in str(info.value)
+
+
+def test_outbox_keeps_at_most_its_limits_for_a_robot_that_never_reads():
+    box = Outbox()
+    for k in range(1000):
+        box.put(pb.ServerMessage(notice=pb.Notice(message=f"n{k}")))
+        box.put(pb.ServerMessage(chunk=pb.ActionChunk(chunk_id=k)))
+    kinds = []
+    while (msg := box.get(timeout=0)) is not None:
+        kinds.append((msg.WhichOneof("kind"), msg.chunk.chunk_id if msg.HasField("chunk") else msg.notice.message))
+    assert sum(k == "notice" for k, _ in kinds) == OUTBOX_NOTICES
+    assert sum(k == "chunk" for k, _ in kinds) == box.limit
+    assert kinds[-1] == ("chunk", 999) and ("notice", "n999") in kinds  # the newest are kept
+    assert box.dropped_notices == 1000 - OUTBOX_NOTICES
