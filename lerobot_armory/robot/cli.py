@@ -199,6 +199,8 @@ def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, An
     cfg.validate()
     _configure_logging(cfg.log_level)
     tls_ca, token = read_credentials(cfg)
+    if token and tls_ca is None:
+        log.warning("the auth token travels in plaintext (no --tls_ca): anyone on the network path can read and reuse it")
     name = robot_type or cfg.robot.type
     robot = _robot_call(cfg.robot, name, lambda: make_robot_from_config(cfg.robot))
     client: ArmoryClient | None = None

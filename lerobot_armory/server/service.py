@@ -22,10 +22,11 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import MAX_FPS, MIN_FPS, TIERS, RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import add_armory_to_server
+from lerobot_armory.proto.armory_grpc import Malformed, add_armory_to_server
 from lerobot_armory.server.engine import check_features
 from lerobot_armory.server.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
 from lerobot_armory.server.fleet_policy import FleetPolicy, Request, describe_grant
+from lerobot_armory.server.peer_log import ThrottledLog
 from lerobot_armory.server.security import AuthTokens, Credential, RateLimiter
 from lerobot_armory.wire import FeatureSpec, WireError, decode_all
 
@@ -68,11 +69,15 @@ class ArmoryService:
         self.auth = auth
         self.max_obs_rate_hz = max_obs_rate_hz
         self.fleet_policy = fleet_policy or FleetPolicy.builtin()
+        self.peer_log = ThrottledLog(log)  # one line per misbehaving peer per 10 s, no tracebacks
 
     # ---- Register ----------------------------------------------------------------------------
 
     def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
         recv = self.fleet.clock()
+        if isinstance(request, Malformed):
+            self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
         credential: Credential | None = None
         if self.auth is not None:
             credential = self.auth.identify(request.robot_id, request.auth_token)
@@ -166,7 +171,7 @@ class ArmoryService:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         log.info("stream open: %s", session.robot_id)
         reader = threading.Thread(
-            target=self._read, args=(session, request_iterator), name=f"armory-read-{session.robot_id}", daemon=True
+            target=self._read, args=(session, request_iterator, context.peer()), name=f"armory-read-{session.robot_id}", daemon=True
         )
         reader.start()
         context.add_callback(session.outbox.close)  # client went away: stop writing
@@ -188,10 +193,14 @@ class ArmoryService:
             self.fleet.detach(session.session_id)
             log.info("stream closed: %s (its state is dropped)", session.robot_id)
 
-    def _read(self, session: RobotSession, requests: Iterator[pb.RobotMessage]) -> None:
+    def _read(self, session: RobotSession, requests: Iterator[pb.RobotMessage | Malformed], peer: str) -> None:
         """Consume one robot's messages until its stream ends."""
         try:
             for msg in requests:
+                if isinstance(msg, Malformed):
+                    self._throttled_notice(session, f"malformed message ignored ({msg.size} bytes)")
+                    self.peer_log.warn(peer, f"{session.robot_id}: malformed message ignored ({msg.size} bytes): {msg.error}")
+                    continue
                 kind = msg.WhichOneof("kind")
                 if kind == "observation":
                     self._observation(session, msg.observation)
@@ -214,13 +223,10 @@ class ArmoryService:
         recv = self.fleet.clock()
         if session.rate is not None and not session.rate.allow():
             session.rejected += 1
-            if recv - session.rate_notified > 1.0:  # one notice a second, not one per message
-                session.rate_notified = recv
-                self._notice(
-                    session, pb.Notice.REJECTED_OBSERVATION,
-                    f"observation rate above the server's limit of {self.max_obs_rate_hz:g} Hz: observations dropped",
-                    obs.index,
-                )  # fmt: skip
+            self._throttled_notice(
+                session, f"observation rate above the server's limit of {self.max_obs_rate_hz:g} Hz: observations dropped",
+                pb.Notice.REJECTED_OBSERVATION, obs.index,
+            )  # fmt: skip
             return
         try:
             if not math.isfinite(obs.capture_time):
@@ -256,6 +262,13 @@ class ArmoryService:
         if refused:
             self._notice(session, pb.Notice.CLOCK, f"{refused} chunk arrival time(s) implausible for the server's clock: not used")
 
+    def _throttled_notice(self, session: RobotSession, message: str, kind: int = pb.Notice.INFO, index: int = -1) -> None:
+        """A notice for a flood (rate limit, garbage): one a second, not one per message."""
+        now = self.fleet.clock()
+        if now - session.rate_notified > 1.0:
+            session.rate_notified = now
+            self._notice(session, kind, message, index)
+
     @staticmethod
     def _notice(session: RobotSession, kind: int, message: str, index: int = -1) -> None:
         # Cut: a message can echo what the robot sent (a tensor name), and notices wait in memory.
@@ -277,6 +290,51 @@ class RunningServer:
             self.health.set(name, status)
 
 
+# A client gets this long from TCP accept to its HTTP/2 SETTINGS (the TLS handshake included).
+# gRPC's default is 120 s: 1,100 sockets that connect and send nothing held their fds for two
+# minutes and, at the common 1024 fd limit, kept every new robot out for that long. A robot on a
+# slow link needs well under a second; 5 s leaves room for a loaded server.
+HANDSHAKE_TIMEOUT_MS = 5_000
+# A connection with no RPC on it for this long is closed (GOAWAY). gRPC counts a robot's stream as
+# an RPC however quiet it is, so this only closes connections that hold nothing; a robot's channel
+# reconnects by itself on its next call.
+MAX_CONNECTION_IDLE_MS = 60_000
+# Connections open at once (handshaking or not); gRPC closes those over it at accept. Capped below
+# the fd limit so that a flood of connections leaves fds to the rest of the process (model files,
+# logs, the metrics server); a fleet needs one per robot plus a few probes.
+MAX_INCOMING_CONNECTIONS = 4096
+FD_RESERVE = 256
+
+
+def raise_fd_limit() -> int:
+    """Raise this process's soft limit on open files to its hard limit (best effort).
+
+    Returns:
+        The soft limit in force afterwards (-1: unknown, e.g. no ``resource`` module).
+    """
+    try:
+        import resource  # POSIX only: imported here so that the module loads everywhere
+    except ImportError:
+        return -1
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    # an unlimited hard limit is not a soft value every system takes (macOS caps files per process)
+    target = 1 << 20 if hard == resource.RLIM_INFINITY else hard
+    if soft == resource.RLIM_INFINITY or soft >= target:
+        return target
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    except (ValueError, OSError) as exc:
+        log.warning("could not raise the open-file limit from %d to %d: %s", soft, target, exc)
+        return soft
+    return target
+
+
+def _connection_cap(max_robots: int, fd_limit: int) -> int:
+    """Connections gRPC may hold: :data:`MAX_INCOMING_CONNECTIONS` (more for a big fleet), below the fd limit."""
+    cap = max(MAX_INCOMING_CONNECTIONS, 2 * max_robots + 64)
+    return cap if fd_limit <= 0 else max(1, min(cap, fd_limit - FD_RESERVE))
+
+
 def start_grpc_server(
     service: ArmoryService,
     host: str,
@@ -285,7 +343,14 @@ def start_grpc_server(
     max_message_bytes: int,
     tls: tuple[bytes, bytes] | None = None,
 ) -> RunningServer:
-    """Bind and start the gRPC server (``port=0`` picks a free port; ``tls`` = (key, cert) PEM)."""
+    """Bind and start the gRPC server (``port=0`` picks a free port; ``tls`` = (key, cert) PEM).
+
+    Also raises the process's open-file limit (:func:`raise_fd_limit`) and bounds what a client
+    that connects and sends nothing can hold: :data:`HANDSHAKE_TIMEOUT_MS`,
+    :data:`MAX_CONNECTION_IDLE_MS`, :data:`MAX_INCOMING_CONNECTIONS`.
+    """
+    # Every connection, even one that never speaks, holds an fd until gRPC drops it.
+    fd_limit = raise_fd_limit()
     # Each robot stream holds one worker thread for writing (its reader has its own thread).
     pool = futures.ThreadPoolExecutor(max_workers=max_robots + 8, thread_name_prefix="armory-grpc")
     server = grpc.server(
@@ -295,6 +360,9 @@ def start_grpc_server(
             ("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
             ("grpc.so_reuseport", 0),
+            ("grpc.server_handshake_timeout_ms", HANDSHAKE_TIMEOUT_MS),
+            ("grpc.max_connection_idle_ms", MAX_CONNECTION_IDLE_MS),
+            ("grpc.max_allowed_incoming_connections", _connection_cap(max_robots, fd_limit)),
         ],
     )
     add_armory_to_server(service, server)
