@@ -37,7 +37,7 @@ MAX_PENDING_SYNCS = 4
 SENT_TABLE = 64
 REPORT_RATE_HZ = 20.0
 # Device time accounting for the fleet policy's max_device_share: a decayed sum over this window.
-SHARE_WINDOW_S = 10.0
+SHARE_WINDOW_S = 5.0
 
 
 class FleetError(Exception):
@@ -369,11 +369,17 @@ class Fleet:
             session.device_s += seconds / max(1, len(sessions))
 
     def over_share(self, session: RobotSession, now: float) -> bool:
-        """Whether the robot used more than its granted share of device time lately (lock held)."""
+        """Whether the robot used more than its granted share of device time lately (lock held).
+
+        Both its device time and the wall time since it registered are summed with the same
+        exponential decay (time constant SHARE_WINDOW_S), so the ratio is its recent share from
+        the first second on, not only once a whole window has passed.
+        """
         if session.grant is None or session.grant.max_device_share >= 1.0:
             return False
         self._decay(session, now)
-        return session.device_s > session.grant.max_device_share * SHARE_WINDOW_S
+        wall = SHARE_WINDOW_S * -math.expm1(-max(0.0, now - session.registered_at) / SHARE_WINDOW_S)
+        return session.device_s > session.grant.max_device_share * wall
 
     @staticmethod
     def _decay(session: RobotSession, now: float) -> None:
