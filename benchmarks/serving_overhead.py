@@ -51,7 +51,7 @@ def robots_process(address: str, n: int, features: dict, duration: float, out) -
         }
         for _ in range(4)
     ]
-    records, capture, max_queue = [], [{} for _ in range(n)], [0] * n
+    records, max_queue = [], [0] * n
     lock = threading.Lock()
     conns = []
     for k in range(n):
@@ -60,7 +60,7 @@ def robots_process(address: str, n: int, features: dict, duration: float, out) -
 
         def on_chunk(chunk, k=k):
             with lock:
-                records.append((f"robot{k:02d}", chunk.i_start, capture[k].get(chunk.i_start), chunk.arrival_time))
+                records.append((f"robot{k:02d}", chunk.i_start, chunk.obs_capture_time, chunk.arrival_time))
 
         c.open_stream(on_chunk)
         conns.append(c)
@@ -76,7 +76,6 @@ def robots_process(address: str, n: int, features: dict, duration: float, out) -
             if t_next > now:
                 time.sleep(t_next - now)
             t = time.monotonic()
-            capture[k][i] = t
             c.send_observation(i, frames[i % 4], capture_time=t)
             max_queue[k] = max(max_queue[k], c._outgoing.qsize())
             i += 1

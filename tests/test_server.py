@@ -46,7 +46,8 @@ def server(engine):
 
 
 class Pusher:
-    """A robot double: pushes a new observation every period (index +1 each time), keeps chunks."""
+    """A robot double: pushes a new observation every period and keeps chunks; like a real robot,
+    its index moves (one step per period) only over actions it received."""
 
     def __init__(self, address: str, engine, k: int, period: float = 0.03, robot_id: str | None = None) -> None:
         self.k = k
@@ -71,7 +72,8 @@ class Pusher:
     def _run(self):
         while not self._stop.is_set():
             self.conn.send_observation(self.index, observation(self.k, self.index))
-            self.index += 1
+            if any(c.i_start <= self.index < c.i_start + 10 for c in list(self.chunks)):
+                self.index += 1
             time.sleep(self.period)
 
     def stop(self):

@@ -42,11 +42,14 @@ class PromptRobot:
         self._thread.start()
 
     def _run(self) -> None:
+        # An honest robot: its index moves only over actions it received (the server caps an index
+        # that runs ahead of the chunks it sent), at most once per tick of its 30 fps.
         index = 0
         while not self._stop.is_set():
             self.conn.send_observation(index, observation(self.k, index))
-            index += 1
-            time.sleep(0.03)
+            if any(c.i_start <= index < c.i_start + 10 for c in list(self.chunks)):
+                index += 1
+            time.sleep(0.035)
 
     def stop(self) -> None:
         self._stop.set()
