@@ -52,11 +52,21 @@ class Malformed:
     size: int
 
 
+# A RobotMessage whose first field is an ExecutionReport (field 2, length-delimited: tag 0x12)
+# larger than this is refused before parsing: the server reads at most 64 receipts (~2 KiB), and
+# parsing a 16 MiB report of 8.4 M receipts holds the GIL for seconds and costs ~400 MiB.
+MAX_REPORT_BYTES = 64 << 10
+_REPORT_TAG = 0x12
+
+
 def safe_deserializer(message_type: type) -> Callable[[bytes], Any]:
     """``message_type.FromString`` that returns a :class:`Malformed` instead of raising."""
     parse = message_type.FromString
+    robot_message = message_type is pb.RobotMessage
 
     def deserialize(data: bytes) -> Any:
+        if robot_message and len(data) > MAX_REPORT_BYTES and data[:1] == bytes((_REPORT_TAG,)):
+            return Malformed(f"execution report of {len(data)} bytes refused (limit {MAX_REPORT_BYTES})", len(data))
         try:
             return parse(data)
         except Exception as exc:  # noqa: BLE001 - DecodeError or anything else: the bytes are the robot's fault
