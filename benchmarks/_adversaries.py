@@ -27,6 +27,8 @@ out of the server starves, as a real one would.
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import io
 import json
 import math
@@ -190,12 +192,10 @@ class RawStream:
             yield item
 
     def _done(self, call: Any) -> None:
-        try:
+        with contextlib.suppress(Exception):  # a call that never started has no status
             code = call.code()
             self.code = code.name if code is not None else None
             self.details = call.details() or ""
-        except Exception:  # noqa: BLE001
-            pass
         self.closed.set()
 
     def _receive(self) -> None:
@@ -267,7 +267,7 @@ class Robot:
     ) -> None:
         self.features = dict(features)
         self.report = report
-        self.fields = dict(robot_id=robot_id, fps=fps, h_min=h_min, h_max=h_max, weight=weight, tier=tier)
+        self.fields = {"robot_id": robot_id, "fps": fps, "h_min": h_min, "h_max": h_max, "weight": weight, "tier": tier}
         self.token = token
         self.conn = Connection(address, max_message_bytes=max_message_bytes, token=token)
         self.response: pb.RegisterResponse | None = None
@@ -466,11 +466,13 @@ def report_absurd(
     *,
     rate_hz: float = 20.0,
     seed: int = 0,
+    h_min: int = 10,
     token: str = "",
 ) -> AttackReport:
     """An ordinary stream of observations, and every tick an execution report with absurd values
     for the chunks it really received: arrival times of +-1e308, huge, negative; report times of
-    +-1e308; huge or negative counts; a huge index; receipts for chunk ids it never got."""
+    +-1e308; huge or negative counts; a huge index; receipts for chunk ids it never got.
+    ``h_min`` 1 gets it a chunk (a receipt to poison) every tick or so; 10 every half second."""
     report = report or AttackReport("report_absurd")
     rng = random.Random(seed)
     received: list[int] = []
@@ -481,7 +483,7 @@ def report_absurd(
             with lock:
                 received.append(msg.chunk.chunk_id)
 
-    robot = Robot(address, features, report, "atk-report", token=token)
+    robot = Robot(address, features, report, "atk-report", h_min=h_min, token=token)
     obs = Observations(features)
     index = 0
     for _ in ticks(rate_hz, stop):
@@ -581,7 +583,7 @@ def fps_absurd(
     INVALID_ARGUMENT or granted inside sane bounds (else a violation). Every accepted one then
     streams observations (index + 1 per tick), re-registering when dropped."""
     report = report or AttackReport("fps_absurd")
-    base = dict(fps=20.0, h_min=10, h_max=10, weight=1.0)
+    base = {"fps": 20.0, "h_min": 10, "h_max": 10, "weight": 1.0}
     accepted: list[tuple[str, Robot, dict[str, Any]]] = []
     for k, (label, overrides) in enumerate(registrations):
         if stop.is_set():
@@ -1196,8 +1198,8 @@ def honest_group(path: str) -> None:
 
     group = json.loads(Path(path).read_text())
     logging.basicConfig(level=logging.ERROR, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    import lerobot_armory.robot.armory_sim  # noqa: F401 - the slow imports, before "ready"
-    import lerobot_armory.robot.client  # noqa: F401
+    for module in ("lerobot_armory.robot.armory_sim", "lerobot_armory.robot.client"):
+        importlib.import_module(module)  # the slow imports, before "ready"
 
     Path(group["ready_file"]).write_text("ready")
     go = Path(group["go_file"])

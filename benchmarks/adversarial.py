@@ -1,7 +1,8 @@
 """One robot cannot hurt the fleet: the real server attacked by a hostile or broken robot.
 
 Each run starts ``lerobot-armory-server`` (the analytic planner policy, H=10, 64 px camera,
-``--engine.emulate_profile=l40s-pi05``, ``--max_batch_size=3``), one process of four honest
+``--engine.emulate_profile=l40s-pi05``, ``--max_batch_size=3``; started with the usual soft
+limit of 1024 open files, as systemd and most shells give it), one process of four honest
 ``armory_sim`` robots (20 fps, h_min 5, h_max 10, weight 1, emulated network 3.75 ms median with
 the libero preset's jitter; ``python benchmarks/_adversaries.py honest SPEC.json``) and, in this
 process, on its own thread, one attacker from ``benchmarks/_adversaries.py`` speaking the raw
@@ -36,6 +37,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shlex
 import signal
 import subprocess
@@ -87,6 +89,9 @@ class Config:
     seed: int = 0
     policy_path: str | None = None
     work_dir: str | None = None
+    before: str | None = None  # results.json of an earlier run, shown beside each row in README.md
+    server_nofile: int = 1024  # soft RLIMIT_NOFILE the server starts with (0: this process's)
+    before_label: str | None = None  # what --before was run on, for README.md
 
 
 @dataclass
@@ -129,11 +134,14 @@ class ServerProcess:
     """``lerobot-armory-server`` as a subprocess whose output is drained (a full pipe would block
     its logging, and so the server) and kept: the last lines, exceptions and crash lines."""
 
-    def __init__(self, args: list[str]) -> None:
+    def __init__(self, args: list[str], nofile: int = 0) -> None:
+        command = [sys.executable, "-m", "lerobot_armory.server.app", *args]
+        if nofile:  # the soft fd limit most services start with (systemd, shells): 1024; exec keeps the pid
+            soft = min(nofile, resource.getrlimit(resource.RLIMIT_NOFILE)[1])
+            command = ["/bin/sh", "-c", f'ulimit -S -n {soft} && exec "$0" "$@"', *command]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "lerobot_armory.server.app", *args],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )  # fmt: skip
+            command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+        )
         self.lines: deque[str] = deque(maxlen=300)
         self.banner: list[str] = []
         self.exceptions: Counter = Counter()
@@ -301,7 +309,7 @@ def run_once(spec: RunSpec, cfg: Config, policy: str, work: Path) -> dict[str, A
     sampling = threading.Event()
     record: dict[str, Any] = {"label": spec.label, "scenario": spec.scenario, "variant": spec.variant, "scheduler": spec.sched_label}
     try:
-        server = ServerProcess(args)
+        server = ServerProcess(args, cfg.server_nofile)
         features = server.features()
         deadline = time.monotonic() + 180
         while not ready.exists():
@@ -442,7 +450,10 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     up = bool(record.get("server_alive") and record.get("server_healthy"))
     row["server_up"] = up
     if not up:
-        why = record.get("server_crash") or [f"exit code {record.get('server_exit_code')}"]
+        if record.get("server_alive"):
+            why = ["process alive but not answering its health check", *record.get("server_crash", [])]
+        else:
+            why = record.get("server_crash") or [f"process exited with code {record.get('server_exit_code')}"]
         failures.append("server down: " + " | ".join(why[:3]))
     elif record.get("server_crash"):
         failures.append("server: " + " | ".join(record["server_crash"][:2]))
@@ -602,7 +613,24 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def markdown(rows: list[dict[str, Any]], baselines: list[dict[str, Any]], cfg: Config, command: str, elapsed_s: float) -> str:
+def before_cell(row: dict[str, Any] | None) -> str:
+    """A row of an earlier run (``--before``) in one short cell."""
+    if row is None:
+        return "-"
+    if row["passed"]:
+        return f"pass ({fmt(row.get('delta_pp'), '+.1f')} pp)"
+    first = row["failures"][0] if row["failures"] else "?"
+    return "FAIL: " + (first[:90] + "..." if len(first) > 90 else first).replace("|", "\\|")
+
+
+def markdown(
+    rows: list[dict[str, Any]],
+    baselines: list[dict[str, Any]],
+    cfg: Config,
+    command: str,
+    elapsed_s: float,
+    before: dict[str, dict[str, Any]] | None = None,
+) -> str:
     out = [
         "# Adversarial benchmark: one robot cannot hurt the fleet",
         "",
@@ -627,8 +655,9 @@ def markdown(rows: list[dict[str, Any]], baselines: list[dict[str, Any]], cfg: C
         "",
         "## Results",
         "",
-        "| scenario | scheduler | server up | honest starvation % (baseline) | Δ pp | RSS growth MiB (peak) | result | note |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scenario | scheduler | server up | honest starvation % (baseline) | Δ pp | RSS growth MiB (peak) | result | note |"
+        + (" before |" if before else ""),
+        "|---|---|---|---|---|---|---|---|" + ("---|" if before else ""),
     ]
     for r in rows:
         name = f"{r['scenario']}({r['variant']})" if r.get("variant") else r["scenario"]
@@ -637,7 +666,10 @@ def markdown(rows: list[dict[str, Any]], baselines: list[dict[str, Any]], cfg: C
             f"| {name} | {r['scheduler']} | {'yes' if r['server_up'] else '**NO**'} | {fmt(r.get('honest_pct'))} "
             f"({fmt(r.get('baseline_pct'))}) | {fmt(r.get('delta_pp'), '+.1f')} | {fmt(r.get('rss_growth_mib'), '.0f')} "
             f"({fmt(r.get('rss_peak_growth_mib'), '.0f')}) | {'pass' if r['passed'] else '**FAIL**'} | {note} |"
+            + (f" {before_cell(before.get(r['label']))} |" if before else "")
         )
+    if before:
+        out += ["", f"The *before* column: the same benchmark on {cfg.before_label or cfg.before}.", ""]
     out += ["", "## Baselines (no attacker)", "", "| scheduler | honest starvation % (whole run) | from warm-up | server RSS MiB |", "|---|---|---|---|"]
     for b in baselines:
         out.append(
@@ -668,6 +700,9 @@ def parse(argv: list[str] | None) -> Config:
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--policy_path", default=None)
     p.add_argument("--work_dir", default=None, help="where run files go (default: a temporary directory)")
+    p.add_argument("--server_nofile", type=int, default=d.server_nofile, help="soft fd limit the server starts with (default 1024, the usual default; 0: inherit)")
+    p.add_argument("--before_label", default=None, help="what the --before run served (README.md), e.g. a commit")
+    p.add_argument("--before", default=None, help="results.json of an earlier run: README.md shows its verdict beside each row")
     a = p.parse_args(argv)
     q = a.quick
     return Config(
@@ -684,6 +719,9 @@ def parse(argv: list[str] | None) -> Config:
         seed=a.seed,
         policy_path=a.policy_path,
         work_dir=a.work_dir,
+        before=a.before,
+        server_nofile=a.server_nofile,
+        before_label=a.before_label,
     )
 
 
@@ -693,6 +731,9 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(cfg.work_dir or tempfile.mkdtemp(prefix="armory-adversarial-"))
     work.mkdir(parents=True, exist_ok=True)
     runs = plan(cfg, work)
+    before = None
+    if cfg.before:  # read first: a bad path fails now, not after the runs
+        before = {r["label"]: r for r in json.loads(Path(cfg.before).read_text())["rows"]}
     policy = ensure_policy(cfg)
     adv.raise_fd_limit(4096)
     print(
@@ -743,7 +784,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     command = "benchmarks/adversarial.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     base_list = [{**b, "scheduler": f"{s}" if c == CAP else f"{s} b={c}"} for (s, c), b in baselines.items()]
-    (out / "README.md").write_text(markdown(rows, base_list, cfg, command, elapsed))
+    (out / "README.md").write_text(markdown(rows, base_list, cfg, command, elapsed, before))
     slim = [{k: v for k, v in r.items() if k != "robots"} | {"robots": [_slim(x) for x in r.get("robots", [])]} for r in records]
     (out / "results.json").write_text(json.dumps({"command": command, "config": cfg.__dict__, "rows": rows, "runs": slim}, indent=1, default=str) + "\n")
     print(f"wrote {out / 'README.md'} and {out / 'results.json'}")
