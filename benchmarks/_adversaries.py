@@ -1210,25 +1210,9 @@ def honest_group(path: str) -> None:
         time.sleep(0.005)
     address = go.read_text().strip()
     t0 = time.monotonic()
-    out = Path(group["stats_dir"])
-    errors: list[str] = []
+    from lerobot_armory.bench.robots import run_all
 
-    def worker(spec: dict[str, Any]) -> None:
-        try:
-            stats = run_honest_robot(spec, group, address, t0)
-            (out / f"{spec['robot_id']}.json").write_text(json.dumps(stats) + "\n")
-        except Exception as exc:  # noqa: BLE001 - reported by the bench
-            errors.append(f"{spec['robot_id']}: {type(exc).__name__}: {exc}")
-
-    threads = [threading.Thread(target=worker, args=(spec,)) for spec in group["robots"]]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if errors:
-        print("\n".join(errors), file=sys.stderr)
-        sys.exit(1)
-
+    run_all(group["robots"], lambda spec: run_honest_robot(spec, group, address, t0), Path(group["stats_dir"]))
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "honest":

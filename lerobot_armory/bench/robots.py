@@ -11,6 +11,7 @@ import json
 import logging
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -48,20 +49,19 @@ def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:
     return stats
 
 
-def main(path: str) -> None:
-    group = json.loads(Path(path).read_text())
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    out = Path(group["stats_dir"])
+def run_all(robots: list[dict[str, Any]], run: Callable[[dict[str, Any]], dict[str, Any]], out: Path) -> None:
+    """Run each robot spec on its own thread, write ``out/<robot_id>.json``; exit 1 naming every
+    robot that failed (the bench then fails loudly)."""
     errors: list[str] = []
 
     def worker(spec: dict[str, Any]) -> None:
         try:
-            stats = run_robot(spec, group)
+            stats = run(spec)
             (out / f"{spec['robot_id']}.json").write_text(json.dumps(stats, indent=2) + "\n")
-        except Exception as exc:  # reported by the bench, which then fails loudly
+        except Exception as exc:  # noqa: BLE001 - reported by the bench
             errors.append(f"{spec['robot_id']}: {type(exc).__name__}: {exc}")
 
-    threads = [threading.Thread(target=worker, args=(spec,)) for spec in group["robots"]]
+    threads = [threading.Thread(target=worker, args=(spec,)) for spec in robots]
     for t in threads:
         t.start()
     for t in threads:
@@ -69,6 +69,12 @@ def main(path: str) -> None:
     if errors:
         print("\n".join(errors), file=sys.stderr)
         sys.exit(1)
+
+
+def main(path: str) -> None:
+    group = json.loads(Path(path).read_text())
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    run_all(group["robots"], lambda spec: run_robot(spec, group), Path(group["stats_dir"]))
 
 
 if __name__ == "__main__":
