@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench sweep proto clean
+.PHONY: setup demo test bench sweep research research-bench research-frontier proto clean
 
 setup: $(STAMP)
 
@@ -53,11 +53,29 @@ bench: setup
 sweep: setup
 	$(VENV)/bin/lerobot-armory-sweep --profile=full --out_dir=docs/results
 
-# Regenerate the committed protobuf messages from lerobot_armory/proto/armory.proto (the gRPC
-# binding, lerobot_armory/proto/armory_grpc.py, is written by hand: see its docstring).
+# The offline scheduling study (research/README.md): research/ is not part of the installed package
+# and `make test` does not collect its tests (about 1-1.5 min on 2 cores in all, the slowest ~20 s).
+research: setup
+	$(PY) -m pytest research/tests
+
+# The study's benchmarks: small-fleet + decision-time targets (~20 s), the N = 10 target on 48
+# paired seeds (~20 min), then the other-horizons diagnostic (~4 min). Exit 1 on a missed target.
+research-bench: setup
+	$(PY) research/benchmarks/frontier.py
+	$(PY) research/benchmarks/n10_paired.py
+	$(PY) research/benchmarks/frontier_horizons.py
+
+# Regenerate the frontier study's committed results in docs/results/frontier (about 1 h on 2 cores).
+research-frontier: setup
+	PYTHONPATH=research $(PY) -m armory_research.frontier --profile=full --out_dir=docs/results/frontier --workers=2
+
+# Regenerate the committed code of lerobot_armory/proto/armory.proto: the messages (armory_pb2.py,
+# armory_pb2.pyi) and the gRPC client stub and servicer base (armory_pb2_grpc.py; grpc_tools has no
+# typed-stub option for it). The server binds them through proto/hardening.py, which swaps in request
+# deserializers that never raise (see its docstring). tests/test_server.py fails when they are stale.
 proto: setup
-	$(PY) -m pip install --quiet -e '.[dev]'
-	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. lerobot_armory/proto/armory.proto
+	@$(PY) -c 'import grpc_tools' 2>/dev/null || $(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. --grpc_python_out=. lerobot_armory/proto/armory.proto
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

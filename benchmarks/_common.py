@@ -5,10 +5,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 
-from lerobot_armory.latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.optimal import Episode, EpisodeResult, play
-from lerobot_armory.sim.presets import get_preset
 from lerobot_armory.sim.run import SimConfig, simulate
 
 
@@ -16,12 +13,6 @@ def sim(scheduler: str, options: dict[str, object] | None = None, **kwargs: obje
     """One simulated run (seed 0) of ``scheduler`` (with scheduler ``options``) and ``SimConfig`` overrides."""
     cfg = SimConfig(scheduler=make_scheduler_config(scheduler, **(options or {})), **kwargs).resolved()  # type: ignore[arg-type]
     return simulate(cfg, seed=0)
-
-
-def play_episode(preset: str, ep: Episode, scheduler: str, options: dict[str, object], tell_end: bool) -> EpisodeResult:
-    """``scheduler`` (with ``options``, the preset's latency profile) on a deterministic episode."""
-    profile = load_profile(get_preset(preset).latency_profile)
-    return play(ep, make_scheduler_config(scheduler, **options).build(profile, ep.max_batch_size), tell_end=tell_end)
 
 
 @dataclass

@@ -14,7 +14,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets  # noqa: E402
 
-from lerobot_armory.bench.load import run_load  # noqa: E402
+from _load import run_load  # noqa: E402
 
 
 def main() -> None:

@@ -94,7 +94,6 @@ def robots_process(address: str, n: int, features: dict, duration: float, out) -
 def main() -> None:
     import torch
 
-    from lerobot_armory.latency import LatencyProfile
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.server.app import ArmoryServer, tune_process
     from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy

@@ -4,6 +4,19 @@
 
 "Least recently served" (LRS): serve the useful robots whose last chunk was generated from the
 oldest observation relative to their current one, i.e. the most steps since their last service.
+
+Registering happens when this module is imported. To ship the scheduler as a package of its own
+(nothing in lerobot_armory edited), put the two classes below in a module of that package, say
+``armory_lrs/__init__.py``, and declare it in the package's ``pyproject.toml`` under the
+entry-point group ``lerobot_armory.schedulers``::
+
+    [project.entry-points."lerobot_armory.schedulers"]
+    lrs = "armory_lrs"
+
+Once that package is installed (``pip install armory-lrs`` or ``pip install -e .``),
+``--scheduler.type=lrs`` works in every lerobot-armory command: the scheduler registry imports
+``armory_lrs`` the first time it is read. A plugin that fails to import is skipped with one
+warning naming its entry point and the error; the other schedulers stay available.
 """
 
 from __future__ import annotations

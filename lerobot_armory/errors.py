@@ -6,6 +6,8 @@ field (never a traceback), so the field name is part of the exception.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 
 class ConfigError(ValueError):
     """An impossible or unknown configuration value.
@@ -20,3 +22,16 @@ class ConfigError(ValueError):
         self.field = field
         self.message = message
         super().__init__(f"{field}: {message}")
+
+    @classmethod
+    def listing(cls, problems: Sequence[str]) -> ConfigError:
+        """One error naming several problems, each a ``field: why`` string (at least one).
+
+        A user fixes a command line or a registration in one go when every problem is named at
+        once. ``field`` is the first problem's field; the text reads
+        ``field: why; other_field: why; ...``.
+        """
+        if not problems:
+            raise ValueError("ConfigError.listing needs at least one problem")
+        field, _, why = problems[0].partition(": ")
+        return cls(field, "; ".join([why, *problems[1:]]))

@@ -19,6 +19,7 @@ The single transition is :func:`advance`. The robot's ground truth in the simula
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -32,6 +33,8 @@ _EPS = 1e-9
 _OFFSET_TOLERANCE_S = 0.005
 
 TIERS = ("fast", "slow")
+# Longest robot id: ids travel in every log line, metric label and status row.
+MAX_ROBOT_ID = 128
 
 # Physical bounds of a robot's declared rates: beyond them no controller exists and the tick
 # arithmetic (1 / fps, ticks * fps) leaves the floats (fps = 1e308 made ``math.ceil`` raise).
@@ -55,6 +58,9 @@ CLOCK_FAULTS_FOR_STEP = 3
 # Progress bound: beyond real time at the declared fps, an index may run ahead by at most this much
 # (network jitter bunches honest observations; a lying index gains at most this).
 PROGRESS_SLACK_S = 0.5
+# Sent chunks whose arrival report the mirror still awaits. A robot reports within a second or so
+# (several chunks); one that never reports must not grow the table, so the oldest are forgotten.
+MAX_AWAITING_REPORTS = 64
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,9 @@ class RobotSpec:
         h_max: the robot executes at most this many actions of a chunk.
         weight: w_j, value of one executed second of this robot (Lookahead's objective).
         tier: reporting label, ``fast`` (dynamic task, short h_max) or ``slow``.
+
+    Raises:
+        ConfigError: naming every problem :func:`spec_problems` finds (``field`` is the first's).
     """
 
     robot_id: str
@@ -81,24 +90,63 @@ class RobotSpec:
     tier: str = "slow"
 
     def __post_init__(self) -> None:
-        if not self.robot_id:
-            raise ConfigError("robot_id", "must be a non-empty string")
-        if not (isinstance(self.fps, (int, float)) and MIN_FPS <= self.fps <= MAX_FPS):
-            raise ConfigError("fps", f"must be a number of steps per second in [{MIN_FPS:g}, {MAX_FPS:g}], got {self.fps!r}")
-        if self.chunk_size < 1:
-            raise ConfigError("chunk_size", f"must be >= 1, got {self.chunk_size}")
-        if self.h_min < 0:
-            raise ConfigError("h_min", f"must be >= 0, got {self.h_min}")
-        if self.h_max < 1:
-            raise ConfigError("h_max", f"must be >= 1, got {self.h_max}")
-        if self.h_min > self.h_max:
-            raise ConfigError("h_min", f"h_min={self.h_min} is larger than h_max={self.h_max}")
-        if self.h_max > self.chunk_size:
-            raise ConfigError("h_max", f"h_max={self.h_max} is larger than the chunk size H={self.chunk_size}")
-        if not (0 < self.weight <= MAX_WEIGHT):
-            raise ConfigError("weight", f"must be a positive number up to {MAX_WEIGHT:g}, got {self.weight!r}")
-        if self.tier not in TIERS:
-            raise ConfigError("tier", f"must be one of {', '.join(TIERS)}, got {self.tier!r}")
+        problems = spec_problems(self.robot_id, self.fps, self.chunk_size, self.h_min, self.h_max, self.weight, self.tier)
+        if problems:
+            raise ConfigError.listing(problems)
+
+
+def _shown(value: object, limit: int = 40) -> str:
+    """``repr(value)``, cut short: values may come from the wire, and an error echoes them."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def spec_problems(
+    robot_id: str, fps: float, chunk_size: int | None, h_min: int, h_max: int, weight: float, tier: str
+) -> list[str]:
+    """Every problem of a robot's declared spec, as ``field: why`` strings (empty: valid).
+
+    The one validator of what a robot declares: :class:`RobotSpec` raises with it, the server
+    answers a registration with it and the client command line checks its flags with it, so the
+    three agree, and each names every problem at once rather than the first.
+
+    Values may come straight from the wire or a command line, so a value of the wrong type (a
+    string fps, a float horizon) is a problem, never an exception. ``chunk_size`` None means not known yet (a robot learns the
+    policy's H only when it registers): the checks that need it are left to the server.
+    A relation (``h_min <= h_max <= H``) is checked only when its fields are valid on their own,
+    so one bad value is named once.
+    """
+    problems = []
+    if not (isinstance(robot_id, str) and 0 < len(robot_id) <= MAX_ROBOT_ID and robot_id.isprintable()):
+        problems.append(f"robot_id: must be a non-empty string of at most {MAX_ROBOT_ID} printable characters")
+    if not (_is_real(fps) and MIN_FPS <= fps <= MAX_FPS):  # NaN fails the comparison
+        problems.append(f"fps: must be a number of steps per second in [{MIN_FPS:g}, {MAX_FPS:g}], got {_shown(fps)}")
+    chunk_ok = chunk_size is None or (_is_int(chunk_size) and chunk_size >= 1)
+    if not chunk_ok:
+        problems.append(f"chunk_size: must be an integer >= 1, got {_shown(chunk_size)}")
+    h_min_ok = _is_int(h_min) and h_min >= 0
+    if not h_min_ok:
+        problems.append(f"h_min: must be an integer >= 0, got {_shown(h_min)}")
+    h_max_ok = _is_int(h_max) and h_max >= 1
+    if not h_max_ok:
+        problems.append(f"h_max: must be an integer >= 1, got {_shown(h_max)}")
+    if h_min_ok and h_max_ok and h_min > h_max:
+        problems.append(f"h_min: h_min={h_min} is larger than h_max={h_max}")
+    if h_max_ok and chunk_ok and chunk_size is not None and h_max > chunk_size:
+        problems.append(f"h_max: h_max={h_max} is larger than the chunk size H={chunk_size}")
+    if not (_is_real(weight) and 0 < weight <= MAX_WEIGHT):
+        problems.append(f"weight: must be a positive number up to {MAX_WEIGHT:g}, got {_shown(weight)}")
+    if not (isinstance(tier, str) and tier in TIERS):
+        problems.append(f"tier: must be one of {', '.join(TIERS)}, got {_shown(tier)}")
+    return problems
 
 
 @dataclass(slots=True)
@@ -108,12 +156,19 @@ class Chunk:
     ``t_arrival`` is in the clock of the timeline that owns the chunk: the server's estimate of
     when the robot will hold it (mirror), or the true arrival time (simulated ground truth).
     A chunk still in inference or on the network is simply one whose arrival is in the future.
+
+    A mirror's chunk also keeps the three server-side stamps of its delay exchange (SPEC §2):
+    when its observation was captured (robot clock) and received, and when the chunk was sent.
+    They stay inside the mirror until the robot reports the chunk's arrival (NaN elsewhere).
     """
 
     chunk_id: int
     i_start: int
     h: int
     t_arrival: float
+    capture_robot: float = math.nan
+    obs_recv: float = math.nan
+    t_sent: float = math.nan
 
     @property
     def end(self) -> int:
@@ -214,6 +269,99 @@ def ticks_until_dry(index: int, chunks: Sequence[TickChunk]) -> int:
     last = max(last, 0)
     i = advance(index, chunks, last)
     return last + reach(i, chunks, last) - i
+
+
+def observed_tick(t: float, origin: float, fps: float, one_way_s: float) -> int:
+    """Tick (counted from the tick at ``origin``) whose observation is the latest the server
+    holds at ``t``: the robot sends at every tick and the observation takes ``one_way_s`` to
+    arrive. Negative when none of this grid's observations has arrived by ``t``."""
+    return math.floor((t - one_way_s - origin) * fps + _EPS)
+
+
+# --------------------------------------------------------------------------------------------
+# The transition on a coverage queue (the form the schedulers' rollouts use)
+#
+# A chunk made from one of the robot's observations starts at or before the index the robot
+# holds when the chunk arrives, so what the robot can execute is always one stretch
+# ``[index, coverage end)`` that each arrival extends. A :data:`Queue` keeps a robot that way --
+# ``(coverage end at tick 0, pending (arrival tick, end) sorted)`` -- and the functions below
+# answer "index at a tick", "when does it run dry", "when does it reach an index" in a loop over
+# the few pending arrivals. They are :func:`advance` specialised to such chunk sets (property-
+# tested against it in ``tests/test_mirror.py``), not a second transition.
+
+Queue = tuple[int, tuple[tuple[int, int], ...]]
+
+
+def queue_of(index: int, chunks: Sequence[TickChunk]) -> Queue:
+    """The queue form of a robot's chunks on a grid where ``index`` is held before tick 0.
+
+    Valid for chunks that start at or before the index the robot holds when they arrive (every
+    chunk made from one of the robot's observations does). Chunks that arrived by tick 0 give
+    the coverage end; the others are kept as ``(arrival tick, end)``.
+    """
+    end0 = reach(index, chunks, 0)
+    pending = sorted((a, e) for _, e, a in chunks if a > 0 and e > index)
+    return end0, tuple(pending)
+
+
+def queue_with(queue: Queue, arrival: int, end: int) -> Queue:
+    """``queue`` with one more chunk covering up to ``end`` from tick ``arrival``."""
+    end0, pending = queue
+    if arrival <= 0:
+        return max(end0, end), pending
+    return end0, tuple(sorted((*pending, (arrival, end))))
+
+
+def index_at(index: int, queue: Queue, tick: int) -> int:
+    """Index held before ``tick`` (ticks ``0 .. tick-1`` run): one step per tick while the
+    coverage lasts; an arrival extends the coverage (equals :func:`advance`)."""
+    end, pending = queue
+    x, at = index, 0
+    # min() spelled as conditionals: these loops are the schedulers' hot path.
+    for a, e in pending:
+        if a > tick:
+            break
+        x += a - at
+        if x > end:
+            x = end
+        at = a
+        if e > end:
+            end = e
+    x += tick - at
+    return x if x < end else end
+
+
+def dry_tick(index: int, queue: Queue) -> int:
+    """Tick at which the robot starves once every pending chunk has arrived (EDF's deadline;
+    :func:`ticks_until_dry` also waits for chunks that land after the robot passed their end)."""
+    end, pending = queue
+    x, at = index, 0
+    for a, e in pending:
+        x += a - at
+        if x > end:
+            x = end
+        at = a
+        if e > end:
+            end = e
+    return at + end - x
+
+
+def tick_reaching(index: int, queue: Queue, target: int) -> int:
+    """First tick before which the robot holds an index >= ``target`` (-1 if it never does)."""
+    end, pending = queue
+    x, at = index, 0
+    if x >= target:
+        return 0
+    for a, e in pending:
+        if end >= target and x + a - at >= target:
+            return at + target - x
+        x += a - at
+        if x > end:
+            x = end
+        at = a
+        if e > end:
+            end = e
+    return at + target - x if end >= target else -1
 
 
 # --------------------------------------------------------------------------------------------
@@ -433,7 +581,8 @@ class RobotMirror:
     Fed by three events, each with the time it happened on the server clock:
 
     - :meth:`on_observation`: an observation with index ``î`` captured at a robot-clock time;
-    - :meth:`on_dispatch`: a batch containing this robot finishes inference at ``t_done``;
+    - :meth:`on_dispatch` / :meth:`on_complete` / :meth:`on_cancel`: a batch containing this
+      robot is planned to finish at ``t_done``, finished (the chunk was sent), or failed;
     - :meth:`on_report`: the robot says when a chunk reached it (one delay exchange).
 
     Everything a scheduler asks (usefulness, predicted index, deadline, a window view for
@@ -452,6 +601,7 @@ class RobotMirror:
     needs_sync: bool = False  # the clock looked stepped: the owner should request a fresh exchange
     clamped_indices: int = 0  # observations whose claimed index ran ahead of what the server saw
     _next_chunk_id: int = 0
+    _awaiting: dict[int, Chunk] = field(default_factory=dict)  # sent chunks not yet reported, by id
     _progress_credit: float = 0.0  # steps the robot may still claim beyond elapsed real time
 
     # ---- events ------------------------------------------------------------------------------
@@ -533,54 +683,64 @@ class RobotMirror:
         return index
 
     def on_dispatch(self, t_done: float) -> Chunk:
-        """The robot's latest observation goes into a batch that finishes at ``t_done``.
+        """The robot's latest observation goes into a batch predicted to finish at ``t_done``.
 
-        Returns the chunk entered into ``Q_j`` (``i_start = î_j``, ``h = h_max``, estimated arrival
-        ``t_done + d_action``).
+        Returns the chunk entered into ``Q_j`` (``i_start = î_j``, ``h = h_max``, arrival
+        predicted by :meth:`_arrival`). Drivers call this through
+        :meth:`lerobot_armory.dispatch.Dispatcher.plan`, never directly.
         """
         if self.obs_index is None:
             raise ValueError(f"robot {self.spec.robot_id!r} has no observation to serve")
-        chunk = Chunk(self._next_chunk_id, self.obs_index, self.spec.h_max, t_done + self.estimator.one_way_s)
+        chunk = Chunk(self._next_chunk_id, self.obs_index, self.spec.h_max, math.nan, self.obs_capture_robot, self.obs_recv)
         self._next_chunk_id += 1
+        self._sent(chunk, t_done)
         self.queue.append(chunk)
         if len(self.queue) > 1 and self.queue[-2].i_start > chunk.i_start:
             self.queue.sort(key=lambda c: (c.i_start, c.chunk_id))
         self.last_served_index = self.obs_index
+        self._awaiting[chunk.chunk_id] = chunk
+        while len(self._awaiting) > MAX_AWAITING_REPORTS:
+            self._awaiting.pop(next(iter(self._awaiting)))
         return chunk
+
+    def on_complete(self, chunk: Chunk, t_done: float) -> None:
+        """The chunk's batch really finished (and the chunk was sent) at ``t_done``: the actual
+        time replaces the prediction made at dispatch."""
+        self._sent(chunk, t_done)
+
+    def _sent(self, chunk: Chunk, t_send: float) -> None:
+        """THE place a chunk's arrival is predicted: sent at ``t_send``, it reaches the robot one
+        estimated one-way delay later (until the robot's report says when it really did)."""
+        chunk.t_sent = t_send
+        chunk.t_arrival = t_send + self.estimator.one_way_s
 
     def on_cancel(self, chunk: Chunk, previous_last_served: int | None) -> None:
         """A dispatched chunk will never be delivered (its batch failed): forget it, so the robot
         is useful again and the prediction does not count on it."""
         self.queue = [c for c in self.queue if c.chunk_id != chunk.chunk_id]
+        self._awaiting.pop(chunk.chunk_id, None)
         if self.last_served_index == chunk.i_start:
             self.last_served_index = previous_last_served
 
-    def on_report(
-        self,
-        chunk_id: int,
-        t_capture_robot: float,
-        t_obs_recv: float,
-        t_chunk_send: float,
-        t_arrival_robot: float,
-        t_report_recv: float = math.inf,
-    ) -> bool:
-        """The robot reports that chunk ``chunk_id`` (made from the observation captured at
-        ``t_capture_robot``, received at ``t_obs_recv`` and answered at ``t_chunk_send`` on the
-        server clock) reached it at ``t_arrival_robot`` (robot clock). This is one delay exchange;
-        the chunk's arrival is now known and replaces the estimate.
+    def on_report(self, chunk_id: int, t_arrival_robot: float, t_report_recv: float = math.inf) -> bool | None:
+        """The robot reports that chunk ``chunk_id`` reached it at ``t_arrival_robot`` (robot
+        clock); the report reached the server at ``t_report_recv``. With the chunk's own stamps
+        (its observation's capture and receipt, its sending) this is one delay exchange, and the
+        chunk's arrival is now known and replaces the prediction.
 
-        The arrival is believed only between the chunk's sending and the report's receipt
-        (``t_report_recv``, server clock): a chunk cannot arrive before it left, nor be reported
-        before it arrived. Returns False when the exchange was refused as implausible.
+        The arrival is believed only between the chunk's sending and the report's receipt: a
+        chunk cannot arrive before it left, nor be reported before it arrived. Returns None for
+        a chunk the mirror does not await (unknown, already reported, or forgotten), False when
+        the exchange was refused as implausible, True otherwise.
         """
-        verdict = self.estimator.add_exchange(t_capture_robot, t_obs_recv, t_chunk_send, t_arrival_robot)
+        chunk = self._awaiting.pop(chunk_id, None)
+        if chunk is None:
+            return None
+        verdict = self.estimator.add_exchange(chunk.capture_robot, chunk.obs_recv, chunk.t_sent, t_arrival_robot)
         if verdict == "refused":
             return False
         arrival = self.estimator.to_server_time(t_arrival_robot)
-        for chunk in self.queue:
-            if chunk.chunk_id == chunk_id:
-                chunk.t_arrival = min(max(arrival, t_chunk_send), t_report_recv)
-                break
+        chunk.t_arrival = min(max(arrival, chunk.t_sent), t_report_recv)
         return verdict != "outlier"
 
     def _prune(self, index: int) -> None:

@@ -67,6 +67,39 @@ class FeatureSpec:
         return f"{self.dtype}{list(self.shape)}"
 
 
+def check_features(declared: Sequence[FeatureSpec], expected: Sequence[FeatureSpec]) -> list[str]:
+    """Every mismatch between a robot's declared features and the policy's inputs (empty: OK).
+
+    The server checks registrations with it. It lives beside :class:`FeatureSpec` rather than in
+    the server so that anything holding a policy's expected features (a robot reading its
+    ``RegisterResponse``, a test) can run the same check without importing the server.
+
+    Images may be declared as uint8 (H, W, 3) or as float32 (3, H, W) in [0, 1].
+    """
+    problems = []
+    exp = {s.name: s for s in expected}
+    seen = set()
+    for spec in declared:
+        if spec.name in seen:
+            problems.append(f"feature {spec.name!r} declared twice")
+            continue
+        seen.add(spec.name)
+        want = exp.get(spec.name)
+        if want is None:
+            problems.append(f"unexpected feature {spec.name!r} {spec.describe()}: the policy does not use it")
+            continue
+        ok = spec == want
+        if not ok and want.dtype == "uint8" and len(want.shape) == 3:  # image: CHW float also fine
+            h, w, c = want.shape
+            ok = spec.dtype == "float32" and spec.shape == (c, h, w)
+        if not ok:
+            problems.append(f"feature {spec.name!r}: declared {spec.describe()}, the policy needs {want.describe()}")
+    for name in exp:
+        if name not in seen:
+            problems.append(f"missing feature {name!r}: the policy needs {exp[name].describe()}")
+    return problems
+
+
 def encode(name: str, array: np.ndarray, jpeg_quality: int | None = None) -> pb.Tensor:
     """Encode an array; ``jpeg_quality`` (1-100) JPEG-encodes a uint8 (H, W, 3) image."""
     array = np.asarray(array)

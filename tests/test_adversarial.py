@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from lerobot_armory.bench.load import EchoEngine
+from benchmarks._load import EchoEngine
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
@@ -237,7 +237,7 @@ def test_huge_report_does_not_stall_the_fleet():
 
 ECHO_SERVER_PROCESS = """
 import sys
-from lerobot_armory.bench.load import echo_server
+from benchmarks._load import echo_server
 server = echo_server(max_obs_rate_hz=0.0)
 print(server.address, flush=True)
 sys.stdin.read()  # serve until the test closes stdin

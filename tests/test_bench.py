@@ -8,11 +8,11 @@ import time
 import numpy as np
 import pytest
 
+from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.robot.armory_sim import ArmorySimEnv, WorldParams
 from lerobot_armory.robot.netem import DelayLine, NetworkEmulator
 from lerobot_armory.server.emulation import EmulatedLatencyEngine
-from lerobot_armory.sim.network import LogNormalDelay
 
 
 class FakeEngine:

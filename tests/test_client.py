@@ -13,8 +13,9 @@ import time
 import numpy as np
 import pytest
 
-from lerobot_armory.bench.load import FEATURES as ECHO_FEATURES
-from lerobot_armory.bench.load import echo_server
+from benchmarks._load import FEATURES as ECHO_FEATURES
+from benchmarks._load import echo_server
+from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
@@ -26,7 +27,6 @@ from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ArmoryServer
 from lerobot_armory.server.service import PolicyInfo
-from lerobot_armory.sim.network import LogNormalDelay
 from lerobot_armory.wire import FeatureSpec
 
 SIM_FEATURES = [FeatureSpec("observation.state", "float32", (2,)), FeatureSpec("observation.images.front", "uint8", (32, 32, 3))]

@@ -263,7 +263,7 @@ def test_live_grant_and_device_share_cap():
 
     import numpy as np
 
-    from lerobot_armory.bench.load import FEATURES, EchoEngine, echo_server
+    from benchmarks._load import FEATURES, EchoEngine, echo_server
     from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
 
     policy = FleetPolicy.from_dict({"robots": {"hog": {"max_device_share": 0.2, "max_weight": 2}}})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import random
 
 import pytest
 from hypothesis import given, settings
@@ -11,15 +12,22 @@ from hypothesis import strategies as st
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import load_profile
 from lerobot_armory.mirror import (
+    MAX_AWAITING_REPORTS,
     Chunk,
     DelayEstimator,
     RobotMirror,
     RobotSpec,
     RobotTimeline,
     advance,
+    dry_tick,
+    index_at,
+    observed_tick,
+    queue_of,
+    queue_with,
     reach,
     reward,
     tick_of,
+    tick_reaching,
     ticks_until_dry,
 )
 from lerobot_armory.schedulers import make_scheduler_config
@@ -151,6 +159,17 @@ class TestTicksUntilDry:
         assert ticks_until_dry(0, [(0, 2, 0), (1, 6, 10)]) == 14
 
 
+@pytest.mark.parametrize("fps, one_way", [(10.0, 0.0), (20.0, 0.00375), (30.0, 0.1234)])
+def test_observed_tick_is_the_latest_arrived_observation(fps, one_way):
+    origin = 3.7
+    for k in range(0, 50):
+        landed = origin + k / fps + one_way  # the observation of tick k reaches the server
+        assert observed_tick(landed, origin, fps, one_way) == k
+        assert observed_tick(landed - 1e-6, origin, fps, one_way) == k - 1
+    # At the origin itself, the latest observation is from one-way delay's worth of ticks earlier.
+    assert observed_tick(origin, origin, fps, one_way) == -math.ceil(one_way * fps - 1e-9)
+
+
 # ------------------------------------------------------------------------------------------
 # advance: properties
 
@@ -229,6 +248,68 @@ def test_on_use_called_only_on_a_switch():
     # A covers everything; an unrelated chunk B (never covering the index in time) arrives at tick 5.
     _, calls = record_uses(0, [(0, 10, 0), (20, 30, 5)], 10)
     assert calls == [(0, 0)]  # got [(0, 0), (0, 5)]
+
+
+# ------------------------------------------------------------------------------------------
+# The coverage-queue form (the schedulers' rollouts) agrees with advance()
+
+
+def realistic_chunks(rnd: random.Random, index: int) -> list[tuple[int, int, int]]:
+    """Chunks a robot could hold: each starts at or before the index it has when it arrives."""
+    chunks: list[tuple[int, int, int]] = []
+    for _ in range(rnd.randint(0, 4)):
+        arrival = rnd.randint(-3, 15)
+        at = advance(index, sorted(chunks), arrival) if arrival > 0 else index
+        start = rnd.randint(max(0, at - 8), at)
+        chunks.append((start, start + rnd.randint(1, 10), arrival))
+    return sorted(chunks)
+
+
+def test_queue_form_agrees_with_advance_on_random_chunk_sets():
+    rnd = random.Random(7)
+    for _ in range(3000):
+        index = rnd.randint(0, 5)
+        chunks = realistic_chunks(rnd, index)
+        q = queue_of(index, chunks)
+        for tick in range(0, 25):
+            assert index_at(index, q, tick) == advance(index, chunks, tick)
+        target = index + rnd.randint(0, 8)
+        first = next((k for k in range(60) if advance(index, chunks, k) >= target), -1)
+        assert tick_reaching(index, q, target) == first
+        # Dry tick: with every chunk that can still extend the coverage arrived.
+        useful = [(s, e, a) for s, e, a in chunks if e > index]
+        last = max([a for _, _, a in useful if a > 0], default=0)
+        at = advance(index, chunks, last)
+        assert dry_tick(index, q) == last + reach(at, chunks, last) - at
+
+
+
+
+@settings(max_examples=300, deadline=None)
+@given(index=indices, reqs=requests, n=st.integers(1, 50), ahead=st.integers(0, 12), data=st.data())
+def test_queue_form_agrees_with_advance(index, reqs, n, ahead, data):
+    """index_at / tick_reaching / dry_tick / queue_with are advance() on chunks a robot can get."""
+    chunks = consistent_chunks(index, reqs, n)
+    q = queue_of(index, chunks)
+    for tick in range(n + 5):
+        assert index_at(index, q, tick) == advance(index, chunks, tick)
+    target = index + ahead
+    first = next((k for k in range(4 * n + 100) if advance(index, chunks, k) >= target), -1)
+    assert tick_reaching(index, q, target) == first
+    dry = dry_tick(index, q)
+    assert all(index_at(index, q, dry + k) == index_at(index, q, dry) for k in range(6))  # dry: it starves from then on
+    last = max([a for _, e, a in chunks if e > index and a > 0], default=0)
+    at = advance(index, chunks, last)
+    assert dry_tick(index, q) == last + reach(at, chunks, last) - at
+    # One more chunk made from the observation of some tick, arriving later: queue_with == adding it.
+    obs_tick = data.draw(st.integers(0, n))
+    arrival = obs_tick + data.draw(st.integers(0, 10))
+    start = advance(index, chunks, obs_tick)
+    extra = (start, start + data.draw(st.integers(1, 10)), arrival)
+    q2 = queue_with(q, arrival, extra[1])
+    more = sorted([*chunks, extra])
+    for tick in range(n + 15):
+        assert index_at(index, q2, tick) == advance(index, more, tick)
 
 
 # ------------------------------------------------------------------------------------------
@@ -558,7 +639,7 @@ class TestReport:
         assert chunk.t_arrival == 0.25
         assert m.deadline() == pytest.approx(0.8)
         # Symmetric 100 ms each way, clocks in sync: the chunk reached the robot at 0.35.
-        m.on_report(chunk.chunk_id, 0.0, 0.1, 0.25, 0.35)
+        assert m.on_report(chunk.chunk_id, 0.35) is True
         assert m.estimator.offset_s == pytest.approx(0.0)
         assert m.estimator.one_way_s == pytest.approx(0.1)
         assert m.queue[0].t_arrival == pytest.approx(0.35)
@@ -570,22 +651,59 @@ class TestReport:
 
     def test_report_in_robot_clock_is_converted(self):
         m = mirror(fps=10.0, h_max=5)
-        m.on_observation(0, 0.0, 0.0)
-        chunk = m.on_dispatch(0.25)
         # Robot clock 1 s behind, 50 ms each way: capture robot 0.0 (server 1.0), received at
         # 1.05, chunk sent 1.25, reached the robot at server 1.30 == robot 0.30.
-        m.on_report(chunk.chunk_id, 0.0, 1.05, 1.25, 0.30)
+        m.on_observation(0, 0.0, 1.05)
+        chunk = m.on_dispatch(1.20)
+        m.on_complete(chunk, 1.25)
+        assert (chunk.capture_robot, chunk.obs_recv, chunk.t_sent) == (0.0, 1.05, 1.25)
+        assert m.on_report(chunk.chunk_id, 0.30) is True
         assert m.estimator.offset_s == pytest.approx(1.0)
         assert m.queue[0].t_arrival == pytest.approx(1.30)
 
-    def test_report_for_unknown_chunk_only_updates_delays(self):
+    def test_complete_replaces_the_predicted_send_time(self):
         m = mirror(fps=10.0, h_max=5)
         m.on_observation(0, 0.0, 0.0)
         chunk = m.on_dispatch(0.25)
-        m.on_report(99, 0.0, 0.1, 0.25, 0.35)
+        m.on_complete(chunk, 0.4)  # the batch took longer than d_infer predicted
+        assert (chunk.t_sent, chunk.t_arrival) == (0.4, 0.4)
+        assert m.deadline() == pytest.approx(0.9)
+
+    def test_report_is_taken_once_and_only_between_send_and_receipt(self):
+        m = mirror(fps=10.0, h_max=5)
+        m.on_observation(0, 0.0, 0.1)
+        chunk = m.on_dispatch(0.25)
+        assert m.on_report(chunk.chunk_id, 0.35, t_report_recv=0.3) is True
+        assert chunk.t_arrival == pytest.approx(0.3)  # cannot have arrived after the report came in
+        assert m.on_report(chunk.chunk_id, 0.35) is None  # a second report of the same chunk: ignored
+        assert m.estimator.samples == 1
+
+    def test_report_for_unknown_chunk_changes_nothing(self):
+        m = mirror(fps=10.0, h_max=5)
+        m.on_observation(0, 0.0, 0.0)
+        chunk = m.on_dispatch(0.25)
+        assert m.on_report(99, 0.35) is None
         assert m.queue[0].t_arrival == 0.25
         assert m.queue[0] is chunk
-        assert m.estimator.samples == 1
+        assert m.estimator.samples == 0
+
+    def test_cancelled_chunk_is_not_awaited(self):
+        m = mirror(fps=10.0, h_max=5)
+        m.on_observation(0, 0.0, 0.0)
+        chunk = m.on_dispatch(0.25)
+        m.on_cancel(chunk, None)
+        assert m.on_report(chunk.chunk_id, 0.3) is None
+        assert m.estimator.samples == 0
+
+    def test_awaited_reports_are_bounded(self):
+        m = mirror(fps=10.0, h_min=0, h_max=5)
+        n = MAX_AWAITING_REPORTS + 10
+        for k in range(n):
+            m.on_observation(k, 0.1 * k, 0.1 * k)
+            m.on_dispatch(0.1 * k + 0.05)
+        assert len(m._awaiting) == MAX_AWAITING_REPORTS
+        assert m.on_report(0, 0.1) is None  # the oldest were forgotten
+        assert m.on_report(n - 1, 0.1 * (n - 1) + 0.05) is True
 
 
 # ------------------------------------------------------------------------------------------

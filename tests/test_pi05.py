@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features, noise_seed
+from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,
     TASKS,

@@ -17,16 +17,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from lerobot_armory.bench.load import EchoEngine as QuickEngine
-from lerobot_armory.bench.load import echo_server, run_load
+from benchmarks._load import EchoEngine as QuickEngine
+from benchmarks._load import echo_server, run_load
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import ArmoryStub
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
 from lerobot_armory.server.app import ArmoryServer
 from lerobot_armory.server.security import AuthTokens
-from lerobot_armory.server.service import PolicyInfo
 from lerobot_armory.server.status import render
 from lerobot_armory.wire import FeatureSpec
 
@@ -79,8 +78,8 @@ def test_prometheus_metrics_and_status_table():
         "armory_robot_executed_steps_total",
         "armory_robot_chunks_served_total",
         "armory_robot_observation_age_seconds",
-        "armory_robot_uplink_delay_seconds",
-        "armory_robot_downlink_delay_seconds",
+        "armory_robot_round_trip_seconds",
+        "armory_robot_one_way_delay_seconds",
         "armory_batch_size_bucket",
         'armory_inference_seconds_bucket{batch_size="',
         "armory_scheduler_decision_seconds_bucket",
@@ -90,6 +89,27 @@ def test_prometheus_metrics_and_status_table():
         assert name in text, name
     table = render(text)
     assert all(f"m{k}" in table for k in range(3)) and "mean batch" in table
+
+
+def test_metrics_on_port_0_answer_on_the_port_actually_bound():
+    """``serve_metrics(0)`` lets the OS pick a port and says which; the delay gauges are the
+    measured round trip and half of it (no per-direction figures: their split is not observable)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    server = make_server()
+    client = light_client(server.address, "rtt")
+    try:
+        port = server.serve_metrics(0)
+        assert port > 0
+        client.run(1.0)
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    finally:
+        client.close()
+        server.stop(0.5)
+    values = {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples if s.labels.get("robot_id") == "rtt"}
+    assert values["armory_robot_round_trip_seconds"] >= 0  # loopback: may round to nothing
+    assert values["armory_robot_one_way_delay_seconds"] == pytest.approx(values["armory_robot_round_trip_seconds"] / 2)
+    assert not any("uplink" in name or "downlink" in name for name in values)
 
 
 # ---- security ----------------------------------------------------------------------------------

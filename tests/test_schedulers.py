@@ -239,13 +239,6 @@ class TestLookahead:
         robots = [covered("c1"), starving("s1"), covered("c2"), starving("s2"), covered("c3"), starving("s3")]
         assert sorted(ids(la(3).select(robots, NOW))) == ["s1", "s2", "s3"]
 
-    def test_total_score_prefers_batch_size_one(self):
-        # Literal reading: (3.0 fleet base + 0.8 s) / 0.073 beats (3.0 + 2.4) / 0.1424.
-        robots = [covered("c1"), starving("s1"), covered("c2"), starving("s2"), covered("c3"), starving("s3")]
-        batch = la(3, score="total").select(robots, NOW)
-        assert len(batch) == 1
-        assert ids(batch)[0].startswith("s")
-
     def test_robots_without_observation_are_ignored(self):
         robots = [mirror("ghost", fps=5.0, chunk_size=10, h_max=10), starving("s"), covered("c")]
         assert ids(la(3).select(robots, NOW)) == ["s"]
@@ -261,7 +254,6 @@ class TestLookahead:
         "kwargs, field",
         [
             (dict(depth=0), "scheduler.depth"),
-            (dict(score="nope"), "scheduler.score"),
             (dict(window_s=0.0), "scheduler.window_s"),
             (dict(time_budget_ms=-1.0), "scheduler.time_budget_ms"),
         ],
@@ -323,12 +315,12 @@ def test_registry_names_and_configs():
     names = scheduler_names()
     assert {"rr", "edf", "lookahead"} <= set(names)
     assert names == sorted(names)
-    cfg = make_scheduler_config("lookahead", depth=2, score="total")
+    cfg = make_scheduler_config("lookahead", depth=2)
     assert isinstance(cfg, LookaheadConfig)
     assert cfg.type == "lookahead"
-    assert cfg.label() == "lookahead L=2 (total)"
+    assert cfg.label() == "lookahead L=2"
     sched = cfg.build(PROFILE, 3)
-    assert isinstance(sched, LookaheadScheduler) and sched.depth == 2 and sched.score == "total"
+    assert isinstance(sched, LookaheadScheduler) and sched.depth == 2
     assert isinstance(make_scheduler_config("rr").build(PROFILE, 2), RoundRobinScheduler)
     assert isinstance(make_scheduler_config("edf").build(PROFILE, 2), EarliestDeadlineScheduler)
     assert make_scheduler_config("edf").label() == "edf"

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
+import tomllib
+from pathlib import Path
 
 import grpc
 import numpy as np
@@ -12,7 +16,10 @@ import pytest
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import METHODS, SERVICE, ArmoryStub, add_armory_to_server
+from lerobot_armory.proto import armory_pb2_grpc
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
+from lerobot_armory.proto.hardening import add_armory_to_server, rpc_names
+from lerobot_armory.proto.limits import SERVICE_NAME
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
@@ -91,23 +98,49 @@ def wait_for(cond, timeout=10.0, step=0.02):
     return False
 
 
-def test_grpc_binding_matches_the_proto_service():
-    """The hand-written binding serves exactly the RPCs armory.proto declares, with its types."""
+ROOT = Path(__file__).resolve().parents[1]
+PROTO = "lerobot_armory/proto/armory.proto"
+GENERATED = ("armory_pb2.py", "armory_pb2.pyi", "armory_pb2_grpc.py")
+
+
+def version(text: str) -> tuple[int, ...]:
+    return tuple(int(part) for part in text.split("."))
+
+
+def test_generated_code_is_up_to_date_with_the_proto(tmp_path):
+    """The committed armory_pb2*.py(i) are byte for byte what `make proto` makes from armory.proto."""
+    pytest.importorskip("grpc_tools.protoc", reason="grpcio-tools (the dev extra) is not installed")
+    from importlib.metadata import version as installed
+
+    tools = installed("grpcio-tools")
+    if tools != armory_pb2_grpc.GRPC_GENERATED_VERSION:  # another generator writes other version stamps
+        pytest.skip(f"grpcio-tools {tools} installed; the committed code was made by {armory_pb2_grpc.GRPC_GENERATED_VERSION}")
+    # the command of the Makefile's `proto` target, writing into tmp_path
+    out = [f"--{kind}_out={tmp_path}" for kind in ("python", "pyi", "grpc_python")]
+    subprocess.run([sys.executable, "-m", "grpc_tools.protoc", "-I.", *out, PROTO], cwd=ROOT, check=True)
+    for name in GENERATED:
+        fresh = (tmp_path / "lerobot_armory/proto" / name).read_bytes()
+        assert fresh == (ROOT / "lerobot_armory/proto" / name).read_bytes(), f"{name} is stale: run `make proto`"
+
+
+def test_generated_grpc_code_needs_no_grpcio_above_our_floor():
+    """armory_pb2_grpc refuses to import under a grpcio older than the grpcio-tools that made it."""
+    dependencies = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    floor = next(d.removeprefix("grpcio>=") for d in dependencies if d.startswith("grpcio>="))
+    assert version(armory_pb2_grpc.GRPC_GENERATED_VERSION) <= version(floor)
+    assert version(grpc.__version__) >= version(armory_pb2_grpc.GRPC_GENERATED_VERSION)  # it imported, so this holds
+
+
+def test_server_binding_serves_the_proto_service():
+    """The server binds every RPC armory.proto declares, under the service name the protocol constants give."""
     service = pb.DESCRIPTOR.services_by_name["Armory"]
-    assert service.full_name == SERVICE
-    declared = {
-        m.name: (m.client_streaming, m.server_streaming, m.input_type.full_name, m.output_type.full_name)
-        for m in service.methods
-    }
-    bound = {
-        name: (cs, ss, req.DESCRIPTOR.full_name, resp.DESCRIPTOR.full_name)
-        for name, (cs, ss, req, resp) in METHODS.items()
-    }
-    assert bound == declared
+    assert service.full_name == SERVICE_NAME
+    assert sorted(rpc_names()) == sorted(m.name for m in service.methods)
 
 
-def test_binding_a_servicer_without_every_rpc_fails_at_once():
-    class OnlyRegister:
+@pytest.mark.parametrize("subclass", [False, True])
+def test_binding_a_servicer_without_every_rpc_fails_at_once(subclass):
+    class OnlyRegister(ArmoryServicer if subclass else object):  # the base's Stream would answer UNIMPLEMENTED
         def Register(self, request, context):  # noqa: N802 - the RPC's name
             return pb.RegisterResponse()
 

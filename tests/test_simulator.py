@@ -290,7 +290,7 @@ def test_run_labels():
     assert run_label("rr", 5.0) == "RR"
     assert run_label("edf", 1.0) == "EDF"
     assert run_label("lookahead", 3.0) == "LA w=3"
-    assert run_label("lookahead", 1.5, depth=2, score="total") == "LA w=1.5 L=2 total"
+    assert run_label("lookahead", 1.5, depth=2) == "LA w=1.5 L=2"
 
 
 def test_table_groups_seeds():

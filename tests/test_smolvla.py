@@ -11,7 +11,8 @@ import socket
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, check_features
+from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,
     STATE,

@@ -15,9 +15,9 @@ import pytest
 from PIL import Image
 
 from lerobot_armory import wire
-from lerobot_armory.bench.load import echo_server
+from benchmarks._load import echo_server
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import METHODS, Malformed, add_armory_to_server, safe_deserializer
+from lerobot_armory.proto.hardening import Malformed, add_armory_to_server, rpc_names, safe_deserializer
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.server import service
 from lerobot_armory.server.peer_log import ThrottledLog
@@ -169,7 +169,7 @@ def test_every_served_method_parses_with_the_safe_deserializer():
 
     recorder = Recorder()
     add_armory_to_server(Servicer(), recorder)
-    assert set(recorder.handlers) == set(METHODS)
+    assert set(recorder.handlers) == set(rpc_names())
     for handler in recorder.handlers.values():
         assert isinstance(handler.request_deserializer(b"\xff\xff"), Malformed)
 

@@ -29,10 +29,11 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.mirror import TIERS
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.network import LogNormalDelay
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
 from lerobot_armory.sim.run import run_label
 from lerobot_armory.sim.simulator import FleetSimulator
@@ -244,7 +245,7 @@ def _record(
     cfg: BenchConfig, scheduler: str, seed: int, cap: int, stats: list[dict], batches: list[dict], cpu_pct: float, profile: LatencyProfile
 ) -> dict[str, Any]:
     tiers: dict[str, dict[str, float]] = {}
-    for tier in ("fast", "slow"):
+    for tier in TIERS:
         rows = [s for s in stats if s["tier"] == tier]
         if rows:
             tiers[tier] = {
@@ -318,7 +319,7 @@ def simulate_same(
     if overhead_ms > 0:
         true = LatencyProfile(f"{profile.name}+{overhead_ms:.1f}ms", tuple(v + overhead_ms for v in profile.latency_ms), profile.device)
     result = FleetSimulator(specs, sched_cfg.build(profile, cap), cfg.duration_s, net, net, seed, true_latency=true).run()
-    return {tier: result.tier_starvation_pct(tier) for tier in ("fast", "slow") if result.tier(tier)}
+    return {tier: result.tier_starvation_pct(tier) for tier in TIERS if result.tier(tier)}
 
 
 def table(runs: list[dict[str, Any]]) -> str:
@@ -331,11 +332,11 @@ def table(runs: list[dict[str, Any]]) -> str:
     lines = [header, "-" * len(header)]
     for r in runs:
         cells = []
-        for tier in ("fast", "slow"):
+        for tier in TIERS:
             live = r["tiers"].get(tier)
             sim = r.get("sim", {}).get(tier)
             cells.append("-" if live is None else f"{live['starvation_pct']:6.1f} / {sim:5.1f}" if sim is not None else f"{live['starvation_pct']:6.1f}")
-        succ = [f"{r['tiers'][t]['successes_per_min']:.1f}" if t in r["tiers"] else "-" for t in ("fast", "slow")]
+        succ = [f"{r['tiers'][t]['successes_per_min']:.1f}" if t in r["tiers"] else "-" for t in TIERS]
         sizes = {int(k): v for k, v in r["batch_sizes"].items()}
         mean_b = sum(k * v for k, v in sizes.items()) / max(1, sum(sizes.values()))
         flag = " SATURATED" if r["saturated"] else ""

@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lerobot_armory.mirror import TIERS  # noqa: E402
 from lerobot_armory.sim.plots import LABEL_ORDER  # noqa: E402
 
 
@@ -42,7 +43,7 @@ def plot_live(runs: list[dict[str, Any]], out: Path) -> list[Path]:
     mixes = sorted({r["mix"] for r in runs})
     fig, axes = plt.subplots(len(mixes), 2, figsize=(10, 3.3 * len(mixes)), squeeze=False)
     for i, mix in enumerate(mixes):
-        for j, tier in enumerate(("fast", "slow")):
+        for j, tier in enumerate(TIERS):
             ax = axes[i][j]
             for lab in LABEL_ORDER:
                 pts = sorted({r["robots"] for r in runs if r["mix"] == mix and r["label"] == lab and tier in r["tiers"]})

@@ -15,11 +15,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.robot.netem import NetworkEmulator
-from lerobot_armory.sim.network import LogNormalDelay
 
 
 def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import socket
@@ -38,6 +37,7 @@ from lerobot.utils.errors import DeviceNotConnectedError
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import spec_problems
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Registration
 from lerobot_armory.robot.features import FeatureMap
@@ -91,22 +91,22 @@ class ClientConfig:
     backoff: Backoff = field(default_factory=Backoff)
 
     def validate(self) -> None:
-        if not (math.isfinite(self.fps) and self.fps > 0):
-            raise ConfigError("fps", f"must be > 0, got {self.fps}")
-        if self.h_max < 1:
-            raise ConfigError("h_max", f"must be >= 1, got {self.h_max}")
-        if not 0 <= self.h_min <= self.h_max:
-            raise ConfigError("h_min", f"must be in [0, h_max={self.h_max}], got {self.h_min}")
-        if not self.weight > 0:
-            raise ConfigError("weight", f"must be > 0, got {self.weight}")
-        if self.tier not in ("fast", "slow"):
-            raise ConfigError("tier", f"must be fast or slow, got {self.tier!r}")
-        if self.duration_s < 0:
-            raise ConfigError("duration_s", f"must be >= 0, got {self.duration_s}")
+        """Check every option; raises one :class:`ConfigError` naming every problem at once.
+
+        The declared spec goes through the validator the server applies to registrations
+        (:func:`~lerobot_armory.mirror.spec_problems`), so what passes here is refused there only
+        for what the robot cannot know yet: the policy's chunk size (``h_max`` above it) and the
+        operator's fleet policy.
+        """
+        problems = spec_problems(default_robot_id(self), self.fps, None, self.h_min, self.h_max, self.weight, self.tier)
+        if not self.duration_s >= 0:  # NaN included
+            problems.append(f"duration_s: must be >= 0, got {self.duration_s}")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError("jpeg_quality", f"must be in 1..100, got {self.jpeg_quality}")
+            problems.append(f"jpeg_quality: must be in 1..100, got {self.jpeg_quality}")
         if self.log_level.lower() not in LOG_LEVELS:
-            raise ConfigError("log_level", f"must be one of {', '.join(LOG_LEVELS)}, got {self.log_level!r}")
+            problems.append(f"log_level: must be one of {', '.join(LOG_LEVELS)}, got {self.log_level!r}")
+        if problems:
+            raise ConfigError.listing(problems)
 
 
 def read_credentials(cfg: ClientConfig) -> tuple[bytes | None, str]:

@@ -17,12 +17,11 @@ import grpc
 import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import ArmoryStub
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
+from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
-SESSION_KEY = "armory-session"
-TOKEN_KEY = "armory-token"
 _CLOSE = object()
 
 
@@ -86,7 +85,7 @@ class Connection:
         self,
         address: str,
         clock: Callable[[], float] = time.monotonic,
-        max_message_bytes: int = 16 << 20,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         network: NetworkEmulator | None = None,
         tls_ca: bytes | None = None,
         token: str = "",

@@ -15,22 +15,24 @@ Adding a scheduler is one file: a config dataclass registered under a name plus 
         def build(self, profile, max_batch_size):
             return MineScheduler(profile, max_batch_size, self.knob)
 
-then import the module from ``lerobot_armory/schedulers/__init__.py``; ``--scheduler.type=mine``
-selects it on every command line.
+then import the module from ``lerobot_armory/schedulers/__init__.py``, or, from another package,
+declare it under the entry-point group ``lerobot_armory.schedulers`` (:mod:`.plugins`);
+``--scheduler.type=mine`` selects it on every command line.
 """
 
 from __future__ import annotations
 
 import abc
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import draccus
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.schedulers.plugins import discover_once
 
 
 class Scheduler(abc.ABC):
@@ -48,15 +50,7 @@ class Scheduler(abc.ABC):
         self.max_batch_size = max_batch_size
         # d_infer(b) in seconds, index b-1: looked up on every decision.
         self.d_infer = profile.table_s(max_batch_size)
-        # Clock time after which nothing counts (inf: a live fleet has no end). Only a finite
-        # offline episode sets it (``lerobot_armory.sim.optimal.play(..., tell_end=True)``): the
-        # finite-horizon optimum plans for its end, and a scheduler that scores a window
-        # (Lookahead, Rollout) can be told the same fact so the comparison is like for like.
-        self.episode_end_s = math.inf
-
-    def window_until(self, now: float, window_s: float) -> float:
-        """Length of a scoring window of ``window_s`` from ``now``, clipped at ``episode_end_s``."""
-        return min(window_s, max(1e-3, self.episode_end_s - now))
+        self.d_infer = profile.table_s(max_batch_size)
 
     @abc.abstractmethod
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
@@ -89,6 +83,18 @@ class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
     def default_choice_name(cls) -> str | None:
         """Lookahead is the default, so ``--scheduler.depth=2`` alone configures it."""
         return "lookahead"
+
+    # draccus reads the registry through these two when it parses --scheduler.type: other
+    # packages' schedulers (entry-point group lerobot_armory.schedulers) are loaded on first use.
+    @classmethod
+    def get_known_choices(cls) -> dict[str, Any]:
+        discover_once()
+        return super().get_known_choices()
+
+    @classmethod
+    def get_choice_class(cls, name: str) -> Any:
+        discover_once()
+        return super().get_choice_class(name)
 
     @property
     def type(self) -> str:

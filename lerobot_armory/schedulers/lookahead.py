@@ -1,13 +1,10 @@
 """Lookahead (SPEC §3): roll the mirror forward for candidate schedules, dispatch the best.
 
 A schedule is ``L`` batches (``L`` = depth). Its score is ``Σ_ℓ R_ℓ / d_infer(|B_ℓ|)`` with
-``R_ℓ`` measured inside a window of ``window_s`` seconds from the decision time:
-
-- ``marginal`` (default): ``R_ℓ`` is the weighted executed robot time the batch *adds*: the
-  window's executed time with its chunks minus without them. Score = robot-seconds gained per
-  GPU-second.
-- ``total``: ``R_ℓ`` is the whole fleet's weighted executed time in the window after the batch
-  (the literal reading; it favours tiny batches, see SPEC §3). Kept to show the difference.
+``R_ℓ`` the weighted executed robot time the batch *adds* inside a window of ``window_s``
+seconds from the decision time (the window's executed time with its chunks minus without them):
+robot-seconds gained per GPU-second. (The literal reading of SPEC §3, the whole fleet's executed
+time after the batch, favours tiny batches; the study measured it and it is not offered.)
 
 How the search stays cheap. Robots do not interact except through the batch they share, so the
 gain of adding robot j to a batch of size ``s`` depends only on j and ``s`` (through
@@ -28,11 +25,8 @@ from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance, request_is_useful
+from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance, observed_tick, request_is_useful
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
-
-SCORES = ("marginal", "total")
-
 
 class _Robot:
     """One robot inside a rollout: its window view plus the chunks a schedule adds."""
@@ -63,7 +57,7 @@ class _Robot:
         mirror = self.mirror
         if t <= self.view.now:
             return mirror.obs_index
-        tick = math.floor((t - self.one_way - self.view.origin_time) * mirror.spec.fps + 1e-9)
+        tick = observed_tick(t, self.view.origin_time, mirror.spec.fps, self.one_way)
         if tick < 0 or mirror.obs_index is None:
             return mirror.obs_index
         chunks = sorted([*self.view.chunks, *extra]) if extra else self.view.chunks
@@ -82,35 +76,25 @@ class LookaheadScheduler(Scheduler):
         profile: LatencyProfile,
         max_batch_size: int,
         depth: int = 1,
-        score: str = "marginal",
         window_s: float = 1.0,
         time_budget_ms: float = 5.0,
     ) -> None:
         super().__init__(profile, max_batch_size)
         if depth < 1:
             raise ConfigError("scheduler.depth", f"must be >= 1, got {depth}")
-        if score not in SCORES:
-            raise ConfigError("scheduler.score", f"must be one of {', '.join(SCORES)}, got {score!r}")
         if not window_s > 0:
             raise ConfigError("scheduler.window_s", f"must be > 0, got {window_s}")
         if not time_budget_ms > 0:
             raise ConfigError("scheduler.time_budget_ms", f"must be > 0, got {time_budget_ms}")
         self.depth = depth
-        self.score = score
         self.window_s = window_s
         self.time_budget_s = time_budget_ms / 1000.0
 
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
-        # The literal score needs the whole fleet's window reward; the marginal one only the
-        # candidates' gains, so only candidates (and, at depth > 1, robots that may become
-        # useful) are rolled out.
-        window = self.window_until(now, self.window_s)  # window_s live (no episode end)
-        pool = [_Robot(r.window_view(now, window)) for r in robots if r.obs_index is not None]
-        base_total = sum(r.base * r.weight_per_tick for r in pool) if self.score == "total" else 0.0
+        pool = [_Robot(r.window_view(now, self.window_s)) for r in robots if r.obs_index is not None]
         self._give_up_at = time.perf_counter() + self.time_budget_s
-        self._base_total = base_total
         best_score, best_first = -math.inf, None
-        for first, score in self._expand(pool, now, {}, {}, 0.0, 0.0, 1):
+        for first, score in self._expand(pool, now, {}, {}, 0.0, 1):
             if score > best_score:
                 best_score, best_first = score, first
         return [] if best_first is None else [r.mirror for r in best_first]
@@ -154,14 +138,12 @@ class LookaheadScheduler(Scheduler):
         extras: dict[int, list[TickChunk]],
         served: dict[int, int | None],
         score: float,
-        gained: float,
         level: int,
     ):
         """Yield ``(first batch, schedule score)`` for every schedule explored from epoch ``level``."""
         for batch, gain, chunks in self._candidates(pool, t, extras, served):
             d = self.d_infer[len(batch) - 1]
-            reward = gain if self.score == "marginal" else self._base_total + gained + gain
-            total = score + reward / d
+            total = score + gain / d
             deeper = level < self.depth and time.perf_counter() < self._give_up_at
             if not deeper:
                 yield batch, total
@@ -172,7 +154,7 @@ class LookaheadScheduler(Scheduler):
                 next_extras[k] = [*extras.get(k, ()), chunk]
                 next_served[k] = chunk[0]
             explored = False
-            for _, sub_score in self._expand(pool, t + d, next_extras, next_served, total, gained + gain, level + 1):
+            for _, sub_score in self._expand(pool, t + d, next_extras, next_served, total, level + 1):
                 explored = True
                 yield batch, sub_score
             if not explored:  # nobody is useful at the next epoch: the schedule ends here
@@ -186,19 +168,16 @@ class LookaheadConfig(SchedulerConfig):
 
     Attributes:
         depth: epochs L searched per decision.
-        score: ``marginal`` (reward the batch adds; default) or ``total`` (literal reading).
         window_s: reward window from the decision time, seconds.
         time_budget_ms: deeper epochs stop expanding after this much search time.
     """
 
     depth: int = 1
-    score: str = "marginal"
     window_s: float = 1.0
     time_budget_ms: float = 5.0
 
     def build(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
-        return LookaheadScheduler(profile, max_batch_size, self.depth, self.score, self.window_s, self.time_budget_ms)
+        return LookaheadScheduler(profile, max_batch_size, self.depth, self.window_s, self.time_budget_ms)
 
     def label(self) -> str:
-        extra = f" L={self.depth}" if self.depth != 1 else ""
-        return f"lookahead{extra}" + ("" if self.score == "marginal" else f" ({self.score})")
+        return f"lookahead L={self.depth}" if self.depth != 1 else "lookahead"

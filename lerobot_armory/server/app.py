@@ -28,6 +28,7 @@ from pathlib import Path
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
+from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
 from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
@@ -99,7 +100,7 @@ class ServerConfig:
     latency_learning: bool | None = None
     profile_reps: int = 5
     max_robots: int = 64
-    max_message_mb: float = 16.0
+    max_message_mb: float = DEFAULT_MAX_MESSAGE_BYTES / (1 << 20)
     status_interval_s: float = 1.0
     log_level: str = "info"
     log_format: str = "text"
@@ -151,7 +152,7 @@ class ArmoryServer:
         host: str = "127.0.0.1",
         port: int = 0,
         max_robots: int = 64,
-        max_message_bytes: int = 16 << 20,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         clock=time.monotonic,
         auth: AuthTokens | None = None,
         tls: tuple[bytes, bytes] | None = None,
@@ -208,9 +209,10 @@ class ArmoryServer:
         self.batch_listeners.append(lambda record: handle.write(json.dumps(dataclasses.asdict(record)) + "\n"))
 
     def serve_metrics(self, port: int) -> int:
-        """Start the Prometheus endpoint on the gRPC host; returns the bound port."""
-        self._stop_metrics = self.metrics.serve(port, self._host)
-        return port
+        """Start the Prometheus endpoint on the gRPC host; returns the port actually bound
+        (``port=0`` picks a free one)."""
+        bound, self._stop_metrics = self.metrics.serve(port, self._host)
+        return bound
 
     def start(self) -> ArmoryServer:
         self.loop.start()
@@ -345,8 +347,7 @@ def serve(cfg: ServerConfig) -> None:
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
     server.start()
-    if cfg.metrics_port is not None:
-        server.serve_metrics(cfg.metrics_port)
+    metrics_port = server.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
     print(
         f"lerobot-armory-server listening on {server.address}\n"
@@ -357,7 +358,7 @@ def serve(cfg: ServerConfig) -> None:
         f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
         f"  fleet policy: {fleet_policy.describe()}\n"
-        f"  metrics: {f'http://{cfg.host}:{cfg.metrics_port}/metrics' if cfg.metrics_port is not None else 'off'}\n"
+        f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
         f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})",
         flush=True,

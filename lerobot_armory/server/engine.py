@@ -555,35 +555,6 @@ def expected_wire_features(input_features: dict[str, Any]) -> list[FeatureSpec]:
     return out
 
 
-def check_features(declared: Sequence[FeatureSpec], expected: Sequence[FeatureSpec]) -> list[str]:
-    """Every mismatch between a robot's declared features and the policy's inputs (empty: OK).
-
-    Images may be declared as uint8 (H, W, 3) or as float32 (3, H, W) in [0, 1].
-    """
-    problems = []
-    exp = {s.name: s for s in expected}
-    seen = set()
-    for spec in declared:
-        if spec.name in seen:
-            problems.append(f"feature {spec.name!r} declared twice")
-            continue
-        seen.add(spec.name)
-        want = exp.get(spec.name)
-        if want is None:
-            problems.append(f"unexpected feature {spec.name!r} {spec.describe()}: the policy does not use it")
-            continue
-        ok = spec == want
-        if not ok and want.dtype == "uint8" and len(want.shape) == 3:  # image: CHW float also fine
-            h, w, c = want.shape
-            ok = spec.dtype == "float32" and spec.shape == (c, h, w)
-        if not ok:
-            problems.append(f"feature {spec.name!r}: declared {spec.describe()}, the policy needs {want.describe()}")
-    for name in exp:
-        if name not in seen:
-            problems.append(f"missing feature {name!r}: the policy needs {exp[name].describe()}")
-    return problems
-
-
 def _action_names(path: str, action_dim: int) -> list[str]:
     sidecar = Path(path) / SIDECAR
     if sidecar.is_file():

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from lerobot_armory.mirror import Chunk, RobotMirror, RobotSpec
+from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.server.security import RateLimiter
 from lerobot_armory.wire import FeatureSpec
@@ -32,9 +32,9 @@ STALE_SESSION_S = 5.0
 SYNC_INTERVAL_S = 10.0
 SYNC_MIN_GAP_S = 1.0
 MAX_PENDING_SYNCS = 4
-# Execution reports: a robot sends ~5 a second; each receipt names a chunk in ``sent`` (bounded
-# by SENT_TABLE), so a report's first SENT_TABLE receipts are all that can mean anything.
-SENT_TABLE = 64
+# Execution reports: a robot sends ~5 a second; each receipt names a chunk its mirror awaits (at
+# most MAX_AWAITING_REPORTS), so a report's first SENT_TABLE receipts are all that can mean anything.
+SENT_TABLE = MAX_AWAITING_REPORTS
 REPORT_RATE_HZ = 20.0
 # Device time accounting for the fleet policy's max_device_share: a decayed sum over this window.
 SHARE_WINDOW_S = 5.0
@@ -118,15 +118,6 @@ class Outbox:
 
 
 @dataclass
-class ChunkRecord:
-    """What the server remembers of a sent chunk until the robot reports its arrival."""
-
-    capture_robot: float
-    obs_recv: float
-    send_time: float
-
-
-@dataclass
 class RobotSession:
     """A registered robot: its spec, mirror, latest observation and stream."""
 
@@ -139,7 +130,6 @@ class RobotSession:
     outbox: Outbox = field(default_factory=Outbox)
     streaming: bool = False
     latest: dict[str, np.ndarray] | None = None
-    sent: dict[int, ChunkRecord] = field(default_factory=dict)
     # counters (reported by the robot, or counted here)
     observations: int = 0
     rejected: int = 0
@@ -344,11 +334,10 @@ class Fleet:
         with self.cond:
             mirror = session.mirror
             for chunk_id, arrival, first in receipts:
-                record = session.sent.pop(chunk_id, None)
-                if record is None:
-                    continue
-                if not mirror.on_report(chunk_id, record.capture_robot, record.obs_recv, record.send_time, arrival, recv):
-                    refused += 1
+                verdict = mirror.on_report(chunk_id, arrival, recv)
+                if verdict is None:
+                    continue  # not a chunk awaiting its report (unknown, repeated, or forgotten)
+                refused += not verdict
                 key = "unused" if first < 0 else str(min(first, session.spec.chunk_size))
                 session.first_executed[key] += 1
             session.reported_executed = int(report.executed_steps)
@@ -389,11 +378,8 @@ class Fleet:
 
     # ---- the serving loop's side -------------------------------------------------------------
 
-    def record_sent(self, session: RobotSession, chunk: Chunk, capture_robot: float, obs_recv: float, send_time: float) -> None:
-        session.sent[chunk.chunk_id] = ChunkRecord(capture_robot, obs_recv, send_time)
-        # Keep the table bounded for robots that never report.
-        if len(session.sent) > SENT_TABLE:
-            session.sent.pop(next(iter(session.sent)))
+    def record_sent(self, session: RobotSession, send_time: float) -> None:
+        """Count a chunk sent to ``session`` (its report is awaited by the mirror)."""
         session.chunks_sent += 1
         session.last_chunk_time = send_time
 

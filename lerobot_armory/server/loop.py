@@ -1,10 +1,10 @@
 """The live serving loop: scheduler decides, engine runs, chunks go out (SPEC §3-§4).
 
 One thread owns the device. Whenever the device is free and some robot has a useful request, it
-asks the scheduler for a batch (under the fleet lock, a fraction of a millisecond), takes each
-chosen robot's *latest* observation, drops requests that stopped being useful, releases the lock,
-runs one batched forward pass, and hands each robot its chunk (tagged with ``i_start``, the index
-of the observation it was computed from). Network threads keep feeding observations while the
+plans a batch through the dispatch step (:class:`~lerobot_armory.dispatch.Dispatcher`, under the
+fleet lock, a fraction of a millisecond), takes each chosen robot's *latest* observation,
+releases the lock, runs one batched forward pass, completes the plan and hands each robot its
+chunk (tagged with ``i_start``, the index of the observation it was computed from). Network threads keep feeding observations while the
 model runs; they never wait for it and it never waits for them.
 """
 
@@ -14,17 +14,16 @@ import collections
 import inspect
 import logging
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
+from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.latency import OnlineLatency
-from lerobot_armory.mirror import Chunk
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.schedulers.base import Scheduler, check_batch
+from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.server.engine import noise_seed
 from lerobot_armory.server.fleet import Fleet, RobotSession
 from lerobot_armory.wire import encode
@@ -58,15 +57,12 @@ def takes_noise_seeds(engine: Engine) -> bool:
 
 
 @dataclass
-class WorkItem:
-    """One robot's request inside a dispatched batch."""
+class Batch:
+    """A dispatched plan joined to the live data of its robots (aligned with ``plan.requests``)."""
 
-    session: RobotSession
-    observation: dict[str, np.ndarray]
-    chunk: Chunk
-    previous_last_served: int | None
-    capture_robot: float
-    obs_recv: float
+    plan: Plan
+    sessions: list[RobotSession]
+    observations: list[dict[str, np.ndarray]]
 
 
 @dataclass
@@ -94,7 +90,6 @@ class LoopStats:
     # CPU time of the same decisions: the scheduler's own cost, without waits for the GIL or
     # for a core (on a loaded 2-core machine wall time mostly measures those).
     decision_cpu_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
-    dropped_not_useful: int = 0
     failed_decisions: int = 0  # decisions the scheduler could not make (served in order instead)
     busy_s: float = 0.0
     idle_with_work_s: float = 0.0
@@ -126,6 +121,7 @@ class ServingLoop:
         self.fleet = fleet
         self.engine = engine
         self.scheduler = scheduler
+        self.dispatcher = Dispatcher(scheduler, isolate_failures=True)
         self.on_batch = on_batch
         self.latency = latency
         self._drift_warned = False
@@ -152,126 +148,87 @@ class ServingLoop:
     def _run(self) -> None:
         try:
             while True:
-                work = self._next_batch()
-                if work is None:
+                batch = self._next_batch()
+                if batch is None:
                     return
-                items, decision_ms = work
-                if items:
-                    self._serve(items, decision_ms)
+                if batch.plan.requests:
+                    self._serve(batch)
         except BaseException as exc:  # pragma: no cover - a bug; logged and surfaced by the server
             self.error = exc
             log.exception("serving loop crashed")
             raise
 
-    def _next_batch(self) -> tuple[list[WorkItem], float] | None:
+    def _next_batch(self) -> Batch | None:
+        """Wait until some robot has a useful request, then plan the batch (fleet lock held)."""
         fleet = self.fleet
         with fleet.cond:
             while True:
                 if fleet.stopping:
                     return None
                 now = fleet.clock()
-                # A robot over its granted share of device time waits until the share decays.
-                sessions = [s for s in fleet.active() if not fleet.over_share(s, now)]
-                if any(s.mirror.is_useful() for s in sessions):
+                # A robot over its granted share of device time waits until the share decays; a
+                # robot without a stored observation has nothing to serve.
+                active = fleet.active()
+                sessions = [s for s in active if s.latest is not None and not fleet.over_share(s, now)]
+                mirrors = [s.mirror for s in sessions]
+                if self.dispatcher.has_work(mirrors):
                     break
-                fleet.cond.wait(0.05 if len(sessions) < len(fleet.active()) else 0.25)
+                fleet.cond.wait(0.05 if len(sessions) < len(active) else 0.25)
             if self._last_end is not None and self._work_at_last_end:
                 self.stats.idle_with_work_s += max(0.0, now - self._last_end)
-            t0, c0 = time.perf_counter(), time.thread_time()
-            chosen = self._select(sessions, now)
-            decision_ms = (time.perf_counter() - t0) * 1000.0
-            self.stats.decision_ms.append(decision_ms)
-            self.stats.decision_cpu_ms.append((time.thread_time() - c0) * 1000.0)
-            t_done_estimate = now + self.scheduler.d_infer[len(chosen) - 1] if chosen else now
-            items = []
-            for session in chosen:
-                mirror = session.mirror
-                # The latest observation is read now; a request that stopped being useful since
-                # the decision (cannot happen under this lock, but the rule is the engine's) is dropped.
-                if session.latest is None or not mirror.is_useful():
-                    self.stats.dropped_not_useful += 1
-                    continue
-                previous = mirror.last_served_index
-                chunk = mirror.on_dispatch(t_done_estimate)
-                items.append(WorkItem(session, session.latest, chunk, previous, mirror.obs_capture_robot, mirror.obs_recv))
-            return items, decision_ms
+            plan = self.dispatcher.plan(mirrors, now)
+            assert plan is not None  # has_work held under the same lock
+            by_id = {s.robot_id: s for s in sessions}
+            for robot_id, why in plan.quarantined:
+                log.error("dropping robot %s: its state cannot be scheduled (%s)", robot_id, why)
+                fleet.quarantine(by_id[robot_id], f"your session was ended: the server cannot schedule your state ({why})")
+            self.stats.decision_ms.append(plan.decision_s * 1000.0)
+            self.stats.decision_cpu_ms.append(plan.decision_cpu_s * 1000.0)
+            self.stats.failed_decisions += plan.fell_back
+            chosen = [by_id[r.robot_id] for r in plan.requests]
+            return Batch(plan, chosen, [s.latest for s in chosen])
 
-    def _select(self, sessions: list[RobotSession], now: float) -> list[RobotSession]:
-        """The scheduler's batch as sessions. Whatever a robot sent, a failing decision never
-        stops the loop: the robots whose mirror cannot be evaluated are dropped (told why) and the
-        decision is retried; if it still fails, the first useful robots are served in order."""
-        for attempt in range(2):
-            try:
-                chosen = self.scheduler.select([s.mirror for s in sessions], now)
-                check_batch(chosen, self.scheduler.max_batch_size, type(self.scheduler).__name__)
-                by_mirror = {id(s.mirror): s for s in sessions}
-                return [by_mirror[id(m)] for m in chosen]
-            except Exception as exc:  # noqa: BLE001 - isolated below; the loop must go on
-                error = exc
-                if attempt == 0:
-                    sessions = self._quarantine_broken(sessions, now)
-        self.stats.failed_decisions += 1
-        log.error("%s failed to decide (%s: %s); serving the first useful robots in order", type(self.scheduler).__name__,
-                  type(error).__name__, error)  # fmt: skip
-        return [s for s in sessions if s.mirror.is_useful()][: self.scheduler.max_batch_size]
-
-    def _quarantine_broken(self, sessions: list[RobotSession], now: float) -> list[RobotSession]:
-        """Evaluate every mirror the way schedulers do; drop the robots whose mirror raises."""
-        kept = []
-        for session in sessions:
-            mirror = session.mirror
-            try:
-                mirror.deadline()
-                mirror.predicted_index(now)
-                mirror.window_view(now, 1.0).executed()
-            except Exception as exc:  # noqa: BLE001 - this robot's state is broken, not the loop
-                log.error("dropping robot %s: its state cannot be scheduled (%s: %s)", session.robot_id, type(exc).__name__, exc)
-                self.fleet.quarantine(session, f"your session was ended: the server cannot schedule your state ({type(exc).__name__})")
-                continue
-            kept.append(session)
-        return kept
-
-    def _serve(self, items: list[WorkItem], decision_ms: float) -> None:
+    def _serve(self, batch: Batch) -> None:
         fleet = self.fleet
+        plan = batch.plan
         t_start = fleet.clock()
         try:
-            observations, tasks = [it.observation for it in items], [it.session.task for it in items]
+            tasks = [s.task for s in batch.sessions]
             if self._seeds:
-                actions = self.engine.infer(observations, tasks, [noise_seed(it.session.robot_id, it.chunk.chunk_id) for it in items])
+                seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
+                actions = self.engine.infer(batch.observations, tasks, seeds)
             else:
-                actions = self.engine.infer(observations, tasks)
-            if actions.shape[0] != len(items):
-                raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {len(items)}")
+                actions = self.engine.infer(batch.observations, tasks)
+            if actions.shape[0] != plan.size:
+                raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {plan.size}")
         except Exception as exc:
-            self._fail(items, exc, t_start, decision_ms)
+            self._fail(batch, exc, t_start)
             return
         t_done = fleet.clock()
         self._failures_in_a_row = 0
-        size = len(items)
         with fleet.cond:
-            for k, it in enumerate(items):
-                session = it.session
+            self.dispatcher.complete(plan, t_done)
+            for k, (request, session) in enumerate(zip(plan.requests, batch.sessions, strict=True)):
                 if fleet.sessions.get(session.session_id) is not session:
                     continue  # the robot left while its batch ran: its chunk goes nowhere
-                # The chunk's real completion time replaces the estimate used at dispatch.
-                it.chunk.t_arrival = t_done + session.mirror.estimator.one_way_s
+                chunk = request.chunk
                 msg = pb.ServerMessage(
                     chunk=pb.ActionChunk(
-                        chunk_id=it.chunk.chunk_id,
-                        i_start=it.chunk.i_start,
+                        chunk_id=chunk.chunk_id,
+                        i_start=chunk.i_start,
                         actions=encode("action", np.ascontiguousarray(actions[k], dtype=np.float32)),
                         server_send_time=t_done,
-                        obs_capture_time=it.capture_robot,
+                        obs_capture_time=chunk.capture_robot,
                     )
                 )
-                fleet.record_sent(session, it.chunk, it.capture_robot, it.obs_recv, t_done)
+                fleet.record_sent(session, t_done)
                 session.outbox.put(msg)
-            fleet.charge_device([it.session for it in items], t_done - t_start, t_done)
-            self._finish(size, t_start, t_done)
+            fleet.charge_device(batch.sessions, t_done - t_start, t_done)
+            self._finish(plan.size, t_start, t_done)
             fleet.cond.notify_all()
         if self.latency is not None:
-            self._learn(size, t_done - t_start)
-        self._record(items, t_start, t_done, decision_ms, ok=True)
+            self._learn(plan.size, t_done - t_start)
+        self._record(plan, t_start, t_done, ok=True)
 
     def _learn(self, size: int, seconds: float) -> None:
         """Feed one served batch to the latency model; hand a changed table to the scheduler.
@@ -298,26 +255,27 @@ class ServingLoop:
         elif abs(worst.pct) < DRIFT_WARN_PCT / 2:
             self._drift_warned = False  # back near the profile: warn again on the next excursion
 
-    def _fail(self, items: list[WorkItem], exc: Exception, t_start: float, decision_ms: float) -> None:
+    def _fail(self, batch: Batch, exc: Exception, t_start: float) -> None:
         """An engine error hurts only this batch: its robots are told and become useful again."""
-        log.error("inference failed for a batch of %d (%s): %s", len(items), ", ".join(it.session.robot_id for it in items), exc)
+        plan = batch.plan
+        log.error("inference failed for a batch of %d (%s): %s", plan.size, ", ".join(plan.robot_ids), exc)
         t_end = self.fleet.clock()
         with self.fleet.cond:
-            for it in items:
-                it.session.mirror.on_cancel(it.chunk, it.previous_last_served)
-                it.session.outbox.put(
+            self.dispatcher.cancel(plan)
+            for request, session in zip(plan.requests, batch.sessions, strict=True):
+                session.outbox.put(
                     pb.ServerMessage(
                         notice=pb.Notice(
                             kind=pb.Notice.INFERENCE_FAILED,
                             message=f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
-                            index=it.chunk.i_start,
+                            index=request.chunk.i_start,
                         )
                     )
                 )
             self.stats.failed_batches += 1
-            self._finish(len(items), t_start, t_end)
+            self._finish(plan.size, t_start, t_end)
             self.fleet.cond.notify_all()
-        self._record(items, t_start, t_end, decision_ms, ok=False)
+        self._record(plan, t_start, t_end, ok=False)
         self._failures_in_a_row += 1
         if self._failures_in_a_row >= MAX_CONSECUTIVE_FAILURES:
             # A sticky device error (an illegal memory access leaves the CUDA context unusable) fails
@@ -337,16 +295,17 @@ class ServingLoop:
         self._last_end = t_end
         self._work_at_last_end = any(s.mirror.is_useful() for s in self.fleet.active())
 
-    def _record(self, items: list[WorkItem], t_start: float, t_end: float, decision_ms: float, ok: bool) -> None:
+    def _record(self, plan: Plan, t_start: float, t_end: float, ok: bool) -> None:
         if self.on_batch is not None:
+            chunks = [r.chunk for r in plan.requests]
             self.on_batch(
                 BatchRecord(
                     t_start,
                     t_end,
-                    [it.session.robot_id for it in items],
-                    [it.chunk.i_start for it in items],
-                    [it.obs_recv for it in items],
-                    decision_ms,
+                    plan.robot_ids,
+                    [c.i_start for c in chunks],
+                    [c.obs_recv for c in chunks],
+                    plan.decision_s * 1000.0,
                     ok,
                 )
             )

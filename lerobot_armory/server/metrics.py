@@ -37,8 +37,19 @@ class FleetCollector(Collector):
         rejected = CounterMetricFamily("armory_robot_observations_rejected", "Observations refused (malformed, rate)", labels=labels)
         obs_age = GaugeMetricFamily("armory_robot_observation_age_seconds", "Age of the latest observation held for the robot", labels=labels)
         chunk_age = GaugeMetricFamily("armory_robot_last_chunk_age_seconds", "Time since the robot's last chunk was sent", labels=labels)
-        uplink = GaugeMetricFamily("armory_robot_uplink_delay_seconds", "Estimated robot-to-server delay", labels=labels)
-        downlink = GaugeMetricFamily("armory_robot_downlink_delay_seconds", "Estimated server-to-robot delay", labels=labels)
+        # Timestamp exchanges measure the round trip only; how it splits into uplink and downlink
+        # is not observable (DelayEstimator), so no per-direction gauge is published: two would
+        # always show the same half and suggest a measurement that does not exist.
+        round_trip = GaugeMetricFamily(
+            "armory_robot_round_trip_seconds",
+            "Network round trip robot-server-robot, from timestamp exchanges (server hold time excluded)",
+            labels=labels,
+        )
+        one_way = GaugeMetricFamily(
+            "armory_robot_one_way_delay_seconds",
+            "Half the estimated round trip: the delay assumed each way (the uplink/downlink split is not observable)",
+            labels=labels,
+        )
         weight = GaugeMetricFamily("armory_robot_weight", "Scheduling weight from the registration", labels=labels)
         with self.fleet.cond:
             now = self.fleet.clock()
@@ -52,11 +63,11 @@ class FleetCollector(Collector):
                 rejected.add_metric(lv, s.rejected)
                 obs_age.add_metric(lv, now - s.mirror.obs_recv if s.mirror.obs_index is not None else float("nan"))
                 chunk_age.add_metric(lv, now - s.last_chunk_time if s.last_chunk_time is not None else float("nan"))
-                uplink.add_metric(lv, s.mirror.estimator.one_way_s)
-                downlink.add_metric(lv, s.mirror.estimator.one_way_s)
+                round_trip.add_metric(lv, s.mirror.estimator.round_trip_s)
+                one_way.add_metric(lv, s.mirror.estimator.one_way_s)
                 weight.add_metric(lv, s.spec.weight)
             connected = len(sessions)
-        yield from (starvation, executed, starved, served, rejected, obs_age, chunk_age, uplink, downlink, weight)
+        yield from (starvation, executed, starved, served, rejected, obs_age, chunk_age, round_trip, one_way, weight)
         yield GaugeMetricFamily("armory_robots_connected", "Robots with an open stream", value=connected)
         yield CounterMetricFamily("armory_device_busy_seconds", "Time the device spent on batches", value=self.stats.busy_s)
         yield CounterMetricFamily(
@@ -108,12 +119,14 @@ class ServerMetrics:
         self.inference.labels(batch_size=str(size)).observe(record.t_end - record.t_start)
         self.decision.observe(record.decision_ms / 1000.0)
 
-    def serve(self, port: int, host: str) -> Callable[[], None]:
-        """Start the HTTP endpoint; returns a function that stops it."""
+    def serve(self, port: int, host: str) -> tuple[int, Callable[[], None]]:
+        """Start the HTTP endpoint; returns the port it bound (``port=0``: a free one, picked by
+        the OS) and a function that stops it."""
         server, thread = start_http_server(port, addr=host, registry=self.registry)
+        bound = int(server.server_address[1])
 
         def stop() -> None:
             server.shutdown()
             thread.join(timeout=5)
 
-        return stop
+        return bound, stop

@@ -20,22 +20,19 @@ import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import MAX_FPS, MIN_FPS, TIERS, RobotSpec
+from lerobot_armory.mirror import RobotSpec, spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_grpc import Malformed, add_armory_to_server
-from lerobot_armory.server.engine import check_features
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
+from lerobot_armory.proto.hardening import Malformed, add_armory_to_server
+from lerobot_armory.proto.limits import SERVICE_NAME, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.server.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
 from lerobot_armory.server.fleet_policy import FleetPolicy, Request, describe_grant
 from lerobot_armory.server.peer_log import ThrottledLog
 from lerobot_armory.server.security import AuthTokens, Credential, RateLimiter
-from lerobot_armory.wire import FeatureSpec, WireError, decode_all
+from lerobot_armory.wire import FeatureSpec, WireError, check_features, decode_all
 
 log = logging.getLogger(__name__)
 
-SESSION_KEY = "armory-session"
-TOKEN_KEY = "armory-token"
-SERVICE_NAME = "lerobot_armory.v1.Armory"
-MAX_ROBOT_ID = 128
 MAX_TASK = 4096
 # How often a stream's writer wakes to send a due clock-sync request when nothing else is queued.
 SYNC_POLL_S = 0.2
@@ -51,7 +48,7 @@ class PolicyInfo:
     chunk_size: int
 
 
-class ArmoryService:
+class ArmoryService(ArmoryServicer):
     """Implements ``Register`` and ``Stream`` over a :class:`Fleet`."""
 
     def __init__(
@@ -121,24 +118,10 @@ class ArmoryService:
 
     def _check_registration(self, r: pb.RegisterRequest) -> list[str]:
         """Every problem with a registration (empty: accepted)."""
-        problems = []
-        if not r.robot_id or len(r.robot_id) > MAX_ROBOT_ID or not r.robot_id.isprintable():
-            problems.append(f"robot_id must be 1-{MAX_ROBOT_ID} printable characters")
+        # RobotSpec's own validator, against the policy's chunk size: every problem, not the first.
+        problems = spec_problems(r.robot_id, r.fps, self.policy.chunk_size, r.h_min, r.h_max, r.weight, r.tier)
         if len(r.task) > MAX_TASK:
-            problems.append(f"task text is longer than {MAX_TASK} characters")
-        # RobotSpec's own validation, one field at a time so that every problem is listed.
-        fields = {"fps": r.fps, "h_min": r.h_min, "h_max": r.h_max, "weight": r.weight, "tier": r.tier}
-        H = self.policy.chunk_size
-        if not MIN_FPS <= r.fps <= MAX_FPS:
-            problems.append(f"fps must be in [{MIN_FPS:g}, {MAX_FPS:g}], got {fields['fps']}")
-        if r.h_max < 1 or r.h_max > H:
-            problems.append(f"h_max must be in [1, H={H}] (the policy's chunk size), got {r.h_max}")
-        if r.h_min < 0 or r.h_min > max(r.h_max, 0):
-            problems.append(f"h_min must be in [0, h_max={r.h_max}], got {r.h_min}")
-        if not (math.isfinite(r.weight) and r.weight > 0):
-            problems.append(f"weight must be > 0, got {r.weight}")
-        if r.tier not in TIERS:
-            problems.append(f"tier must be one of {', '.join(TIERS)}, got {r.tier[:32]!r}")
+            problems.append(f"task: text is longer than {MAX_TASK} characters")
         declared = []
         for f in r.features:
             if any(d < 0 for d in f.shape) or len(f.shape) > 8:
@@ -146,11 +129,6 @@ class ArmoryService:
             else:
                 declared.append(FeatureSpec.from_proto(f))
         problems += check_features(declared, self.policy.wire_features)
-        if not problems:
-            try:  # anything RobotSpec still refuses
-                RobotSpec(r.robot_id, r.fps, H, r.h_min, r.h_max, r.weight, r.tier)
-            except ConfigError as exc:
-                problems.append(str(exc))
         return problems
 
     # ---- Stream ------------------------------------------------------------------------------

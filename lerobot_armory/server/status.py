@@ -2,8 +2,9 @@
 
     lerobot-armory-status --metrics_url=http://127.0.0.1:9100/metrics [--watch=1]
 
-One row per robot: tier, weight, starvation, estimated delay, age of its latest observation and of
-its last chunk; then device figures.
+One row per robot: tier, weight, starvation, estimated network round trip (what the server
+measures; each direction is taken as half of it), age of its latest observation and of its last
+chunk; then device figures.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def render(text: str) -> str:
                 batch_count = sample.value
             elif not sample.labels:
                 fleet[sample.name] = sample.value
-    header = f"{'robot':<22} {'tier':<5} {'weight':>6} {'starv%':>7} {'delay ms':>8} {'obs age ms':>10} {'chunk age ms':>12} {'chunks':>7} {'rejected':>8}"
+    header = f"{'robot':<22} {'tier':<5} {'weight':>6} {'starv%':>7} {'rtt ms':>8} {'obs age ms':>10} {'chunk age ms':>12} {'chunks':>7} {'rejected':>8}"
     lines = [header, "-" * len(header)]
 
     def ms(v: float | str | None) -> str:
@@ -72,7 +73,7 @@ def render(text: str) -> str:
         r = robots[rid]
         lines.append(
             f"{rid:<22} {r.get('tier', ''):<5} {float(r.get('armory_robot_weight', 1)):>6g} "
-            f"{100 * float(r.get('armory_robot_starvation_ratio', 0)):>7.1f} {ms(r.get('armory_robot_uplink_delay_seconds')):>8} "
+            f"{100 * float(r.get('armory_robot_starvation_ratio', 0)):>7.1f} {ms(r.get('armory_robot_round_trip_seconds')):>8} "
             f"{ms(r.get('armory_robot_observation_age_seconds')):>10} {ms(r.get('armory_robot_last_chunk_age_seconds')):>12} "
             f"{int(float(r.get('armory_robot_chunks_served_total', 0))):>7} {int(float(r.get('armory_robot_observations_rejected_total', 0))):>8}"
         )

@@ -13,6 +13,8 @@ matplotlib.use("Agg")  # headless: no display on servers and CI
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lerobot_armory.mirror import TIERS  # noqa: E402
+
 Record = dict[str, Any]
 LABEL_ORDER = ["RR", "EDF", "LA w=1", "LA w=3", "LA w=5"]
 
@@ -63,7 +65,7 @@ def plot_fleet(records: list[Record], out: Path) -> list[Path]:
         fig, axes = plt.subplots(len(mixes), 2, figsize=(10, 3.2 * len(mixes)), squeeze=False)
         for i, mix in enumerate(mixes):
             sub = [r for r in rows if r["mix"] == mix]
-            for k, tier in enumerate(("fast", "slow")):
+            for k, tier in enumerate(TIERS):
                 _plot_lines(axes[i][k], sub, "robots", _tier(tier), f"{preset} {mix}: {tier} tier", "fleet size N", "starvation %")
         axes[0][0].legend(fontsize=8)
         fig.suptitle(f"Starvation per tier vs fleet size ({preset} preset, {rows[0]['latency_profile']})")
@@ -120,7 +122,7 @@ def plot_batch_cap(records: list[Record], out: Path) -> list[Path]:
 def plot_network(median_rows: list[Record], sigma_rows: list[Record], out: Path) -> list[Path]:
     """Starvation per tier vs network median (σ = 0) and vs jitter σ (m = 50 ms)."""
     fig, axes = plt.subplots(2, 2, figsize=(10, 6.4), squeeze=False)
-    for i, tier in enumerate(("fast", "slow")):
+    for i, tier in enumerate(TIERS):
         _plot_lines(axes[i][0], median_rows, "net_median_ms", _tier(tier), f"{tier} tier vs median (σ=0)", "one-way median ms", "starvation %")
         _plot_lines(axes[i][1], sigma_rows, "net_sigma", _tier(tier), f"{tier} tier vs jitter (m=50 ms)", "log-normal σ", "starvation %")
     axes[0][0].legend(fontsize=8)

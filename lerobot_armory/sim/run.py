@@ -10,10 +10,11 @@ from typing import Any
 
 import numpy as np
 
+from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import load_profile
+from lerobot_armory.mirror import TIERS
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.sim.network import LogNormalDelay
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
 from lerobot_armory.sim.simulator import FleetSimulator, SimResult
 
@@ -100,7 +101,7 @@ def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extr
     """The JSON schema of ``--output`` (the live benchmark writes the same)."""
     sched = cfg.scheduler
     tiers = {}
-    for tier in ("fast", "slow"):
+    for tier in TIERS:
         rows = result.tier(tier)
         if rows:
             tiers[tier] = {
@@ -110,9 +111,8 @@ def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extr
             }
     return {
         "scheduler": sched.type,
-        "label": run_label(sched.type, cfg.fast_weight, getattr(sched, "depth", 1), getattr(sched, "score", "marginal")),
+        "label": run_label(sched.type, cfg.fast_weight, getattr(sched, "depth", 1)),
         "depth": getattr(sched, "depth", None),
-        "score": getattr(sched, "score", None),
         "preset": cfg.preset,
         "mix": cfg.mix,
         "robots": cfg.robots,
@@ -146,8 +146,8 @@ def _index_key(item: tuple[str, int]) -> tuple[int, int]:
     return (1, 0) if key == "unused" else (0, int(key))
 
 
-def run_label(scheduler: str, fast_weight: float, depth: int | None = 1, score: str | None = "marginal") -> str:
-    """Short human label: ``RR``, ``EDF``, ``LA w=3`` (``L=2``, ``total`` when not default)."""
+def run_label(scheduler: str, fast_weight: float, depth: int | None = 1) -> str:
+    """Short human label: ``RR``, ``EDF``, ``LA w=3`` (``L=2`` when not default)."""
     if scheduler == "rr":
         return "RR"
     if scheduler == "edf":
@@ -156,8 +156,6 @@ def run_label(scheduler: str, fast_weight: float, depth: int | None = 1, score: 
         label = f"LA w={fast_weight:g}"
         if depth and depth != 1:
             label += f" L={depth}"
-        if score and score != "marginal":
-            label += f" {score}"
         return label
     return f"{scheduler} w={fast_weight:g}"
 

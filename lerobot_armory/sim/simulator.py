@@ -18,18 +18,18 @@ simulation for RR and EDF.
 from __future__ import annotations
 
 import heapq
-import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline
-from lerobot_armory.schedulers.base import Scheduler, check_batch
-from lerobot_armory.sim.network import LogNormalDelay
+from lerobot_armory.schedulers.base import Scheduler
 
 # Robot clocks differ from the server's by up to this much (seconds); nothing may depend on it.
 MAX_CLOCK_OFFSET_S = 0.5
@@ -177,7 +177,9 @@ class FleetSimulator:
 
         hooks = [on_use_for(j) for j in range(n)]
         fed_tick = [-1] * n
-        reports: list[tuple[float, int, tuple]] = []  # heap of (server receipt time, robot, report)
+        position = {s.robot_id: j for j, s in enumerate(self.specs)}
+        dispatcher = Dispatcher(self.scheduler)
+        reports: list[tuple[float, int, int, float]] = []  # heap of (server receipt, robot, chunk id, arrival robot clock)
         batch_sizes: Counter = Counter()
         decision_s: list[float] = []
         index_error: list[int] = []
@@ -188,8 +190,8 @@ class FleetSimulator:
         def sync(t: float) -> None:
             """Deliver to the mirrors everything that reached the server by time t."""
             while reports and reports[0][0] <= t:
-                _, j, rep = heapq.heappop(reports)
-                mirrors[j].on_report(*rep)
+                recv, j, chunk_id, arrival_robot = heapq.heappop(reports)
+                mirrors[j].on_report(chunk_id, arrival_robot, recv)
             for j in range(n):
                 k = int(np.searchsorted(suffix_min[j], t, side="right")) - 1
                 if k > fed_tick[j]:
@@ -202,27 +204,25 @@ class FleetSimulator:
         t = 0.0
         while t < T:
             sync(t)
-            if any(m.is_useful() for m in mirrors):
+            if dispatcher.has_work(mirrors):
                 if len(decision_s) % FIDELITY_EVERY == 0:  # mirror fidelity: predicted vs true index
                     for j, m in enumerate(mirrors):
                         truth_now = truth[j].index + _executed_between(truth[j], t)
                         index_error.append(abs(m.predicted_index(t) - truth_now))
-                start = time.perf_counter()
-                batch = self.scheduler.select(mirrors, t)
-                decision_s.append(time.perf_counter() - start)
-                check_batch(batch, self.scheduler.max_batch_size, type(self.scheduler).__name__)
-                batch_sizes[len(batch)] += 1
-                t_done = t + d_infer[len(batch) - 1]
-                for m in batch:
-                    j = mirrors.index(m)
-                    capture_robot, obs_recv = m.obs_capture_robot, m.obs_recv
-                    chunk = m.on_dispatch(t_done)
+                plan = dispatcher.plan(mirrors, t)
+                assert plan is not None
+                decision_s.append(plan.decision_s)
+                batch_sizes[plan.size] += 1
+                t_done = t + d_infer[plan.size - 1]
+                dispatcher.complete(plan, t_done)
+                for req in plan.requests:
+                    j, chunk = position[req.robot_id], req.chunk
                     arrival = t_done + float(self.downlink.sample(rng))
                     truth[j].add_chunk(Chunk(chunk.chunk_id, chunk.i_start, chunk.h, arrival))
                     if arrival < T:
                         results[j].chunks_received += 1
-                    report = (chunk.chunk_id, capture_robot, obs_recv, t_done, arrival - offset[j])
-                    heapq.heappush(reports, (arrival + float(self.uplink.sample(rng)), j, report))
+                    report_recv = arrival + float(self.uplink.sample(rng))
+                    heapq.heappush(reports, (report_recv, j, chunk.chunk_id, arrival - offset[j]))
                 t = t_done
             else:
                 # GPU idle, nobody useful: jump to the next observation arrival.

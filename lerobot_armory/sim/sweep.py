@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import TIERS
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig, SchedulerConfig
 from lerobot_armory.sim.presets import MIXES
 from lerobot_armory.sim.run import SimConfig, simulate, table
@@ -150,7 +151,7 @@ def _run_job(job: tuple[str, SimConfig, int]) -> dict[str, Any]:
 
 
 CSV_FIELDS = [
-    "group", "preset", "mix", "robots", "scheduler", "label", "fast_weight", "depth", "score", "max_batch_size",
+    "group", "preset", "mix", "robots", "scheduler", "label", "fast_weight", "depth", "max_batch_size",
     "latency_profile", "net_median_ms", "net_sigma", "seed", "duration_s", "avg_starvation_pct",
     "fast_starvation_pct", "slow_starvation_pct", "fast_executed_s", "slow_executed_s", "executed_s",
     "weighted_executed_s", "mean_batch_size", "decision_ms_p50", "decision_ms_p99", "wall_s",
@@ -162,7 +163,7 @@ def csv_row(r: dict[str, Any]) -> dict[str, Any]:
     sizes = {int(k): v for k, v in r["batch_sizes"].items()}
     total = sum(sizes.values())
     row = {k: r.get(k, "") for k in CSV_FIELDS}
-    for tier in ("fast", "slow"):
+    for tier in TIERS:
         t = r["tiers"].get(tier)
         row[f"{tier}_starvation_pct"] = "" if t is None else round(t["starvation_pct"], 4)
         row[f"{tier}_executed_s"] = "" if t is None else round(t["executed_s"], 3)

@@ -38,9 +38,9 @@ says which of the two happened.
 How long a horizon can be solved exactly depends on the load: an underloaded fleet's optimum
 meets the bound (nobody starves after the first chunks) and 5 s is solved in well under a
 second; an overloaded one (all-fast libero fleets from N = 3) is exponential in the horizon and
-only ~1-2.5 s finish in tens of seconds. ``lerobot_armory.sim.frontier`` therefore tries 5 s
+only ~1-2.5 s finish in tens of seconds. ``armory_research.frontier`` therefore tries 5 s
 and falls back to the longest shorter horizon it can solve, and reports which; at 5 s it brackets
-the optimum with :mod:`lerobot_armory.sim.bound`'s Lagrangian upper bound, which holds for any
+the optimum with :mod:`armory_research.bound`'s Lagrangian upper bound, which holds for any
 schedule and is much tighter than this search's own bound when the fleet is overloaded.
 
 Every value the search reports can be checked: :func:`play` drives the real
@@ -57,10 +57,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
+from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline, advance, tick_of
-from lerobot_armory.schedulers.base import Scheduler, check_batch
+from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.schedulers.edf import EarliestDeadlineScheduler
 from lerobot_armory.sim.presets import fleet_specs, get_preset
 
@@ -223,11 +224,13 @@ class EpisodeResult:
 
 
 def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> EpisodeResult:
-    """Run ``scheduler`` on ``episode`` with the real mirror and ground-truth timeline classes.
+    """Run ``scheduler`` on ``episode`` with the real mirror, dispatch step and ground-truth
+    timeline classes.
 
-    ``tell_end`` sets ``scheduler.episode_end_s`` to the horizon: the scheduler then knows what
-    the finite-horizon optimum knows, that nothing after the end counts (Lookahead and Rollout
-    clip their scoring window there; RR and EDF do not look ahead). Off by default, as live.
+    ``tell_end`` tells the scheduler what the finite-horizon optimum knows, that nothing after
+    the end counts: a scheduler that scores a window (``window_s``: Lookahead, Rollout) gets it
+    clipped at the episode's end before every decision, and its own window back afterwards. RR
+    and EDF do not look ahead. Off by default, as live (the product has no episode end).
 
     This is the simulator's event loop (SPEC §3 work conservation, latest observation per robot,
     chunk ``(î_j, h_max, t_done + d_action)``) without randomness: delays are exact, so the
@@ -240,16 +243,15 @@ def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> Epis
     m = ep.net_s
     if scheduler.max_batch_size != ep.max_batch_size:
         raise ConfigError("max_batch_size", f"scheduler cap {scheduler.max_batch_size} != episode cap {ep.max_batch_size}")
-    # Set either way: a scheduler object told the end of one episode must not keep it for the next.
-    scheduler.episode_end_s = ep.horizon_s if tell_end else math.inf
-    warm = _ColdEdf(ep)
+    window = getattr(scheduler, "window_s", None) if tell_end else None
+    warm, main = Dispatcher(_ColdEdf(ep)), Dispatcher(scheduler)
     truth = [RobotTimeline(s.fps, ep.phases_s[j]) for j, s in enumerate(ep.specs)]
     mirrors = []
     for s in ep.specs:
         est = DelayEstimator()
         est.add_exchange(-1.0, -1.0 + m, -1.0 + m, -1.0 + 2 * m)  # offset 0, one-way exactly m
         mirrors.append(RobotMirror(s, est))
-    position = {id(r): j for j, r in enumerate(mirrors)}
+    position = {s.robot_id: j for j, s in enumerate(ep.specs)}
     warm_ticks = [ep.warm_tick(j) for j in range(n)]
     warm_index: list[int | None] = [None] * n
 
@@ -264,30 +266,33 @@ def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> Epis
     batches: list[tuple[int, ...]] = []
     warmup_decisions = 0
     t = 0.0
-    while t < ep.horizon_s:
-        for j, s in enumerate(ep.specs):
-            k = ep.obs_tick(j, t)
-            if k > fed[j]:
-                run_truth(j, k)
-                fed[j] = k
-                capture = ep.phases_s[j] + k / s.fps
-                mirrors[j].on_observation(truth[j].index, capture, ep.obs_arrival(j, k))
-        if any(r.is_useful() for r in mirrors):
-            policy = warm if t < ep.warmup_s else scheduler
-            batch = policy.select(mirrors, t)
-            check_batch(batch, policy.max_batch_size, type(policy).__name__)
-            t_done = t + ep.d_infer_s[len(batch) - 1]
-            chosen = []
-            for r in batch:
-                j = position[id(r)]
-                chunk = r.on_dispatch(t_done)
-                truth[j].add_chunk(Chunk(chunk.chunk_id, chunk.i_start, chunk.h, t_done + m))
-                chosen.append(j)
-            batches.append(tuple(chosen))
-            warmup_decisions += policy is warm
+    try:
+        while t < ep.horizon_s:
+            for j, s in enumerate(ep.specs):
+                k = ep.obs_tick(j, t)
+                if k > fed[j]:
+                    run_truth(j, k)
+                    fed[j] = k
+                    capture = ep.phases_s[j] + k / s.fps
+                    mirrors[j].on_observation(truth[j].index, capture, ep.obs_arrival(j, k))
+            dispatcher = warm if t < ep.warmup_s else main
+            if window is not None:
+                scheduler.window_s = min(window, max(1e-3, ep.horizon_s - t))  # type: ignore[attr-defined]
+            plan = dispatcher.plan(mirrors, t)
+            if plan is None:
+                t = ep.next_observation(t)
+                continue
+            t_done = t + ep.d_infer_s[plan.size - 1]
+            dispatcher.complete(plan, t_done)
+            for req in plan.requests:
+                c = req.chunk
+                truth[position[req.robot_id]].add_chunk(Chunk(c.chunk_id, c.i_start, c.h, t_done + m))
+            batches.append(tuple(position[r] for r in plan.robot_ids))
+            warmup_decisions += dispatcher is warm
             t = t_done
-        else:
-            t = ep.next_observation(t)
+    finally:
+        if window is not None:
+            scheduler.window_s = window  # type: ignore[attr-defined]
     ticks = [ep.n_ticks(j) for j in range(n)]
     for j in range(n):
         run_truth(j, ticks[j])

@@ -1,4 +1,10 @@
-"""Network delay model: each one-way delay is log-normal, ``ln d ~ N(ln m, σ²)`` (SPEC §5)."""
+"""Network delay model: each one-way delay is log-normal, ``ln d ~ N(ln m, σ²)`` (SPEC §5).
+
+One model, two users: the simulator draws its network from it and the robot side's network
+emulator (:mod:`lerobot_armory.robot.netem`) delays real messages with it, so live and simulated
+runs see the same network. It lives at the top of the package, beside neither, so the robot side
+does not have to import the simulator (and with it every scheduler) to emulate a network.
+"""
 
 from __future__ import annotations
 

@@ -1,9 +1,12 @@
-"""The offline optimum, the deterministic episode driver, the Rollout scheduler, the frontier CLI."""
+"""The offline optimum, the deterministic episode driver, Rollout on its episodes, the frontier CLI.
+
+The Rollout scheduler on its own (registered, validated, the batch contract) is tested with the
+product: ``tests/test_rollout.py``; its queue form (the mirror's) in ``tests/test_mirror.py``.
+"""
 
 from __future__ import annotations
 
 import json
-import math
 import random
 
 import numpy as np
@@ -11,12 +14,12 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import load_profile
-from lerobot_armory.mirror import advance, reach
-from lerobot_armory.schedulers import check_batch, make_scheduler_config, scheduler_names
-from lerobot_armory.schedulers.rollout import RolloutConfig, RolloutScheduler, dry_tick, index_at, queue_of, tick_reaching
+from lerobot_armory.mirror import advance
+from lerobot_armory.schedulers import check_batch, make_scheduler_config
+from lerobot_armory.schedulers.rollout import RolloutScheduler
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
-from lerobot_armory.sim.frontier import main as frontier_main
-from lerobot_armory.sim.optimal import Episode, ReplayScheduler, canonical, episode_for, play, solve
+from armory_research.frontier import main as frontier_main
+from armory_research.optimal import Episode, ReplayScheduler, canonical, episode_for, play, solve
 
 PROFILE = load_profile("l40s-pi05")
 SCHEDULERS = ["rr", "edf", "lookahead", "rollout"]
@@ -135,36 +138,7 @@ def test_play_matches_the_simulator_without_jitter(name, preset, mix):
 
 
 # ------------------------------------------------------------------------------------------
-# The search's canonical queue and Rollout's queue form both agree with advance()
-
-
-def realistic_chunks(rnd: random.Random, index: int) -> list[tuple[int, int, int]]:
-    """Chunks a robot could hold: each starts at or before the index it has when it arrives."""
-    chunks: list[tuple[int, int, int]] = []
-    for _ in range(rnd.randint(0, 4)):
-        arrival = rnd.randint(-3, 15)
-        at = advance(index, sorted(chunks), arrival) if arrival > 0 else index
-        start = rnd.randint(max(0, at - 8), at)
-        chunks.append((start, start + rnd.randint(1, 10), arrival))
-    return sorted(chunks)
-
-
-def test_rollout_queue_agrees_with_advance():
-    rnd = random.Random(7)
-    for _ in range(3000):
-        index = rnd.randint(0, 5)
-        chunks = realistic_chunks(rnd, index)
-        q = queue_of(index, chunks)
-        for tick in range(0, 25):
-            assert index_at(index, q, tick) == advance(index, chunks, tick)
-        target = index + rnd.randint(0, 8)
-        first = next((k for k in range(60) if advance(index, chunks, k) >= target), -1)
-        assert tick_reaching(index, q, target) == first
-        # Dry tick: with every chunk that can still extend the coverage arrived.
-        useful = [(s, e, a) for s, e, a in chunks if e > index]
-        last = max([a for _, _, a in useful if a > 0], default=0)
-        at = advance(index, chunks, last)
-        assert dry_tick(index, q) == last + reach(at, chunks, last) - at
+# The search's canonical queue agrees with advance() (the mirror's queue form: tests/test_mirror.py)
 
 
 def test_canonical_queue_keeps_advance():
@@ -180,116 +154,7 @@ def test_canonical_queue_keeps_advance():
 
 
 # ------------------------------------------------------------------------------------------
-# Rollout: registered, validated, deterministic, within the batch contract
-
-
-def test_rollout_is_registered_and_validates():
-    assert "rollout" in scheduler_names()
-    cfg = make_scheduler_config("rollout", window_s=0.8, tail="due", candidates=2)
-    assert isinstance(cfg, RolloutConfig) and cfg.type == "rollout"
-    sched = cfg.build(PROFILE, 3)
-    assert isinstance(sched, RolloutScheduler) and (sched.window_s, sched.tail, sched.candidates) == (0.8, "due", 2)
-    bad = [({"window_s": 0}, "scheduler.window_s"), ({"tail": "x"}, "scheduler.tail"), ({"candidates": 0}, "scheduler.candidates")]
-    for kwargs, field in [*bad, ({"order": "x"}, "scheduler.order")]:
-        with pytest.raises(ConfigError) as info:
-            make_scheduler_config("rollout", **kwargs).build(PROFILE, 3)
-        assert info.value.field == field
-
-
-@pytest.mark.parametrize(
-    "preset, mix, n, knobs",
-    [
-        ("libero", "one-fast", 10, {}),
-        ("piper", "half-fast", 6, {}),
-        ("libero", "all-fast", 3, {}),
-        ("piper", "one-fast", 10, {"order": "gain"}),
-        ("piper", "one-fast", 10, {"keep_plan": True}),
-    ],
-)
-def test_rollout_contract_and_determinism(preset, mix, n, knobs):
-    specs = fleet_specs(get_preset(preset), mix, n, fast_weight=2.0)
-    cap = get_preset(preset).default_batch_cap(mix)
-    net = LogNormalDelay(0.00375, 0.3)
-    runs = []
-    for _ in range(2):
-        sched = make_scheduler_config("rollout", **knobs).build(PROFILE, cap)
-        # FleetSimulator calls check_batch on every decision (non-empty, <= cap, distinct, useful).
-        res = FleetSimulator(specs, sched, 8.0, net, net, seed=1).run()
-        runs.append(([r.executed_steps for r in res.robots], dict(res.batch_sizes)))
-        assert set(res.batch_sizes) <= set(range(1, cap + 1))
-    assert runs[0] == runs[1]
-
-
-def test_rollout_gain_order_ranks_by_weighted_coverage_gain():
-    """libero timing at t = 0, b = 3: a full batch lands at 142.4 + 3.75 ms; a chunk covers until
-    h / fps - 3.75 ms (slow 0.5 s, fast 0.3 s). EDF serves the robot dry longest first; ``gain``
-    serves the one whose queue a new chunk extends most, weighted, and a robot whose queue already
-    reaches past the new chunk's end last."""
-    from types import SimpleNamespace
-
-    def robot(k: int, h: int, dry: float, weight: float = 1.0):
-        return SimpleNamespace(
-            k=k, i=k, h=h, fps=20.0, weight=weight, one_way=0.00375, span=h / 20.0 - 0.00375, deadline=dry, ready=-1.0
-        )
-
-    def ranked(order: str, robots) -> list[int]:
-        sched = RolloutScheduler(PROFILE, 3, order=order)
-        sched._order = sorted(robots, key=lambda r: (r.deadline, r.k))
-        by_i = sorted(robots, key=lambda r: r.i)
-        return [r.k for r in sched._useful_at(0.0, [r.ready for r in by_i], [r.deadline for r in by_i])]
-
-    # gains: slow 0.5 - 0.00375 - 0.14615 = 0.35 s; fast 0.3 - 0.15 = 0.15 s (x3 = 0.45 s); covered: 0
-    fleet = [robot(0, 6, -0.2), robot(1, 10, -0.1), robot(2, 10, 0.6)]
-    assert ranked("deadline", fleet) == [0, 1, 2]
-    assert ranked("gain", fleet) == [1, 0, 2]
-    fleet[0] = robot(0, 6, -0.2, weight=3.0)
-    assert ranked("gain", fleet) == [0, 1, 2]
-
-
-@pytest.mark.parametrize("preset, mix, n", [("piper", "all-fast", 6), ("libero", "half-fast", 5)])
-def test_rollout_kept_plan_only_overrides_when_it_scores_as_well(preset, mix, n):
-    """A shadow scheduler without a kept plan decides on every same state: the two differ only at
-    decisions the kept plan won (counted in ``plans_kept``), and that happens."""
-    ep = episode_for(preset, mix, n, 3.0, fast_weight=3.0)
-    plain = build("rollout", ep)
-    keeper = build("rollout", ep, keep_plan=True)
-    differ = []
-
-    class Shadowed(RolloutScheduler):
-        def select(self, robots, now):
-            before = keeper.plans_kept
-            fresh = plain.select(robots, now)
-            picked = keeper.select(robots, now)
-            if picked != fresh:
-                differ.append(keeper.plans_kept - before)
-            return picked
-
-    play(ep, Shadowed(PROFILE, ep.max_batch_size))
-    assert differ, "the kept plan never changed a decision"
-    assert differ == [1] * len(differ)
-    assert keeper.plans_kept == len(differ)
-
-
-def test_rollout_kept_plan_skips_robots_that_left():
-    ep = episode_for("libero", "half-fast", 4, 1.0)
-    keeper = build("rollout", ep, keep_plan=True)
-    seen: list[int] = []
-    named: list[bool] = []  # whether the plan kept at each decision named the robot that left
-
-    class Shrinking(RolloutScheduler):
-        def select(self, robots, now):
-            # Robot 0 leaves after the first decision: the kept plan may name it, it must not
-            # come back in a batch.
-            present = robots if not seen else robots[1:]
-            named.append(any(ep.specs[0].robot_id in ids for ids in keeper._plan))
-            batch = keeper.select(present, now)
-            assert all(any(r is p for p in present) for r in batch)
-            seen.append(len(batch))
-            return batch
-
-    play(ep, Shrinking(PROFILE, ep.max_batch_size))
-    assert len(seen) > 3
-    assert any(named[1:]), "the kept plan never named the robot that left: the test shows nothing"
+# Rollout on deterministic episodes: repeatable decisions
 
 
 def test_rollout_select_is_repeatable_on_one_state():
@@ -343,7 +208,7 @@ def test_frontier_brackets_the_full_horizon_with_both_lagrangian_bounds(monkeypa
     # scheduler's value inside it.
     from dataclasses import replace
 
-    from lerobot_armory.sim import frontier
+    from armory_research import frontier
 
     tiny = replace(frontier.PROFILES["quick"], horizon_s=1.0, ladder_s=(), first_budget_s=0.001, lagrangian=True)
     monkeypatch.setitem(frontier.PROFILES, "tiny", tiny)
@@ -358,16 +223,24 @@ def test_frontier_brackets_the_full_horizon_with_both_lagrangian_bounds(monkeypa
 
 
 def test_told_the_end_windowed_schedulers_clip_their_window():
-    """Off (inf) by default, so live decisions never see it; ``play(tell_end=True)`` sets it.
-    Told the end of a 1 s cold-start episode, Rollout stops trading the last ticks for ones past
-    the end: in piper half-fast N=6 it goes from 93.5 % of the optimum to 97.8 %, and Lookahead
-    (which scores a window too) from 90.6 % to 95.7 %. EDF does not look ahead: unchanged."""
+    """The product has no episode end; ``play(tell_end=True)`` clips a windowed scheduler's
+    ``window_s`` at the end before each decision and gives it back afterwards. Told the end of a
+    1 s cold-start episode, Rollout stops trading the last ticks for ones past the end: in piper
+    half-fast N=6 it goes from 93.5 % of the optimum to 97.8 %, and Lookahead (which scores a
+    window too) from 90.6 % to 95.7 %. EDF does not look ahead: unchanged."""
     ep = episode_for("piper", "half-fast", 6, 1.0)
-    for name in ("rollout", "lookahead", "edf", "rr"):
-        assert build(name, ep).episode_end_s == math.inf
     told = build("rollout", ep)
+    windows: list[float] = []
+    select = told.select
+
+    def spy(robots, now):
+        windows.append(told.window_s)
+        return select(robots, now)
+
+    told.select = spy
     registered, ended = play(ep, build("rollout", ep)), play(ep, told, tell_end=True)
-    assert told.episode_end_s == ep.horizon_s
+    assert told.window_s == 1.0  # given back
+    assert min(windows) < 1.0 and all(w <= 1.0 for w in windows)
     result = solve(ep)
     assert result.exact
     optimum = result.value
@@ -386,5 +259,5 @@ def test_rollout_same_tail_told_the_end_reaches_95_percent_where_the_default_mis
     result = solve(ep, time_limit_s=120)
     assert result.exact
     plain = play(ep, build("rollout", ep)).weighted_executed_s
-    same = play(ep, build("rollout", ep, tail="same"), tell_end=True).weighted_executed_s
+    same = play(ep, build("rollout_same", ep), tell_end=True).weighted_executed_s
     assert plain < 0.95 * result.value <= same <= result.value + 1e-9

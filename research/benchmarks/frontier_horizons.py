@@ -1,6 +1,6 @@
 """Diagnostic: the small-fleet comparison at horizons the committed table did not pick.
 
-``benchmarks/frontier.py`` scores schedulers against the committed exact optima, one horizon per
+``research/benchmarks/frontier.py`` scores schedulers against the committed exact optima, one horizon per
 fleet (5 s where solvable, else the longest solved). A setting chosen on those 30 rows could be
 fitted to them. This solves every small fleet again at other horizons (1, 1.5 and 2 s by default,
 ``--budget_s`` of exact search each; fleets not solved in time are listed as such) and prints
@@ -10,7 +10,7 @@ in ``frontier.py``, with a count of rows under 95 % per scheduler.
 No target (exits 0): the 95 % target is ``frontier.py``'s, on the committed rows. Some rows here
 coincide with committed ones (the same fleet and horizon).
 
-Run: ``.venv/bin/python benchmarks/frontier_horizons.py [--horizons=1,1.5,2] [--budget_s=20]
+Run: ``.venv/bin/python research/benchmarks/frontier_horizons.py [--horizons=1,1.5,2] [--budget_s=20]
 [--out=docs/results/frontier/other_horizons.md]`` (about 4 minutes on 2 cores with the defaults).
 """
 
@@ -23,17 +23,18 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import play_episode  # noqa: E402
+from _study import play_episode  # noqa: E402  (also puts research/ on sys.path)
 
-from lerobot_armory.sim.optimal import episode_for, solve  # noqa: E402
 from lerobot_armory.sim.presets import MIXES  # noqa: E402
+
+from armory_research.optimal import episode_for, solve  # noqa: E402
 
 # (label, scheduler, options): all told the episode's end.
 COLUMNS = [
     ("EDF", "edf", {}),
     ("LA w=1", "lookahead", {}),
     ("rollout", "rollout", {}),
-    ("rollout same", "rollout", {"tail": "same"}),
+    ("rollout same", "rollout_same", {}),
 ]
 SIZES = (3, 4, 5, 6)  # N = 2 is solved at 5 s everywhere
 FLOOR = 95.0
@@ -82,7 +83,7 @@ def main() -> None:
     if args.out:
         Path(args.out).write_text(
             "# Small fleets at other horizons, % of the exact optimum (told the episode's end)\n\n"
-            f"`benchmarks/frontier_horizons.py --horizons={args.horizons} --budget_s={args.budget_s:g}`\n\n"
+            f"`research/benchmarks/frontier_horizons.py --horizons={args.horizons} --budget_s={args.budget_s:g}`\n\n"
             + "\n".join(md)
             + "\n"
             + "\n".join(summary)

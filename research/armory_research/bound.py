@@ -1,6 +1,6 @@
 """A proven upper bound on any schedule of a deterministic episode: Lagrangian device pricing.
 
-The exact branch-and-bound of :mod:`lerobot_armory.sim.optimal` solves 5 s episodes of lightly
+The exact branch-and-bound of :mod:`armory_research.optimal` solves 5 s episodes of lightly
 loaded fleets in seconds, but an overloaded fleet's search is exponential in the horizon. For
 those this module gives a *proven upper bound* at the full horizon, so every scheduler can be
 scored as a fraction of it (a fraction of a bound understates a scheduler: the optimum lies
@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_armory.sim.optimal import FREE, Episode, _run, canonical
+from armory_research.optimal import FREE, Episode, _run, canonical
 
 
 # Completion times in the dynamic program's state are rounded down to this grain.

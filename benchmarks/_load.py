@@ -1,10 +1,11 @@
-"""Load: many light robots (a 4-float state, no camera) against one server.
+"""Load: many light robots (a 4-float state, no camera) against one server, and the echo engine.
 
-:func:`run_load` starts an in-process server with an echo engine and a *separate* process of
-robots (``python -m lerobot_armory.bench.load ADDRESS ROBOTS SECONDS FPS OUT.json``), so that the
-robots' Python threads do not share the server's interpreter: the server is measured, not the
-load generator. Each robot runs the real client loop. Used by the load test and
-``benchmarks/load.py``.
+:class:`EchoEngine` is the test double the load, transport and adversarial tests serve (no model:
+each chunk echoes its robot's first state value). It lives here, with the benchmarks, not in the
+product package. :func:`run_load` starts an in-process server with it and a *separate* process of
+robots (``python benchmarks/_load.py ADDRESS ROBOTS SECONDS FPS OUT.json``), so that the robots'
+Python threads do not share the server's interpreter: the server is measured, not the load
+generator. Each robot runs the real client loop. Used by the load test and ``benchmarks/load.py``.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def run_load(robots: int, seconds: float, fps: float = 10.0) -> dict[str, Any]:
     out_path = os.path.join(tempfile.mkdtemp(), "load.json")
     rss_start = rss_mb()
     gen = subprocess.Popen(
-        [sys.executable, "-m", "lerobot_armory.bench.load", server.address, str(robots), str(seconds), str(fps), out_path],
+        [sys.executable, os.path.abspath(__file__), server.address, str(robots), str(seconds), str(fps), out_path],
         env={**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])},
     )
     samples = []

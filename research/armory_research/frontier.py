@@ -1,15 +1,15 @@
-"""``lerobot-armory-frontier``: how far RR, EDF, Lookahead and Rollout are from the best schedule.
+"""The frontier study: how far RR, EDF, Lookahead and Rollout are from the best schedule.
 
 Three parts, each a grid of independent jobs on a process pool:
 
 - ``optimum``: for every small fleet (both presets × three mixes × N = 2..6) the deterministic
-  episode of :mod:`lerobot_armory.sim.optimal` (σ = 0, synchronous cold start) is solved exactly
+  episode of :mod:`armory_research.optimal` (σ = 0, synchronous cold start) is solved exactly
   at the longest horizon the search finishes within its budget (5 s first, else the ladder
   1, 1.5, 2, 2.5, 3, 4 s upwards until a horizon is cut off); every scheduler plays the same
   episode and its executed robot time is reported as a fraction of the optimum. Where 5 s is not
   exact, the 5 s bracket is reported too: the best schedule found, and the tighter of the
   search's proven upper bound and the Lagrangian device-pricing bound of
-  :mod:`lerobot_armory.sim.bound` (``full`` profile), with every scheduler as % of it.
+  :mod:`armory_research.bound` (``full`` profile), with every scheduler as % of it.
 - ``fleet``: the simulator (preset network with jitter, several seeds) for N = 2..10, every
   scheduler, per-tier starvation.
 - ``pareto``: N = 10, one-fast and half-fast, both presets: fast- vs slow-tier starvation of every
@@ -19,6 +19,9 @@ Outputs in ``OUT_DIR``: ``fraction_of_optimum.{csv,md}``, ``starvation_vs_fleet.
 ``starvation_vs_fleet_<preset>.png``, ``pareto.{csv,png}``, ``n10_comparison.md`` and
 ``COMMAND.md``. Profiles: ``full`` (the committed results, about 15 min on 2 cores) and
 ``quick`` (a small subset for a smoke test).
+
+Run from the repository root: ``PYTHONPATH=research .venv/bin/python -m armory_research.frontier
+--profile=full --out_dir=docs/results/frontier --workers=2`` (``make research-frontier``).
 """
 
 from __future__ import annotations
@@ -42,10 +45,14 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.bound import lagrangian_bound, time_priced_bound
-from lerobot_armory.sim.optimal import Episode, EpisodeResult, episode_for, play, solve
 from lerobot_armory.sim.presets import MIXES, get_preset
 from lerobot_armory.sim.run import SimConfig, run_label, simulate
+
+from armory_research.bound import lagrangian_bound, time_priced_bound
+from armory_research.optimal import Episode, EpisodeResult, episode_for, play, solve
+
+# How the study is invoked (there is no console script: research/ is not part of the installed package).
+PROG = "python -m armory_research.frontier"
 
 # The new scheduler of this study and the label family it gets in tables and plots.
 NEW = "rollout"
@@ -155,11 +162,10 @@ PROFILES: dict[str, FrontierProfile] = {
 
 @dataclass
 class FrontierConfig:
-    """Options of ``lerobot-armory-frontier``.
+    """Options of ``python -m armory_research.frontier``.
 
     Attributes:
-        profile: ``full`` (the committed results), ``bench`` (what ``benchmarks/frontier.py``
-            checks) or ``quick`` (a smoke test).
+        profile: ``full`` (the committed results) or ``quick`` (a smoke test).
         out_dir: where the tables, CSVs and figures go.
         workers: parallel processes (default: number of CPUs).
         parts: comma-separated subset of optimum,fleet,pareto.
@@ -211,7 +217,7 @@ def optimum_job(job: dict[str, Any]) -> dict[str, Any]:
     if not res.exact:
         # The full horizon is out of the exact search's reach: bracket its optimum between the
         # best schedule found and the tighter proven upper bound (the search's own, and with
-        # ``lagrangian`` the device-pricing bound of lerobot_armory.sim.bound).
+        # ``lagrangian`` the device-pricing bound of armory_research.bound).
         ones = [1.0] * n
         bracket = {
             "bracket_horizon_s": prof.horizon_s,
@@ -333,7 +339,7 @@ def optimum_markdown(results: list[dict[str, Any]], labels: Sequence[str]) -> st
         text += (
             "\n\nFull horizon where the exact search did not finish: the optimum lies between the best "
             "schedule found and the tightest proven upper bound (branch-and-bound's, or the Lagrangian "
-            "device-pricing bounds of `lerobot_armory.sim.bound`: one flat price, or one price per 5 ms slot). Each scheduler as % of the upper bound "
+            "device-pricing bounds of `armory_research.bound`: one flat price, or one price per 5 ms slot). Each scheduler as % of the upper bound "
             "(a lower bound on its fraction of the optimum) · and the new scheduler as % of the best schedule found:\n\n"
         )
         text += (
@@ -624,7 +630,7 @@ def run(cfg: FrontierConfig) -> FrontierResults:
         md, results.verdicts = n10_comparison(results.pareto)
         (out / "n10_comparison.md").write_text("# Per-tier starvation at N = 10: the new scheduler against EDF\n\n" + md)
         text.append("== per-tier comparison ==\n" + md)
-    command = "lerobot-armory-frontier " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = "PYTHONPATH=research python -m armory_research.frontier " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     (out / "COMMAND.md").write_text(
         f"# How these results were made\n\n```\n{command}\n```\n\n"
         f"{len(results.optimum)} optimum searches and {len(results.fleet) + len(results.pareto)} simulated runs, "
@@ -638,9 +644,9 @@ def run(cfg: FrontierConfig) -> FrontierResults:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point."""
-    cfg = parse_or_exit(FrontierConfig, argv, "lerobot-armory-frontier")
-    run_or_exit(run, cfg, "lerobot-armory-frontier")
+    """Command-line entry point (``python -m armory_research.frontier``, ``research/`` on ``PYTHONPATH``)."""
+    cfg = parse_or_exit(FrontierConfig, argv, PROG)
+    run_or_exit(run, cfg, PROG)
 
 
 if __name__ == "__main__":

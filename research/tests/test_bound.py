@@ -1,4 +1,4 @@
-"""The Lagrangian device-pricing upper bound (lerobot_armory.sim.bound)."""
+"""The Lagrangian device-pricing upper bound (armory_research.bound)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 
 from lerobot_armory.latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.sim.bound import device_time, lagrangian_bound, robot_value
-from lerobot_armory.sim.optimal import Episode, episode_for, play, solve
+from armory_research.bound import device_time, lagrangian_bound, robot_value
+from armory_research.optimal import Episode, episode_for, play, solve
 
 PROFILE = load_profile("l40s-pi05")
 
@@ -71,7 +71,7 @@ def test_cheapest_window_matches_a_fine_scan():
     # minimum as a dense scan (and never a smaller one).
     import numpy as np
 
-    from lerobot_armory.sim.bound import DevicePrices
+    from armory_research.bound import DevicePrices
 
     rng = np.random.default_rng(0)
     prices = DevicePrices(rng.uniform(0, 3, size=200), 0.005)
@@ -87,7 +87,7 @@ def test_cheapest_window_matches_a_fine_scan():
 
 
 def test_plan_load_adds_up_to_the_chunks_device_shares():
-    from lerobot_armory.sim.bound import DevicePrices, robot_plan
+    from armory_research.bound import DevicePrices, robot_plan
 
     ep = episode_for("libero", "all-fast", 4, 2.0)
     prices = DevicePrices.flat(1.0, ep)
@@ -106,7 +106,7 @@ def test_plan_load_adds_up_to_the_chunks_device_shares():
     [("libero", "all-fast", 4, 1.0), ("libero", "half-fast", 4, 1.0), ("piper", "all-fast", 4, 1.0)],
 )
 def test_time_priced_bound_is_between_the_optimum_and_the_flat_bound(preset, mix, robots, horizon):
-    from lerobot_armory.sim.bound import time_priced_bound
+    from armory_research.bound import time_priced_bound
 
     ep, optimum = solved(preset, mix, robots, horizon)
     flat = lagrangian_bound(ep)
@@ -115,7 +115,7 @@ def test_time_priced_bound_is_between_the_optimum_and_the_flat_bound(preset, mix
 
 
 def test_time_priced_bound_is_tighter_when_overloaded():
-    from lerobot_armory.sim.bound import time_priced_bound
+    from armory_research.bound import time_priced_bound
 
     # Six fast libero robots: one flat price lets every robot dispatch the instant its
     # observation lands; per-slot prices charge those contested instants.

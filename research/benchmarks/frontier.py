@@ -1,29 +1,30 @@
 """The scheduling frontier's small-fleet and decision-time targets (N = 10: ``n10_paired.py``).
 
-The setting checked is the one the frontier study recommends: Rollout with ``tail=same`` (its
-rollouts keep dispatching batches the size of the candidate; ``--scheduler.tail=same``).
+The setting checked is the one the frontier study recommends: Rollout with the ``same`` base
+policy (its rollouts keep dispatching batches the size of the candidate; ``rollout_same`` in
+``armory_research.variants``, not a product setting).
 
 Targets (exits 1 on a miss):
 
 - Decision time fits Lookahead's budget: p99 <= 1 ms at N=10, b=5 and <= 10 ms at N=100, b=8
-  (same decisions and method as ``benchmarks/decision_time.py``; the median of three timed runs
+  (same decisions and method as ``benchmarks/decision_time.py`` of the product; the median of three timed runs
   of the same decisions, so one burst of CPU steal on the shared machine does not decide).
-  Timed for ``tail=same``, Rollout as registered and ``order=gain, tail=same``.
+  Timed for ``rollout_same`` and Rollout as registered.
 - On every small fleet (libero and piper, all-fast / one-fast / half-fast, N = 2..6) Rollout
-  ``tail=same`` (w=1) reaches >= 95 % of the optimum's executed robot time, *told the episode's
+  ``rollout_same`` (w=1) reaches >= 95 % of the optimum's executed robot time, *told the episode's
   end* as the optimum is (``play(tell_end=True)``: Lookahead and Rollout clip their scoring
   window at the horizon). The optima are the committed exact ones of the full study
   (``docs/results/frontier/optimum_search.json``, 5 s where solvable, else the longest horizon
-  solved, 56 min to recompute with ``lerobot-armory-frontier --profile=full``). Every row whose
+  solved, 56 min to recompute with ``make research-frontier``). Every row whose
   committed search took under ``RESOLVE_S`` is solved again here and must match, so the table
   is checked, not trusted. The live numbers (not told the end) of Rollout as registered and of
-  ``tail=same`` are printed beside, as is every other scheduler told the end: the difference
+  ``rollout_same`` are printed beside, as is every other scheduler told the end: the difference
   between Rollout told the end and live is what the end of the episode costs it.
 
 The N = 10 target (better than EDF on both tiers at some weight) needs paired seeds to tell a
-win from a tie: ``benchmarks/n10_paired.py`` (about 20 minutes, exits 1 on a miss).
+win from a tie: ``research/benchmarks/n10_paired.py`` (about 20 minutes, exits 1 on a miss).
 
-Run: ``.venv/bin/python benchmarks/frontier.py [--out=docs/results/frontier/fraction_told_end.md]``
+Run: ``.venv/bin/python research/benchmarks/frontier.py [--out=docs/results/frontier/fraction_told_end.md]``
 (about 20 seconds on 2 cores).
 """
 
@@ -36,22 +37,19 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Targets, play_episode, sim  # noqa: E402
+from _study import Targets, play_episode, sim  # noqa: E402  (also puts research/ on sys.path)
 
-from lerobot_armory.sim.frontier import NEW  # noqa: E402
-from lerobot_armory.sim.optimal import episode_for, solve  # noqa: E402
 from lerobot_armory.sim.presets import MIXES  # noqa: E402
 
-ROWS = Path(__file__).resolve().parents[1] / "docs" / "results" / "frontier" / "optimum_search.json"
+from armory_research.frontier import NEW  # noqa: E402
+from armory_research.optimal import episode_for, solve  # noqa: E402
+
+ROWS = Path(__file__).resolve().parents[2] / "docs" / "results" / "frontier" / "optimum_search.json"
 DECISION_CASES = [(10, 5, 120.0, 1.0), (100, 8, 60.0, 10.0)]  # (robots, cap, simulated s, p99 limit ms)
-CHECKED = {"tail": "same"}  # the setting the targets are checked for
+CHECKED = "rollout_same"  # the setting the targets are checked for (armory_research.variants)
 CHECKED_LABEL = f"{NEW} same"
-# (label, rollout options) timed against the decision budget.
-DECISION_VARIANTS = [
-    (f"{NEW} tail=same", CHECKED),
-    (NEW, {}),
-    (f"{NEW} order=gain,tail=same", {"order": "gain", "tail": "same"}),
-]
+# (label, scheduler) timed against the decision budget.
+DECISION_VARIANTS = [(CHECKED_LABEL, CHECKED), (NEW, NEW)]
 DECISION_REPEATS = 3
 FRACTION_FLOOR = 0.95
 RESOLVE_S = 3.0  # re-solve committed rows whose search took less than this
@@ -61,20 +59,20 @@ COLUMNS = [
     ("EDF", "edf", {}, True),
     ("LA w=1", "lookahead", {}, True),
     (NEW, NEW, {}, True),
-    (CHECKED_LABEL, NEW, CHECKED, True),
+    (CHECKED_LABEL, CHECKED, {}, True),
     (f"{NEW}, live", NEW, {}, False),
-    (f"{NEW} same, live", NEW, CHECKED, False),
+    (f"{NEW} same, live", CHECKED, {}, False),
 ]
 
 
 def decision_time(targets: Targets) -> None:
     print(f"Decision time (libero, half-fast, l40s-pi05; extrapolated past b=5; median of {DECISION_REPEATS} runs):")
     for robots, cap, duration, limit in DECISION_CASES:
-        for name, options in DECISION_VARIANTS:
+        for name, scheduler in DECISION_VARIANTS:
             # The same deterministic decisions, timed DECISION_REPEATS times: a neighbour stealing
             # the shared CPU during one run must not decide the verdict, a slow scheduler slows all.
             runs = [
-                sim(NEW, options, preset="libero", mix="half-fast", robots=robots, max_batch_size=cap, duration_s=duration)
+                sim(scheduler, {}, preset="libero", mix="half-fast", robots=robots, max_batch_size=cap, duration_s=duration)
                 for _ in range(DECISION_REPEATS)
             ]
             p50 = statistics.median(r["decision_ms_p50"] for r in runs)
@@ -133,8 +131,8 @@ def main() -> None:
     if args.out:
         head = (
             "# Fraction of the exact optimum (%), schedulers told the episode's end unless 'live'\n\n"
-            "Written by `.venv/bin/python benchmarks/frontier.py --out=docs/results/frontier/fraction_told_end.md`. "
-            f"Optima: `optimum_search.json` (exact rows). Target: {CHECKED_LABEL} (`--scheduler.tail=same`) "
+            "Written by `.venv/bin/python research/benchmarks/frontier.py --out=docs/results/frontier/fraction_told_end.md`. "
+            f"Optima: `optimum_search.json` (exact rows). Target: {CHECKED_LABEL} (`--scheduler.type=rollout_same`, study only) "
             f">= {100 * FRACTION_FLOOR:g} % on every row. 're-solved': solved again by the benchmark.\n\n"
         )
         Path(args.out).write_text(head + "\n".join(md) + "\n")

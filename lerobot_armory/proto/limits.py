@@ -1,0 +1,32 @@
+"""Constants of the wire protocol that the server and the robot must agree on, defined once.
+
+Written by hand (the ``.proto`` cannot hold them); the server (``server/service.py``), the robot
+(``robot/connection.py``) and the server's request hardening (``proto/hardening.py``) import them.
+"""
+
+from __future__ import annotations
+
+# Full name of the service in armory.proto (package lerobot_armory.v1, service Armory): the path
+# prefix of every RPC and the name the health service reports. tests/test_server.py checks it
+# against the .proto's descriptor.
+SERVICE_NAME = "lerobot_armory.v1.Armory"
+
+# Stream metadata key that carries the session id Register handed out: the stream has no request
+# message of its own to carry it, and the server must find the robot before reading its first message.
+SESSION_KEY = "armory-session"
+
+# Stream metadata key of the auth token (--auth_token_file): sent on every Stream as well as in
+# RegisterRequest.auth_token, so that a session id alone does not open a stream.
+TOKEN_KEY = "armory-token"
+
+# Largest message either side sends or accepts unless told otherwise (the server's
+# --max_message_mb, Connection(max_message_bytes=...)). An observation carries camera frames,
+# raw unless the robot JPEG-encodes them: gRPC's own 4 MiB refuses a single raw 1080p RGB frame
+# (6.2 MiB); 16 MiB holds two, and bounds what one message can make the other side buffer.
+DEFAULT_MAX_MESSAGE_BYTES = 16 << 20
+
+# A RobotMessage whose first field is an ExecutionReport larger than this is refused before
+# parsing: the server reads at most 64 receipts (~2 KiB), and parsing a 16 MiB report of 8.4 M
+# receipts held the GIL for seconds and cost ~400 MiB (honest robots starved 7-8 % in the
+# adversarial bench).
+MAX_REPORT_BYTES = 64 << 10
