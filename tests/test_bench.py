@@ -119,5 +119,8 @@ def test_short_live_bench_matches_the_simulator(tmp_path):
     for tier in ("fast", "slow"):
         assert r["tiers"][tier]["starvation_pct"] < 30
         assert abs(r["tiers"][tier]["starvation_pct"] - r["sim"][tier]) < 10
+        # Every robot switches chunks many times in 6 s: the seam is measured (a finite jump).
+        assert r["tiers"][tier]["seam_jump_mean"] >= 0.0 and r["tiers"][tier]["seam_jump_p95"] >= 0.0
+        assert all(s["seams"] > 5 for s in r["per_robot"] if s["tier"] == tier)
     assert sum(r["batch_sizes"].values()) > 20 and 0 < r["cpu_busy_pct"] < 100
     assert (tmp_path / "r.json").is_file()

@@ -62,6 +62,37 @@ def test_buffer_reports_late_chunks_as_unused_and_clear_drops_everything():
     assert buf.action_for(2) is None
 
 
+def test_buffer_measures_the_seam_at_every_switch_to_a_newer_chunk():
+    def chunk(i_start: int, y: float, dx: float = 0.0, n: int = 10) -> np.ndarray:
+        """Actions a(i) = (i + dx, y) for the absolute indices i_start .. i_start + n - 1."""
+        return np.stack([np.arange(i_start, i_start + n) + dx, np.full(n, y)], axis=1)
+
+    buf = ActionBuffer(h_max=4)
+    buf.add(0, 0, chunk(0, 0.0), 0.0)
+    buf.action_for(0)
+    buf.action_for(1)
+    assert buf.seam_stats()["seams"] == 0  # the first chunk is no seam
+    buf.add(1, 1, chunk(1, 4.0), 0.1)  # disagrees with the old chunk by (0, 4) at every index
+    assert buf.action_for(2)[1] == 4.0  # switch at index 2: jump 4
+    buf.action_for(3)
+    buf.add(2, 2, chunk(2, 0.0, dx=3.0), 0.2)  # switch at index 4: (4, 4) -> (7, 0), jump 5
+    buf.action_for(4)
+    stats = buf.seam_stats()
+    assert stats["seams"] == 2 and stats["seam_jump_mean"] == pytest.approx(4.5)
+    assert 4.0 < stats["seam_jump_p95"] <= 5.0
+    buf.add(3, 5, chunk(5, 0.0, n=1), 0.3)  # a one-action chunk: holds index 5 only
+    buf.action_for(5)
+    assert buf.seam_stats()["seams"] == 3  # chunk 2 -> 3 at index 5: (8, 0) -> (5, 0), jump 3
+    assert buf.action_for(6) is None  # chunk 2 covers [2, 6), chunk 3 [5, 6): the robot starves
+    buf.add(4, 6, chunk(6, 0.0), 0.5)
+    buf.action_for(6)  # chunk 3 holds no action for index 6: a switch after a gap, no seam value
+    assert buf.seam_stats()["switches_after_gap"] == 1 and buf.seam_stats()["seams"] == 3
+    buf.clear()
+    buf.add(5, 20, chunk(20, 9.0), 1.0)
+    buf.action_for(20)
+    assert buf.seam_stats()["seams"] == 3  # a new session's first chunk is no seam
+
+
 def test_feature_map_follows_lerobot_conventions():
     fmap = FeatureMap.for_robot({"x.pos": float, "y.pos": float, "front": (32, 32, 3)}, {"x.pos": float, "y.pos": float})
     assert fmap.wire_features() == {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}

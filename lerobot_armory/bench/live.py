@@ -253,6 +253,9 @@ def _record(
                 "starvation_pct": float(np.mean([s["starvation_pct"] for s in rows])),
                 "executed_s": float(sum(s["executed_steps"] / s["fps"] for s in rows)),
                 "successes_per_min": float(np.mean([s["successes_per_min"] for s in rows])),
+                # The robots' own seam measurement (robot/actions.py): action jump at chunk switches.
+                "seam_jump_mean": _mean_of(rows, "seam_jump_mean"),
+                "seam_jump_p95": _mean_of(rows, "seam_jump_p95"),
             }
     sizes: dict[str, int] = {}
     for b in batches:
@@ -285,6 +288,12 @@ def _record(
         "saturated": False,
         "per_robot": stats,
     }
+
+
+def _mean_of(rows: list[dict], key: str) -> float | None:
+    """Mean of ``key`` over the robots that measured it (None: no robot did)."""
+    values = [r[key] for r in rows if r.get(key) is not None]
+    return float(np.mean(values)) if values else None
 
 
 def batch_overhead_ms(batches: list[dict], profile: LatencyProfile) -> float:
@@ -327,7 +336,7 @@ def table(runs: list[dict[str, Any]]) -> str:
     per minute, one row per run."""
     header = (
         f"{'scheduler':<12} {'seed':>4} {'fast starv% live/sim':>21} {'slow starv% live/sim':>21} "
-        f"{'succ/min fast':>13} {'succ/min slow':>13} {'mean b':>6} {'ovh ms':>6} {'cpu% bench/machine':>18}"
+        f"{'succ/min fast':>13} {'succ/min slow':>13} {'seam fast/slow':>14} {'mean b':>6} {'ovh ms':>6} {'cpu% bench/machine':>18}"
     )
     lines = [header, "-" * len(header)]
     for r in runs:
@@ -337,11 +346,13 @@ def table(runs: list[dict[str, Any]]) -> str:
             sim = r.get("sim", {}).get(tier)
             cells.append("-" if live is None else f"{live['starvation_pct']:6.1f} / {sim:5.1f}" if sim is not None else f"{live['starvation_pct']:6.1f}")
         succ = [f"{r['tiers'][t]['successes_per_min']:.1f}" if t in r["tiers"] else "-" for t in TIERS]
+        seams = [r["tiers"].get(t, {}).get("seam_jump_mean") for t in TIERS]
+        seam = "/".join("-" if v is None else f"{v:.3f}" for v in seams)
         sizes = {int(k): v for k, v in r["batch_sizes"].items()}
         mean_b = sum(k * v for k, v in sizes.items()) / max(1, sum(sizes.values()))
         flag = " SATURATED" if r["saturated"] else ""
         lines.append(
-            f"{r['label']:<12} {r['seed']:>4} {cells[0]:>21} {cells[1]:>21} {succ[0]:>13} {succ[1]:>13} {mean_b:>6.2f} "
+            f"{r['label']:<12} {r['seed']:>4} {cells[0]:>21} {cells[1]:>21} {succ[0]:>13} {succ[1]:>13} {seam:>14} {mean_b:>6.2f} "
             f"{r.get('batch_overhead_ms', 0.0):>6.1f} {r['cpu_busy_pct']:>9.0f}/{r.get('machine_busy_pct', 0.0):<8.0f}{flag}"
         )
     return "\n".join(lines)

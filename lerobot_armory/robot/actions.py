@@ -4,14 +4,24 @@ Pure bookkeeping, no I/O: chunks go in as they arrive; at each tick the robot as
 action at its current index and gets the action from the *newest* arrived chunk covering it,
 never beyond the chunk's first ``h_max`` actions. Each chunk's fate (first executed index, or
 never executed) is kept for the execution reports the server uses to estimate delays.
+
+It also measures the *seams*: at every switch from the chunk being executed to a newer one, the
+jump ``‖a_new(i) − a_old(i)‖`` between the two chunks' actions at the switch index ``i`` (what the
+arm would have done against what it does). A large jump is the discontinuity real-time chunking
+removes; switches after the old chunk ran out (the robot starved in between) have no old action
+at ``i`` and are counted apart.
 """
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+
+# Seam jumps kept for the percentile (the mean covers every switch): hours of switches at 30 Hz.
+MAX_SEAMS_KEPT = 10_000
 
 
 @dataclass
@@ -39,6 +49,11 @@ class ActionBuffer:
     pending_receipts: list[tuple[int, float, int]] = field(default_factory=list)
     first_executed_index: Counter = field(default_factory=Counter)
     received: int = 0
+    seams: deque = field(default_factory=lambda: deque(maxlen=MAX_SEAMS_KEPT))  # recent seam jumps
+    seam_count: int = 0
+    seam_sum: float = 0.0
+    switches_after_gap: int = 0  # switches where the old chunk had no action at the switch index
+    _current: BufferedChunk | None = None  # the chunk the last executed action came from
 
     def add(self, chunk_id: int, i_start: int, actions: np.ndarray, arrival_time: float) -> None:
         """A chunk arrived (robot clock)."""
@@ -63,11 +78,38 @@ class ActionBuffer:
         self.chunks = keep
         if best is None:
             return None
+        if best is not self._current:
+            self._seam(self._current, best, index)
+            self._current = best
         if best.first_executed is None:
             best.first_executed = index - best.i_start
             self.first_executed_index[str(best.first_executed)] += 1
             self.pending_receipts.append((best.chunk_id, best.arrival_time, best.first_executed))
         return best.actions[index - best.i_start]
+
+    def _seam(self, old: BufferedChunk | None, new: BufferedChunk, index: int) -> None:
+        """Record the jump of a switch from ``old`` to ``new`` at ``index`` (none for the first chunk)."""
+        if old is None:
+            return
+        k = index - old.i_start
+        if not 0 <= k < len(old.actions):
+            self.switches_after_gap += 1
+            return
+        jump = float(np.linalg.norm(np.asarray(new.actions[index - new.i_start], np.float64) - old.actions[k]))
+        self.seams.append(jump)
+        self.seam_count += 1
+        self.seam_sum += jump
+
+    def seam_stats(self) -> dict[str, Any]:
+        """``seam_jump_mean`` (every switch), ``seam_jump_p95`` (the last MAX_SEAMS_KEPT), counts;
+        None where no switch happened."""
+        kept = np.fromiter(self.seams, float) if self.seams else None
+        return {
+            "seam_jump_mean": self.seam_sum / self.seam_count if self.seam_count else None,
+            "seam_jump_p95": float(np.percentile(kept, 95)) if kept is not None else None,
+            "seams": self.seam_count,
+            "switches_after_gap": self.switches_after_gap,
+        }
 
     def _retire(self, c: BufferedChunk) -> None:
         if c.first_executed is None:
@@ -85,3 +127,4 @@ class ActionBuffer:
             self._retire(c)
         self.chunks = []
         self.pending_receipts = []
+        self._current = None  # the next session's first chunk is no seam

@@ -363,6 +363,7 @@ class ArmoryClient:
         """The stats JSON of the run so far."""
         with self._lock:
             first = dict(self.buffer.first_executed_index)
+            seams = self.buffer.seam_stats()
         return {
             "robot_id": self.identity.robot_id,
             "tier": self.identity.tier,
@@ -373,4 +374,5 @@ class ArmoryClient:
             "chunks_received": self.chunks_received,
             "first_executed_index": first,
             "reconnects": self.reconnects,
+            **seams,
         }
