@@ -97,10 +97,6 @@ class Dispatcher:
         self.scheduler = scheduler
         self.isolate_failures = isolate_failures
 
-    @property
-    def max_batch_size(self) -> int:
-        return self.scheduler.max_batch_size
-
     @staticmethod
     def has_work(mirrors: Sequence[RobotMirror]) -> bool:
         """Whether some robot has a useful request (SPEC §3): the device should not idle."""
@@ -131,9 +127,9 @@ class Dispatcher:
         for request in plan.requests:
             request.mirror.on_complete(request.chunk, t_done)
 
-    def cancel(self, plan: Plan, requests: Sequence[Request] | None = None) -> None:
-        """The plan's batch (or only ``requests`` of it) will never be delivered."""
-        for request in plan.requests if requests is None else requests:
+    def cancel(self, plan: Plan) -> None:
+        """The plan's batch will never be delivered."""
+        for request in plan.requests:
             request.mirror.on_cancel(request.chunk, request.previous_last_served)
 
     # ---- the decision -------------------------------------------------------------------------
