@@ -542,6 +542,28 @@ class RobotTimeline:
             self.chunks = [c for c in self.chunks if c.end > self.index]
 
 
+@dataclass(frozen=True)
+class ExecutionPrefix:
+    """What a robot executes from a booked chunk's first index on, as its mirror predicts it
+    (real-time chunking's two inputs, SPEC §2 applied to one request).
+
+    Attributes:
+        inference_delay: steps the robot executes (from older chunks) before the booked chunk
+            arrives; its first executed action is this one.
+        segments: ``(chunk_id, offset, count)`` in index order from the booked chunk's
+            ``i_start``: the robot executes ``count`` actions of chunk ``chunk_id`` from
+            ``offset`` on, had the booked chunk never come. Ends where the robot would run dry
+            (or after one chunk length).
+    """
+
+    inference_delay: int
+    segments: tuple[tuple[int, int, int], ...]
+
+    @property
+    def length(self) -> int:
+        return sum(n for _, _, n in self.segments)
+
+
 # --------------------------------------------------------------------------------------------
 # The server-side mirror of one robot
 
@@ -768,6 +790,30 @@ class RobotMirror:
         tl = self.timeline()
         tl.run_to(tl.ticks_before(now))
         return tl.index
+
+    def prefix_of(self, chunk: Chunk) -> ExecutionPrefix | None:
+        """What the robot executes from ``chunk.i_start`` on while ``chunk`` (booked by the last
+        dispatch, still from the latest observation) is computed and sent, through
+        :func:`advance` (the chunks switched to, with the delay until ``chunk`` arrives).
+        None when the robot would execute nothing of another chunk from there.
+        """
+        if self.obs_index is None or chunk.i_start != self.obs_index:
+            raise ValueError("a prefix is taken right after its chunk was booked from the latest observation")
+        tl = RobotTimeline(self.spec.fps, self.obs_anchor, self.obs_index, 0, [c for c in self.queue if c.chunk_id != chunk.chunk_id])
+        ticks = tl.tick_chunks(0)
+        arrival = max(0, tick_of(chunk.t_arrival, self.obs_anchor, self.spec.fps))
+        delay = advance(self.obs_index, ticks, arrival) - self.obs_index
+        uses: list[tuple[int, int]] = []
+        end = advance(self.obs_index, ticks, ticks_until_dry(self.obs_index, ticks), lambda pos, off: uses.append((pos, off)))
+        end = min(end, chunk.i_start + chunk.h)
+        segments = []
+        for k, (pos, offset) in enumerate(uses):
+            used = tl.chunks[pos]
+            start = used.i_start + offset
+            stop = min(end, tl.chunks[uses[k + 1][0]].i_start + uses[k + 1][1]) if k + 1 < len(uses) else end
+            if stop > start:
+                segments.append((used.chunk_id, offset, stop - start))
+        return ExecutionPrefix(delay, tuple(segments)) if segments else None
 
     def deadline(self) -> float:
         """Server-clock time at which the robot runs dry if no new chunk is generated: the tick

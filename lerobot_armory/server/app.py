@@ -37,6 +37,7 @@ from lerobot_armory.server.fleet_policy import FleetPolicy
 from lerobot_armory.server.logs import configure_logging
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
 from lerobot_armory.server.metrics import ServerMetrics
+from lerobot_armory.server.rtc import RTCOptions
 from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
@@ -64,6 +65,10 @@ class ServerConfig:
             (``--policy.dtype=bfloat16``, ``--policy.compile_model=true``,
             ``--policy.num_inference_steps=5``, ``--policy.n_action_steps=...``).
         engine: ``--engine.emulate_profile=NAME|FILE`` replays a latency profile (see emulation.py).
+        rtc: ``--rtc.enabled=true``: real-time chunking from the mirror (π0, π0.5, SmolVLA): each
+            chunk is guided toward what its robot executes while it is computed and sent, with
+            ``--rtc.execution_horizon``, ``--rtc.max_guidance_weight`` and
+            ``--rtc.prefix_attention_schedule`` as in LeRobot (see server/rtc.py).
         scheduler: ``--scheduler.type=rr|edf|lookahead`` and its knobs.
         max_batch_size: batch cap b.
         host: bind address (loopback unless told otherwise).
@@ -92,6 +97,7 @@ class ServerConfig:
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
     engine: EngineOptions = field(default_factory=EngineOptions)
+    rtc: RTCOptions = field(default_factory=RTCOptions)
     scheduler: SchedulerConfig = field(default_factory=LookaheadConfig)
     max_batch_size: int = 3
     host: str = "127.0.0.1"
@@ -131,6 +137,7 @@ class ServerConfig:
             raise ConfigError("metrics_port", f"must be in 0..65535, got {self.metrics_port}")
         if self.max_obs_rate_hz < 0:
             raise ConfigError("max_obs_rate_hz", f"must be >= 0, got {self.max_obs_rate_hz}")
+        self.rtc.validate()
 
 
 class ArmoryServer:
@@ -319,7 +326,7 @@ def serve(cfg: ServerConfig) -> None:
     tune_process()
     configure_logging(cfg.log_level, cfg.log_format)
     log.info("loading policy %s ...", cfg.policy.path)
-    engine = PolicyEngine(cfg.policy)
+    engine = PolicyEngine(cfg.policy, cfg.rtc)
     log.info("warming up b = 1..%d ...", cfg.max_batch_size)
     on_startup_device(f"warming up b = 1..{cfg.max_batch_size}", engine.warmup, cfg.max_batch_size)
     serving_engine: Engine = engine

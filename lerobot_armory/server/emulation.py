@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -45,12 +46,34 @@ class EmulatedLatencyEngine:
     def label(self) -> str:
         return f"{self.profile.name} (emulated latency)"
 
+    @property
+    def rtc(self) -> Any:
+        """The wrapped engine's RTC processor (None: no real-time chunking)."""
+        return getattr(self.engine, "rtc", None)
+
     def infer(
         self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
     ) -> np.ndarray:
         start = self.clock()
         out = self.engine.infer(observations, tasks, noise_seeds)
-        target = self.profile.latency_s(len(observations))
+        self._hold(start, len(observations))
+        return out
+
+    def infer_guided(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None,
+        prefixes: Sequence[Any],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        start = self.clock()
+        out = self.engine.infer_guided(observations, tasks, noise_seeds, prefixes)  # type: ignore[attr-defined]
+        self._hold(start, len(observations))
+        return out
+
+    def _hold(self, start: float, size: int) -> None:
+        """Sleep until the profile's latency for ``size`` has passed since ``start``."""
+        target = self.profile.latency_s(size)
         remaining = target - (self.clock() - start)
         self.batches += 1
         if remaining > 0:
@@ -58,4 +81,3 @@ class EmulatedLatencyEngine:
         else:
             self.overruns += 1
             self.worst_overrun_ms = max(self.worst_overrun_ms, -remaining * 1000.0)
-        return out

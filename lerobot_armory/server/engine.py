@@ -47,6 +47,7 @@ import numpy as np
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.server import rtc as rtc_mod
 from lerobot_armory.wire import FeatureSpec
 
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ class PolicyEngine:
             or the policy does not predict chunks.
     """
 
-    def __init__(self, options: PolicyOptions) -> None:
+    def __init__(self, options: PolicyOptions, rtc: rtc_mod.RTCOptions | None = None) -> None:
         import torch
 
         if not options.path:
@@ -126,6 +127,12 @@ class PolicyEngine:
         self.path = options.path
         self.overrides = list(options.overrides)
         self.config, self.policy, self.preprocessor, self.postprocessor = _load(options.path, self.device, options.overrides)
+        # A server never trains: without gradients on the weights, RTC's guidance step records no
+        # autograd graph through the model.
+        for param in self.policy.parameters():
+            param.requires_grad_(False)
+        self.rtc_options = rtc if rtc is not None and rtc.enabled else None
+        self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
         if action is None:
@@ -142,12 +149,17 @@ class PolicyEngine:
         self.compiled_kept: bool | None = None  # after warmup(): compiled model kept (None: not compiled)
         # The chunk size is whatever predict_action_chunk really returns (checked by a dry run).
         self.chunk_size = self._dry_run()
+        if self.rtc is not None:
+            self._check_rtc_reached()
 
     @property
     def description(self) -> str:
         notes = [f"dtype={self.config.dtype}"] if isinstance(getattr(self.config, "dtype", None), str) else []
         if self.compiled_kept is not None:
             notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
+        if self.rtc_options is not None:
+            o = self.rtc_options
+            notes.append(f"RTC from the mirror: horizon {o.execution_horizon}, {o.prefix_attention_schedule.upper()}, max guidance {o.max_guidance_weight:g}")
         return f"{self.config.type} from {self.path} on {self.device}" + (f" ({', '.join(notes)})" if notes else "")
 
     def _dry_run(self) -> int:
@@ -164,6 +176,21 @@ class PolicyEngine:
                 f"{self.path}: predict_action_chunk returned shape {list(out.shape)}, expected (1, H, {self.action_dim})",
             )
         return int(out.shape[1])
+
+    def _check_rtc_reached(self) -> None:
+        """A guided batch of two must reach the per-row processor (a policy whose sampler does not
+        forward LeRobot's RTC arguments is refused here, not served unguided)."""
+        assert self.rtc is not None
+        before = self.rtc.calls
+        self.infer_guided([self.example_observation(seed=k) for k in range(2)], ["dry run"] * 2, None, self.example_prefixes(2))
+        if self.rtc.calls == before:
+            raise ConfigError("rtc.enabled", f"{self.config.type}: the policy's sampler never applied the RTC guidance")
+
+    def example_prefixes(self, batch_size: int) -> list[rtc_mod.Prefix]:
+        """Synthetic RTC prefixes for profiling: a full leftover, the delay a quarter of a chunk."""
+        rng = np.random.default_rng(batch_size)
+        h = self.chunk_size
+        return [rtc_mod.Prefix(rng.standard_normal((h, self.action_dim)).astype(np.float32), h // 4) for _ in range(batch_size)]
 
     def example_observation(self, seed: int) -> dict[str, np.ndarray]:
         """A random observation with the wire features' dtypes and shapes (profiling, tests)."""
@@ -198,7 +225,28 @@ class PolicyEngine:
         ``tasks[k]`` is row k's prompt. ``noise_seeds[k]`` fixes row k's initial noise for a
         flow-matching policy (default: 0..B-1); other policies ignore it.
         """
-        return self.on_device(self._infer, observations, tasks, noise_seeds)
+        return self.on_device(self._infer, observations, tasks, noise_seeds)[0]
+
+    def infer_guided(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None,
+        prefixes: Sequence[rtc_mod.Prefix | None],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One batched forward pass with real-time chunking: row k guided by ``prefixes[k]``
+        (None: unguided). Returns ``(actions, model_actions)``: the chunks as robots get them,
+        and the same chunks in the policy's own action space (the next leftovers are cut from
+        those, as LeRobot's ``ActionQueue`` keeps its "original" actions).
+
+        Raises:
+            RuntimeError: the engine was built without ``--rtc.enabled``.
+        """
+        if self.rtc is None:
+            raise RuntimeError("infer_guided needs an engine built with --rtc.enabled=true")
+        if len(prefixes) != len(observations):
+            raise ValueError(f"{len(prefixes)} prefixes for {len(observations)} observations")
+        return self.on_device(self._infer, observations, tasks, noise_seeds, prefixes)
 
     def on_device(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """Run ``fn`` on the engine's device thread and return its result (benchmarks time a bare
@@ -210,23 +258,31 @@ class PolicyEngine:
         observations: Sequence[dict[str, np.ndarray]],
         tasks: Sequence[str],
         noise_seeds: Sequence[int] | None,
-    ) -> np.ndarray:
+        prefixes: Sequence[rtc_mod.Prefix | None] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         import torch
 
         self._set_thread_count()
         try:
             batch = self.to_batch(observations)
             batch["task"] = list(tasks)
-            kwargs = {}
+            kwargs: dict[str, Any] = {}
             if self.noise_shape is not None:
                 seeds = range(len(observations)) if noise_seeds is None else noise_seeds
                 kwargs["noise"] = self._noise(seeds)
-            with torch.inference_mode():
+            guided = prefixes is not None
+            if guided:
+                assert self.rtc_options is not None
+                kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, self.rtc_options.execution_horizon, self.device))
+            # RTC's guidance takes a gradient (of its own error, not of the weights), which
+            # inference mode forbids: guided batches run under no_grad instead.
+            with torch.no_grad() if guided else torch.inference_mode():
                 processed = self.preprocessor(batch)
-                actions = self.policy.predict_action_chunk(processed, **kwargs)
-                actions = self.postprocessor(actions)
+                model_actions = self.policy.predict_action_chunk(processed, **kwargs)
+                actions = self.postprocessor(model_actions.clone() if guided else model_actions)
             # The one synchronisation of the batch (a no-op copy on the CPU).
-            return actions.detach().to("cpu", torch.float32).numpy()
+            out = actions.detach().to("cpu", torch.float32).numpy()
+            return out, (model_actions.detach().to("cpu", torch.float32).numpy() if guided else None)
         except BaseException:
             if self._pinned:  # a failed batch must not leave copies from the staging buffers in flight
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
@@ -328,10 +384,14 @@ class PolicyEngine:
         out = []
         for b in range(1, max_batch_size + 1):
             obs = [self.example_observation(seed=k) for k in range(b)]
+            prefixes = self.example_prefixes(b) if self.rtc is not None else None  # RTC's cost is in the profile
             times = []
             for _ in range(max(1, reps)):
                 start = time.perf_counter()
-                self.infer(obs, [what or "warm-up"] * b)
+                if prefixes is None:
+                    self.infer(obs, [what or "warm-up"] * b)
+                else:
+                    self.infer_guided(obs, [what or "warm-up"] * b, None, prefixes)
                 times.append((time.perf_counter() - start) * 1000.0)
             out.append(stat(times))
             if log_progress:

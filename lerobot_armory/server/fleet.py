@@ -142,6 +142,9 @@ class RobotSession:
     rate: Any = None  # the session's observation RateLimiter, if limits are on
     rate_notified: float = 0.0
     first_executed: collections.Counter = field(default_factory=collections.Counter)
+    # With RTC: the chunks sent, in the policy's action space, by chunk id (the leftovers of the
+    # next requests are cut from them); only chunks still in the mirror's queue are kept.
+    model_chunks: dict[int, np.ndarray] = field(default_factory=dict)
     # who registered it (a digest of the token; None without auth) and what the policy granted
     credential: bytes | None = None
     grant: pb.Grant | None = None

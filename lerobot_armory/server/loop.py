@@ -21,11 +21,13 @@ from typing import Protocol
 import numpy as np
 
 from lerobot_armory.dispatch import Dispatcher, Plan
+from lerobot_armory.mirror import Chunk, RobotMirror
 from lerobot_armory.latency import OnlineLatency
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.server.engine import noise_seed
 from lerobot_armory.server.fleet import Fleet, RobotSession
+from lerobot_armory.server.rtc import Prefix
 from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)
@@ -37,6 +39,8 @@ DRIFT_WARN_PCT = 25.0
 # failing every robot's every request forever. One failure alone is not enough to tell: a CUDA
 # out-of-memory error passes, an illegal memory access does not.
 MAX_CONSECUTIVE_FAILURES = 20
+# With RTC, sent chunks kept per robot for the next leftovers (the mirror's queue holds fewer).
+MAX_MODEL_CHUNKS = 16
 
 
 class Engine(Protocol):
@@ -63,6 +67,7 @@ class Batch:
     plan: Plan
     sessions: list[RobotSession]
     observations: list[dict[str, np.ndarray]]
+    prefixes: list[Prefix | None] | None = None  # with RTC: what each robot executes meanwhile
 
 
 @dataclass
@@ -126,6 +131,8 @@ class ServingLoop:
         self.latency = latency
         self._drift_warned = False
         self._seeds = takes_noise_seeds(engine)
+        # Real-time chunking: the engine guides each chunk by the prefix the mirror predicts.
+        self.rtc = getattr(engine, "rtc", None) is not None
         self._failures_in_a_row = 0
         self.stats = LoopStats(started=fleet.clock())
         self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
@@ -186,7 +193,8 @@ class ServingLoop:
             self.stats.decision_cpu_ms.append(plan.decision_cpu_s * 1000.0)
             self.stats.failed_decisions += plan.fell_back
             chosen = [by_id[r.robot_id] for r in plan.requests]
-            return Batch(plan, chosen, [s.latest for s in chosen])
+            prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if self.rtc else None
+            return Batch(plan, chosen, [s.latest for s in chosen], prefixes)
 
     def _serve(self, batch: Batch) -> None:
         fleet = self.fleet
@@ -194,7 +202,11 @@ class ServingLoop:
         t_start = fleet.clock()
         try:
             tasks = [s.task for s in batch.sessions]
-            if self._seeds:
+            model_actions = None
+            if batch.prefixes is not None:
+                seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
+                actions, model_actions = self.engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)  # type: ignore[attr-defined]
+            elif self._seeds:
                 seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
                 actions = self.engine.infer(batch.observations, tasks, seeds)
             else:
@@ -212,6 +224,8 @@ class ServingLoop:
                 if fleet.sessions.get(session.session_id) is not session:
                     continue  # the robot left while its batch ran: its chunk goes nowhere
                 chunk = request.chunk
+                if model_actions is not None:
+                    _keep_model_chunk(session, chunk.chunk_id, model_actions[k])
                 msg = pb.ServerMessage(
                     chunk=pb.ActionChunk(
                         chunk_id=chunk.chunk_id,
@@ -309,3 +323,30 @@ class ServingLoop:
                     ok,
                 )
             )
+
+
+def _prefix(session: RobotSession, mirror: RobotMirror, chunk: Chunk) -> Prefix | None:
+    """The RTC prefix of one request: the mirror's predicted delay and the actions it says the
+    robot executes meanwhile, cut from the chunks sent to it (None: nothing to continue from)."""
+    predicted = mirror.prefix_of(chunk)
+    if predicted is None:
+        return None
+    pieces = []
+    for chunk_id, offset, count in predicted.segments:
+        sent = session.model_chunks.get(chunk_id)
+        if sent is None or offset >= len(sent):
+            break  # not a chunk of this session's (sent before a reconnect): continue from what is known
+        pieces.append(sent[offset : offset + count])
+    if not pieces:
+        return None
+    return Prefix(np.concatenate(pieces), predicted.inference_delay)
+
+
+def _keep_model_chunk(session: RobotSession, chunk_id: int, actions: np.ndarray) -> None:
+    """Keep a sent chunk for the next leftovers; drop those the mirror no longer holds."""
+    session.model_chunks[chunk_id] = actions
+    live = {c.chunk_id for c in session.mirror.queue}
+    for old in [cid for cid in session.model_chunks if cid not in live and cid != chunk_id]:
+        del session.model_chunks[old]
+    while len(session.model_chunks) > MAX_MODEL_CHUNKS:  # oldest first (insertion order)
+        del session.model_chunks[next(iter(session.model_chunks))]

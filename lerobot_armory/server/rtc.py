@@ -1,0 +1,223 @@
+"""Real-time chunking (RTC) across the network, one prefix per robot in a batch.
+
+RTC (Black et al., 2025) generates a new chunk with its first actions guided toward what the
+robot will execute anyway while the chunk is being computed and sent, so that the switch to the
+new chunk does not jump. It needs two numbers per request: ``inference_delay`` (steps the robot
+executes before the chunk arrives) and ``prev_chunk_left_over`` (those actions, and the rest of
+what it would go on executing). LeRobot 0.6 implements it for local inference only
+(``lerobot/policies/rtc/modeling_rtc.py``), with one delay per call. Here the mirror predicts both
+for every robot of a batch (:meth:`lerobot_armory.mirror.RobotMirror.prefix_of`) and this module
+hands them to the policy:
+
+- :class:`BatchedRTCProcessor` subclasses LeRobot's ``RTCProcessor``: the policy's own sampling
+  loop (``euler_integrate``) calls its ``denoise_step`` at every flow step, as it calls LeRobot's.
+  Given one :class:`RowPrefixes` it builds a ``(B, T, 1)`` stack of LeRobot's own prefix weights
+  (``get_prefix_weights(delay_b, horizon_b, T)``, per row) and applies LeRobot's guidance to the
+  whole batch in one pass; given a plain integer delay it is LeRobot's processor, untouched.
+  Rows are independent in the denoiser, so row ``b`` equals LeRobot's single-robot RTC with row
+  ``b``'s delay and leftover (``tests/test_rtc.py`` checks it, on the guidance step and through a
+  whole π0.5 forward pass).
+- :func:`enable` installs it on a policy that supports RTC (π0, π0.5, SmolVLA: the policies whose
+  ``predict_action_chunk`` forwards ``inference_delay`` / ``prev_chunk_left_over`` to that loop)
+  and refuses any other policy with one line.
+
+Leftovers live in the policy's own action space (the output of ``predict_action_chunk``, before
+the post-processor un-normalises it), as in LeRobot's ``ActionQueue.get_left_over``.
+
+Note on cost: LeRobot 0.6.1 evaluates the velocity before it marks ``x_t`` as requiring a
+gradient, so its guidance's vector-Jacobian product is taken through ``x_t - t·v_t`` with ``v_t``
+held fixed (the correction is the weighted error itself), not through the denoiser. We keep those
+semantics (equality with LeRobot is the contract); the engine freezes the policy's parameters, so
+no autograd graph is recorded through the model either, and RTC's extra cost is small. It is
+profiled into ``d_infer(b)`` all the same (``PolicyEngine.profile`` runs guided batches).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lerobot_armory.errors import ConfigError
+
+SCHEDULES = ("ZEROS", "ONES", "LINEAR", "EXP")
+
+
+@dataclass
+class RTCOptions:
+    """``--rtc.*``: real-time chunking from the mirror (LeRobot's ``RTCConfig`` fields).
+
+    Attributes:
+        enabled: guide every chunk toward what its robot executes meanwhile.
+        execution_horizon: how far into the new chunk the guidance reaches (steps); LeRobot's
+            default. Capped per robot by the length of what it would execute.
+        max_guidance_weight: clamp of the guidance weight (LeRobot's ``max_guidance_weight``).
+        prefix_attention_schedule: how the guidance fades after the delay: ZEROS (only the
+            delayed steps), ONES (full to the horizon), LINEAR or EXP (fading to the horizon).
+    """
+
+    enabled: bool = False
+    execution_horizon: int = 10
+    max_guidance_weight: float = 10.0
+    prefix_attention_schedule: str = "LINEAR"
+
+    def validate(self) -> None:
+        if self.execution_horizon < 1:
+            raise ConfigError("rtc.execution_horizon", f"must be >= 1, got {self.execution_horizon}")
+        if not self.max_guidance_weight > 0:
+            raise ConfigError("rtc.max_guidance_weight", f"must be > 0, got {self.max_guidance_weight}")
+        if self.prefix_attention_schedule.upper() not in SCHEDULES:
+            raise ConfigError("rtc.prefix_attention_schedule", f"must be one of {', '.join(SCHEDULES)}, got {self.prefix_attention_schedule!r}")
+
+    def lerobot_config(self) -> Any:
+        """The equivalent ``lerobot.policies.rtc.RTCConfig``."""
+        from lerobot.configs import RTCAttentionSchedule
+        from lerobot.policies.rtc.configuration_rtc import RTCConfig
+
+        return RTCConfig(
+            enabled=True,
+            prefix_attention_schedule=RTCAttentionSchedule[self.prefix_attention_schedule.upper()],
+            max_guidance_weight=float(self.max_guidance_weight),
+            execution_horizon=int(self.execution_horizon),
+        )
+
+
+@dataclass(frozen=True)
+class Prefix:
+    """What one robot will execute from its chunk's first index on, as the mirror predicts it.
+
+    Attributes:
+        leftover: ``(L, A)`` actions in the policy's action space: the robot's actions at indices
+            ``i_start .. i_start + L - 1`` if the new chunk never came (L >= 1).
+        inference_delay: steps executed before the new chunk arrives (its first action executed
+            is ``inference_delay``).
+    """
+
+    leftover: np.ndarray
+    inference_delay: int
+
+
+@dataclass(frozen=True)
+class RowPrefixes:
+    """Per-row RTC parameters for one batch, passed where LeRobot passes ``inference_delay``
+    (LeRobot forwards it verbatim from ``predict_action_chunk`` to the processor).
+
+    ``horizons[b]`` is row b's execution horizon already capped by its leftover's length
+    (0: no leftover, no guidance for that row).
+    """
+
+    delays: tuple[int, ...]
+    horizons: tuple[int, ...]
+
+
+def unsupported_reason(policy: Any) -> str | None:
+    """Why ``--rtc.enabled`` cannot serve this policy (None: it can)."""
+    supports = getattr(policy, "supports_rtc", None)
+    name = getattr(getattr(policy, "config", None), "type", type(policy).__name__)
+    if not callable(supports) or not supports():
+        return f"{name} policies do not support real-time chunking (LeRobot's RTC: π0, π0.5, SmolVLA)"
+    if not callable(getattr(policy, "init_rtc_processor", None)) or not hasattr(getattr(policy, "model", None), "rtc_processor"):
+        return f"{name} implements RTC in its own way; batched per-robot RTC supports π0, π0.5 and SmolVLA"
+    return None
+
+
+def enable(policy: Any, options: RTCOptions) -> Any:
+    """Turn RTC on for ``policy`` with a :class:`BatchedRTCProcessor`; returns the processor.
+
+    Raises:
+        ConfigError: the policy does not support RTC (one line).
+    """
+    options.validate()
+    why = unsupported_reason(policy)
+    if why is not None:
+        raise ConfigError("rtc.enabled", why)
+    policy.config.rtc_config = options.lerobot_config()
+    processor = processor_class()(policy.config.rtc_config)
+    policy.rtc_processor = processor
+    policy.model.rtc_processor = processor
+    return processor
+
+
+@functools.cache
+def processor_class() -> type:
+    """:class:`BatchedRTCProcessor` (built on first use: LeRobot and torch load lazily)."""
+    import torch
+    from lerobot.policies.rtc.modeling_rtc import RTCProcessor
+
+    class BatchedRTCProcessor(RTCProcessor):
+        """LeRobot's ``RTCProcessor`` that also takes one delay and horizon per batch row."""
+
+        calls = 0  # guided denoising steps taken with per-row prefixes (a policy that never calls us is refused)
+
+        def denoise_step(
+            self,
+            x_t: torch.Tensor,
+            prev_chunk_left_over: torch.Tensor | None,
+            inference_delay: Any,
+            time: float,
+            original_denoise_step_partial: Any,
+            execution_horizon: int | None = None,
+        ) -> torch.Tensor:
+            if not isinstance(inference_delay, RowPrefixes) or prev_chunk_left_over is None:
+                return super().denoise_step(
+                    x_t, prev_chunk_left_over, inference_delay, time, original_denoise_step_partial, execution_horizon
+                )
+            self.calls += 1
+            rows, length, dim = x_t.shape
+            if len(inference_delay.delays) != rows or prev_chunk_left_over.shape[0] != rows:
+                raise ValueError(f"{len(inference_delay.delays)} prefixes for a batch of {rows}")
+            # LeRobot's own weights, one row per robot (a horizon of 0 gives an all-zero row).
+            weights = torch.stack(
+                [
+                    self.get_prefix_weights(d, h, length) if h > 0 else torch.zeros(length)
+                    for d, h in zip(inference_delay.delays, inference_delay.horizons, strict=True)
+                ]
+            ).to(x_t.device)[:, :, None]
+            leftover = torch.zeros(rows, length, dim, device=x_t.device)
+            leftover[:, : prev_chunk_left_over.shape[1], : prev_chunk_left_over.shape[2]] = prev_chunk_left_over
+            # From here on LeRobot's guidance, verbatim but for the (B, T, 1) weights.
+            x_t = x_t.clone().detach()
+            with torch.enable_grad():
+                v_t = original_denoise_step_partial(x_t)
+                x_t.requires_grad_(True)
+                x1_t = x_t - time * v_t
+                err = (leftover - x1_t) * weights
+                correction = torch.autograd.grad(x1_t, x_t, err.clone().detach(), retain_graph=False)[0]
+            tau = torch.as_tensor(1 - time)
+            max_weight = torch.as_tensor(self.rtc_config.max_guidance_weight)
+            inv_r2 = ((1 - tau) ** 2 + tau**2) / ((1 - tau) ** 2)
+            c = torch.nan_to_num((1 - tau) / tau, posinf=max_weight)
+            guidance_weight = torch.minimum(torch.nan_to_num(c * inv_r2, posinf=max_weight), max_weight)
+            return v_t - guidance_weight * correction
+
+    return BatchedRTCProcessor
+
+
+def guidance_kwargs(prefixes: Sequence[Prefix | None], chunk_size: int, horizon: int, device: Any) -> dict[str, Any]:
+    """The ``predict_action_chunk`` keyword arguments that guide each row by its own prefix.
+
+    Rows without a prefix (a robot's first chunk) get no guidance; a batch without any gets
+    none at all (LeRobot's unguided path).
+    """
+    import torch
+
+    if all(p is None for p in prefixes):
+        return {}
+    dim = max(p.leftover.shape[1] for p in prefixes if p is not None)
+    stacked = np.zeros((len(prefixes), chunk_size, dim), np.float32)
+    delays, horizons = [], []
+    for b, p in enumerate(prefixes):
+        if p is None:
+            delays.append(0)
+            horizons.append(0)
+            continue
+        n = min(len(p.leftover), chunk_size)
+        stacked[b, :n, : p.leftover.shape[1]] = p.leftover[:n]
+        # LeRobot caps the horizon by the leftover's length: nothing to merge beyond it.
+        horizons.append(min(horizon, n))
+        delays.append(max(0, int(p.inference_delay)))
+    leftover = torch.from_numpy(stacked).to(device)
+    return {"inference_delay": RowPrefixes(tuple(delays), tuple(horizons)), "prev_chunk_left_over": leftover}
