@@ -83,6 +83,8 @@ def test_buffer_measures_the_seam_at_every_switch_to_a_newer_chunk():
     buf.add(3, 5, chunk(5, 0.0, n=1), 0.3)  # a one-action chunk: holds index 5 only
     buf.action_for(5)
     assert buf.seam_stats()["seams"] == 3  # chunk 2 -> 3 at index 5: (8, 0) -> (5, 0), jump 3
+    # Each seam is logged with its new chunk's start and the offset switched at (for RTC's study).
+    assert buf.seam_stats()["seam_log"] == [[1, 1, 4.0], [2, 2, 5.0], [5, 0, 3.0]]
     assert buf.action_for(6) is None  # chunk 2 covers [2, 6), chunk 3 [5, 6): the robot starves
     buf.add(4, 6, chunk(6, 0.0), 0.5)
     buf.action_for(6)  # chunk 3 holds no action for index 6: a switch after a gap, no seam value

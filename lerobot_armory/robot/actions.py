@@ -53,6 +53,9 @@ class ActionBuffer:
     seam_count: int = 0
     seam_sum: float = 0.0
     switches_after_gap: int = 0  # switches where the old chunk had no action at the switch index
+    # (new chunk's i_start, offset of its first executed action, jump) of the recent seams: lets a
+    # benchmark relate each seam to what the server predicted for that chunk (RTC's delay).
+    seam_log: deque = field(default_factory=lambda: deque(maxlen=MAX_SEAMS_KEPT))
     _current: BufferedChunk | None = None  # the chunk the last executed action came from
 
     def add(self, chunk_id: int, i_start: int, actions: np.ndarray, arrival_time: float) -> None:
@@ -97,6 +100,7 @@ class ActionBuffer:
             return
         jump = float(np.linalg.norm(np.asarray(new.actions[index - new.i_start], np.float64) - old.actions[k]))
         self.seams.append(jump)
+        self.seam_log.append((new.i_start, index - new.i_start, jump))
         self.seam_count += 1
         self.seam_sum += jump
 
@@ -109,6 +113,7 @@ class ActionBuffer:
             "seam_jump_p95": float(np.percentile(kept, 95)) if kept is not None else None,
             "seams": self.seam_count,
             "switches_after_gap": self.switches_after_gap,
+            "seam_log": [list(x) for x in self.seam_log],
         }
 
     def _retire(self, c: BufferedChunk) -> None:

@@ -81,6 +81,7 @@ class BatchRecord:
     obs_recv: list[float]
     decision_ms: float
     ok: bool = True
+    rtc_delays: list[int | None] | None = None  # with RTC: each robot's predicted inference delay
 
 
 @dataclass
@@ -242,7 +243,7 @@ class ServingLoop:
             fleet.cond.notify_all()
         if self.latency is not None:
             self._learn(plan.size, t_done - t_start)
-        self._record(plan, t_start, t_done, ok=True)
+        self._record(plan, t_start, t_done, ok=True, prefixes=batch.prefixes)
 
     def _learn(self, size: int, seconds: float) -> None:
         """Feed one served batch to the latency model; hand a changed table to the scheduler.
@@ -309,7 +310,7 @@ class ServingLoop:
         self._last_end = t_end
         self._work_at_last_end = any(s.mirror.is_useful() for s in self.fleet.active())
 
-    def _record(self, plan: Plan, t_start: float, t_end: float, ok: bool) -> None:
+    def _record(self, plan: Plan, t_start: float, t_end: float, ok: bool, prefixes: list[Prefix | None] | None = None) -> None:
         if self.on_batch is not None:
             chunks = [r.chunk for r in plan.requests]
             self.on_batch(
@@ -321,25 +322,32 @@ class ServingLoop:
                     [c.obs_recv for c in chunks],
                     plan.decision_s * 1000.0,
                     ok,
+                    None if prefixes is None else [None if p is None else p.inference_delay for p in prefixes],
                 )
             )
 
 
 def _prefix(session: RobotSession, mirror: RobotMirror, chunk: Chunk) -> Prefix | None:
     """The RTC prefix of one request: the mirror's predicted delay and the actions it says the
-    robot executes meanwhile, cut from the chunks sent to it (None: nothing to continue from)."""
+    robot executes meanwhile, cut from the chunks sent to it (None: nothing to continue from).
+
+    The last piece runs on to the end of its chunk, past ``h_max`` where the robot itself would
+    stop: those actions are the policy's own continuation of the motion, and the new chunk,
+    which a robot with ``h_max < H`` switches to right there, should continue it too.
+    """
     predicted = mirror.prefix_of(chunk)
     if predicted is None:
         return None
     pieces = []
-    for chunk_id, offset, count in predicted.segments:
+    last = len(predicted.segments) - 1
+    for k, (chunk_id, offset, count) in enumerate(predicted.segments):
         sent = session.model_chunks.get(chunk_id)
         if sent is None or offset >= len(sent):
             break  # not a chunk of this session's (sent before a reconnect): continue from what is known
-        pieces.append(sent[offset : offset + count])
+        pieces.append(sent[offset:] if k == last else sent[offset : offset + count])
     if not pieces:
         return None
-    return Prefix(np.concatenate(pieces), predicted.inference_delay)
+    return Prefix(np.concatenate(pieces), predicted.inference_delay)  # cut to the chunk size by the engine
 
 
 def _keep_model_chunk(session: RobotSession, chunk_id: int, actions: np.ndarray) -> None:
