@@ -553,7 +553,9 @@ class ExecutionPrefix:
         segments: ``(chunk_id, offset, count)`` in index order from the booked chunk's
             ``i_start``: the robot executes ``count`` actions of chunk ``chunk_id`` from
             ``offset`` on, had the booked chunk never come. Ends where the robot would run dry
-            (or after one chunk length).
+            (or after one chunk length). A robot already dry at ``i_start`` executes nothing:
+            then the one segment is ``(chunk it ran out of, offset at i_start, 0)``, whose
+            actions past ``h_max`` the policy planned but the robot never executes.
     """
 
     inference_delay: int
@@ -625,6 +627,7 @@ class RobotMirror:
     _next_chunk_id: int = 0
     _awaiting: dict[int, Chunk] = field(default_factory=dict)  # sent chunks not yet reported, by id
     _progress_credit: float = 0.0  # steps the robot may still claim beyond elapsed real time
+    ran_out: Chunk | None = None  # the newest chunk the robot ran past (RTC continues its plan)
 
     # ---- events ------------------------------------------------------------------------------
 
@@ -767,6 +770,9 @@ class RobotMirror:
 
     def _prune(self, index: int) -> None:
         if any(c.end <= index for c in self.queue):
+            for c in self.queue:
+                if c.end <= index and (self.ran_out is None or (c.i_start, c.chunk_id) > (self.ran_out.i_start, self.ran_out.chunk_id)):
+                    self.ran_out = c
             self.queue = [c for c in self.queue if c.end > index]
 
     # ---- derived quantities ------------------------------------------------------------------
@@ -813,6 +819,8 @@ class RobotMirror:
             stop = min(end, tl.chunks[uses[k + 1][0]].i_start + uses[k + 1][1]) if k + 1 < len(uses) else end
             if stop > start:
                 segments.append((used.chunk_id, offset, stop - start))
+        if not segments and self.ran_out is not None and self.ran_out.chunk_id != chunk.chunk_id:
+            segments.append((self.ran_out.chunk_id, chunk.i_start - self.ran_out.i_start, 0))
         return ExecutionPrefix(delay, tuple(segments)) if segments else None
 
     def deadline(self) -> float:

@@ -519,3 +519,17 @@ def test_grant_at_another_fps_is_refused_and_the_session_given_back(grant_inject
     finally:
         client.close()
         server.stop(0.5)
+
+
+def test_armory_sim_reports_the_jerk_of_its_commanded_actions():
+    robot = ArmorySim(ArmorySimConfig(scene="static", image_size=32))
+    robot.connect()
+    assert robot.task_stats()["action_jerk_mean"] is None  # fewer than four actions
+    # A straight line at constant speed has no jerk; then one jump of 0.5 in x.
+    for x in (0.0, 0.1, 0.2, 0.3, 0.4):
+        robot.send_action({"x.pos": x, "y.pos": 0.0})
+    assert robot.task_stats()["action_jerk_max"] == pytest.approx(0.0, abs=1e-12)
+    robot.send_action({"x.pos": 1.0, "y.pos": 0.0})  # expected 0.5: third difference 0.5
+    stats = robot.task_stats()
+    assert stats["action_jerk_max"] == pytest.approx(0.5)
+    assert stats["action_jerk_mean"] == pytest.approx(0.5 / 3)

@@ -76,8 +76,16 @@ def test_a_plain_delay_is_lerobots_processor_untouched():
     torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
 
 
+def test_the_delay_margin_is_added_to_each_predicted_delay():
+    prefixes = [rtc.Prefix(np.zeros((10, 2), np.float32), 3), None, rtc.Prefix(np.zeros((4, 2), np.float32), 0)]
+    rows = rtc.guidance_kwargs(prefixes, 10, 8, "cpu", delay_margin=1)["inference_delay"]
+    assert rows.delays == (4, 0, 1) and rows.horizons == (8, 0, 4) and rows.lengths == (10, 0, 4)
+    assert rtc.guidance_kwargs(prefixes, 10, 8, "cpu")["inference_delay"].delays == (3, 0, 0)
+
+
 def test_options_are_checked():
     for bad in (
+        rtc.RTCOptions(enabled=True, delay_margin=-1),
         rtc.RTCOptions(enabled=True, execution_horizon=0),
         rtc.RTCOptions(enabled=True, max_guidance_weight=0),
         rtc.RTCOptions(enabled=True, prefix_attention_schedule="cubic"),
@@ -100,7 +108,8 @@ def guided(pi05_dir):
     import torch
 
     torch.set_num_threads(1)
-    return PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), rtc.RTCOptions(enabled=True, execution_horizon=8))
+    # No delay margin: the delays given are the delays LeRobot is given below.
+    return PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0))
 
 
 def test_a_guided_pi05_batch_equals_lerobots_rtc_for_each_robot_alone(pi05_dir, guided):
@@ -145,6 +154,7 @@ def test_a_guided_pi05_batch_equals_lerobots_rtc_for_each_robot_alone(pi05_dir, 
 
 def test_guided_profiling_includes_the_guidance(guided):
     profile = guided.profile(2, warmup=0, reps=1, log_progress=False)
+    assert profile.name == "profiled:pi05+rtc"
     assert len(profile.latency_ms) == 2 and all(ms > 0 for ms in profile.latency_ms)
     before = guided.rtc.calls
     guided.profile(1, warmup=0, reps=1, log_progress=False)
@@ -279,3 +289,35 @@ def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
             if i_start is not None:
                 history.append((i_start, model_actions[k]))
     assert checked >= 6 and shared >= 1
+
+
+def test_the_planner_continues_its_plan_from_the_leftover(tmp_path):
+    """armory_planner's RTC contract: the delayed steps are the leftover's, the plan goes on from
+    the last of them (not from the effector observed before), per row."""
+    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+
+    path = tmp_path / "planner"
+    make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=32))
+    engine = PolicyEngine(PolicyOptions(str(path), "cpu"), rtc.RTCOptions(enabled=True, delay_margin=0))
+    obs = engine.example_observation(0)
+    obs["observation.state"][:] = 0.0
+    leftover = np.stack([np.linspace(0.1, 0.5, 10), np.zeros(10)], axis=1).astype(np.float32)
+    actions, model = engine.infer_guided([obs, obs], ["t", "t"], None, [rtc.Prefix(leftover, 3), None])
+    plain = engine.infer([obs], ["t"])[0]
+    np.testing.assert_allclose(actions[0, :3], leftover[:3], atol=1e-6)
+    cfg = engine.policy.config
+    # From leftover[2] on, one speed-step per action (the target is farther than a step), not a
+    # jump back to the effector observed at 0.
+    assert np.linalg.norm(actions[0, 3] - leftover[2]) == pytest.approx(cfg.max_speed / cfg.fps, rel=1e-4)
+    assert np.linalg.norm(actions[0, 3] - plain[3]) > 0.1
+    np.testing.assert_allclose(actions[1], plain, atol=1e-6)  # the row without a prefix: unchanged
+    np.testing.assert_allclose(model, actions, atol=1e-6)  # identity normalisation
+
+
+def test_a_robot_already_dry_continues_the_plan_of_the_chunk_it_ran_out_of():
+    m = _mirror(h_max=5)
+    a = _book(m, 0, 0.0, 0.0)  # executable 0..4; the policy planned all 10 actions
+    c = _book(m, 5, 0.9, 1.1)  # the robot holds at index 5 (dry): A left the queue
+    assert all(q.chunk_id != a.chunk_id for q in m.queue) and m.ran_out is a
+    p = m.prefix_of(c)
+    assert p.inference_delay == 0 and p.segments == ((a.chunk_id, 5, 0),) and p.length == 0

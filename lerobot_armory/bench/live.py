@@ -256,6 +256,7 @@ def _record(
                 # The robots' own seam measurement (robot/actions.py): action jump at chunk switches.
                 "seam_jump_mean": _mean_of(rows, "seam_jump_mean"),
                 "seam_jump_p95": _mean_of(rows, "seam_jump_p95"),
+                "action_jerk_mean": _mean_of(rows, "action_jerk_mean"),  # armory_sim's own measure
             }
     sizes: dict[str, int] = {}
     for b in batches:

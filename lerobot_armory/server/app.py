@@ -298,6 +298,12 @@ def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
     if name and (name in BUILTIN_PROFILES or Path(name).is_file()):
         profile = load_profile(name)
         log.info("latency profile loaded from %s", name)
+        if engine.rtc is not None and not profile.name.endswith("+rtc"):
+            log.warning(
+                "--rtc.enabled=true with a latency profile not measured with RTC (%s): RTC's guidance makes every "
+                "batch slower, so the scheduler will expect chunks too early; profile again with RTC on",
+                profile.name,
+            )
         return profile
     log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", cfg.max_batch_size, cfg.profile_reps)
     # warmup=0: serve() has just warmed every size up.

@@ -159,7 +159,10 @@ class PolicyEngine:
             notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
         if self.rtc_options is not None:
             o = self.rtc_options
-            notes.append(f"RTC from the mirror: horizon {o.execution_horizon}, {o.prefix_attention_schedule.upper()}, max guidance {o.max_guidance_weight:g}")
+            notes.append(
+                f"RTC from the mirror: horizon {o.execution_horizon}, {o.prefix_attention_schedule.upper()}, "
+                f"max guidance {o.max_guidance_weight:g}, delay margin {o.delay_margin}"
+            )
         return f"{self.config.type} from {self.path} on {self.device}" + (f" ({', '.join(notes)})" if notes else "")
 
     def _dry_run(self) -> int:
@@ -273,7 +276,8 @@ class PolicyEngine:
             guided = prefixes is not None
             if guided:
                 assert self.rtc_options is not None
-                kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, self.rtc_options.execution_horizon, self.device))
+                o = self.rtc_options
+                kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, o.execution_horizon, self.device, o.delay_margin))
             # RTC's guidance takes a gradient (of its own error, not of the weights), which
             # inference mode forbids: guided batches run under no_grad instead.
             with torch.no_grad() if guided else torch.inference_mode():
@@ -365,7 +369,8 @@ class PolicyEngine:
 
     def profile(self, max_batch_size: int, warmup: int = 2, reps: int = 5, log_progress: bool = True) -> LatencyProfile:
         """Measure ``d_infer(b)`` for b = 1..max_batch_size (median of ``reps`` after ``warmup``
-        untimed passes per size; 0 after :meth:`warmup`).
+        untimed passes per size; 0 after :meth:`warmup`). With RTC every timed batch is a guided
+        one, so the scheduler plans with RTC's cost.
 
         Measured medians are made non-decreasing (a larger batch is never cheaper to schedule
         for), as the schedulers require.
@@ -375,7 +380,9 @@ class PolicyEngine:
         values: list[float] = []
         for ms in self._time_sizes(max_batch_size, reps, "profiled", log_progress, statistics.median):
             values.append(max(ms, values[-1]) if values else ms)
-        return LatencyProfile(f"profiled:{self.config.type}", tuple(values), self.device, "profiled")
+        # A guided profile says so: RTC's guidance is part of every served batch's time.
+        name = f"profiled:{self.config.type}" + ("+rtc" if self.rtc is not None else "")
+        return LatencyProfile(name, tuple(values), self.device, "profiled")
 
     def _time_sizes(
         self, max_batch_size: int, reps: int, what: str, log_progress: bool, stat: Callable[[list[float]], float] = min

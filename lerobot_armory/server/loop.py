@@ -354,6 +354,8 @@ def _keep_model_chunk(session: RobotSession, chunk_id: int, actions: np.ndarray)
     """Keep a sent chunk for the next leftovers; drop those the mirror no longer holds."""
     session.model_chunks[chunk_id] = actions
     live = {c.chunk_id for c in session.mirror.queue}
+    if session.mirror.ran_out is not None:
+        live.add(session.mirror.ran_out.chunk_id)
     for old in [cid for cid in session.model_chunks if cid not in live and cid != chunk_id]:
         del session.model_chunks[old]
     while len(session.model_chunks) > MAX_MODEL_CHUNKS:  # oldest first (insertion order)

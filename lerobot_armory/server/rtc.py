@@ -57,16 +57,25 @@ class RTCOptions:
         max_guidance_weight: clamp of the guidance weight (LeRobot's ``max_guidance_weight``).
         prefix_attention_schedule: how the guidance fades after the delay: ZEROS (only the
             delayed steps), ONES (full to the horizon), LINEAR or EXP (fading to the horizon).
+        delay_margin: steps added to the mirror's predicted delay before it reaches the guidance.
+            The action the robot switches at is then held to what it was going to execute
+            anyway even when the switch comes a step later than predicted (jitter); an
+            underestimate leaves the switch in the fading part, where short chunks have little
+            weight, an overestimate only holds one more action (``docs/results/rtc``). LeRobot's
+            own engine is conservative the same way (the ceiling of the worst recent latency).
     """
 
     enabled: bool = False
     execution_horizon: int = 10
     max_guidance_weight: float = 10.0
     prefix_attention_schedule: str = "LINEAR"
+    delay_margin: int = 1
 
     def validate(self) -> None:
         if self.execution_horizon < 1:
             raise ConfigError("rtc.execution_horizon", f"must be >= 1, got {self.execution_horizon}")
+        if self.delay_margin < 0:
+            raise ConfigError("rtc.delay_margin", f"must be >= 0, got {self.delay_margin}")
         if not self.max_guidance_weight > 0:
             raise ConfigError("rtc.max_guidance_weight", f"must be > 0, got {self.max_guidance_weight}")
         if self.prefix_attention_schedule.upper() not in SCHEDULES:
@@ -106,17 +115,20 @@ class RowPrefixes:
     (LeRobot forwards it verbatim from ``predict_action_chunk`` to the processor).
 
     ``horizons[b]`` is row b's execution horizon already capped by its leftover's length
-    (0: no leftover, no guidance for that row).
+    (0: no leftover, no guidance for that row); ``lengths[b]`` that length.
     """
 
     delays: tuple[int, ...]
     horizons: tuple[int, ...]
+    lengths: tuple[int, ...]
 
 
 def unsupported_reason(policy: Any) -> str | None:
     """Why ``--rtc.enabled`` cannot serve this policy (None: it can)."""
     supports = getattr(policy, "supports_rtc", None)
     name = getattr(getattr(policy, "config", None), "type", type(policy).__name__)
+    if getattr(policy, "accepts_rtc_rows", False):
+        return None
     if not callable(supports) or not supports():
         return f"{name} policies do not support real-time chunking (LeRobot's RTC: π0, π0.5, SmolVLA)"
     if not callable(getattr(policy, "init_rtc_processor", None)) or not hasattr(getattr(policy, "model", None), "rtc_processor"):
@@ -134,11 +146,26 @@ def enable(policy: Any, options: RTCOptions) -> Any:
     why = unsupported_reason(policy)
     if why is not None:
         raise ConfigError("rtc.enabled", why)
+    if getattr(policy, "accepts_rtc_rows", False):
+        return NativeRows(policy)
     policy.config.rtc_config = options.lerobot_config()
     processor = processor_class()(policy.config.rtc_config)
     policy.rtc_processor = processor
     policy.model.rtc_processor = processor
     return processor
+
+
+class NativeRows:
+    """RTC done by the policy itself: a policy with ``accepts_rtc_rows = True`` (``armory_planner``)
+    takes :class:`RowPrefixes` and the stacked leftover in ``predict_action_chunk`` and counts the
+    guided calls in ``rtc_calls``."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+
+    @property
+    def calls(self) -> int:
+        return int(getattr(self.policy, "rtc_calls", 0))
 
 
 @functools.cache
@@ -196,8 +223,11 @@ def processor_class() -> type:
     return BatchedRTCProcessor
 
 
-def guidance_kwargs(prefixes: Sequence[Prefix | None], chunk_size: int, horizon: int, device: Any) -> dict[str, Any]:
-    """The ``predict_action_chunk`` keyword arguments that guide each row by its own prefix.
+def guidance_kwargs(
+    prefixes: Sequence[Prefix | None], chunk_size: int, horizon: int, device: Any, delay_margin: int = 0
+) -> dict[str, Any]:
+    """The ``predict_action_chunk`` keyword arguments that guide each row by its own prefix
+    (each delay plus ``delay_margin``).
 
     Rows without a prefix (a robot's first chunk) get no guidance; a batch without any gets
     none at all (LeRobot's unguided path).
@@ -208,16 +238,14 @@ def guidance_kwargs(prefixes: Sequence[Prefix | None], chunk_size: int, horizon:
         return {}
     dim = max(p.leftover.shape[1] for p in prefixes if p is not None)
     stacked = np.zeros((len(prefixes), chunk_size, dim), np.float32)
-    delays, horizons = [], []
+    delays, horizons, lengths = [], [], []
     for b, p in enumerate(prefixes):
-        if p is None:
-            delays.append(0)
-            horizons.append(0)
-            continue
-        n = min(len(p.leftover), chunk_size)
-        stacked[b, :n, : p.leftover.shape[1]] = p.leftover[:n]
+        n = 0 if p is None else min(len(p.leftover), chunk_size)
+        if p is not None:
+            stacked[b, :n, : p.leftover.shape[1]] = p.leftover[:n]
         # LeRobot caps the horizon by the leftover's length: nothing to merge beyond it.
         horizons.append(min(horizon, n))
-        delays.append(max(0, int(p.inference_delay)))
+        delays.append(0 if p is None else max(0, int(p.inference_delay) + delay_margin))
+        lengths.append(n)
     leftover = torch.from_numpy(stacked).to(device)
-    return {"inference_delay": RowPrefixes(tuple(delays), tuple(horizons)), "prev_chunk_left_over": leftover}
+    return {"inference_delay": RowPrefixes(tuple(delays), tuple(horizons), tuple(lengths)), "prev_chunk_left_over": leftover}

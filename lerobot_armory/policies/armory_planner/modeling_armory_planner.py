@@ -18,6 +18,13 @@ class ArmoryPlannerPolicy(PreTrainedPolicy):
 
     config_class = ArmoryPlannerConfig
     name = "armory_planner"
+    # Real-time chunking, the planner's way: it takes one delay per row (the server's
+    # ``RowPrefixes``) and continues its plan from the leftover instead of the observed effector.
+    accepts_rtc_rows = True
+    rtc_calls = 0
+
+    def supports_rtc(self) -> bool:
+        return True
 
     def __init__(self, config: ArmoryPlannerConfig, dataset_stats: dict | None = None) -> None:
         super().__init__(config)
@@ -49,15 +56,43 @@ class ArmoryPlannerPolicy(PreTrainedPolicy):
         return torch.stack([x, y], dim=1)
 
     @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        """``(B, H, 2)`` waypoints from the effector straight to the target, then on it."""
+    def predict_action_chunk(
+        self, batch: dict[str, Tensor], inference_delay: object = None, prev_chunk_left_over: Tensor | None = None, **kwargs
+    ) -> Tensor:
+        """``(B, H, 2)`` waypoints from the effector straight to the target, then on it.
+
+        With a leftover (RTC's contract: ``prev_chunk_left_over`` ``(B, T, 2)`` and
+        ``inference_delay``, one int for every row or per-row ``delays`` / ``lengths``), row b's
+        first ``d_b`` actions are the leftover's (the robot executes them anyway while the chunk
+        is on its way) and the plan continues from the last of them instead of the effector
+        observed ``d_b`` steps earlier.
+        """
         effector = batch["observation.state"][:, :2].float()
         target = self.locate_target(batch[self.config.camera].float())
-        delta = target - effector
+        rows, horizon = effector.shape[0], self.reach.shape[0]
+        frozen = torch.zeros(rows, dtype=torch.long, device=effector.device)
+        start, left = effector, None
+        if prev_chunk_left_over is not None and inference_delay is not None:
+            given = prev_chunk_left_over if prev_chunk_left_over.ndim == 3 else prev_chunk_left_over[None].expand(rows, -1, -1)
+            left = torch.zeros(rows, horizon, 2, device=effector.device)
+            n = min(given.shape[1], horizon)
+            left[:, :n] = given[:, :n, :2].to(left)
+            delays = getattr(inference_delay, "delays", None) or [int(inference_delay)] * rows  # type: ignore[call-overload]
+            lengths = getattr(inference_delay, "lengths", None) or [left.shape[1]] * rows
+            frozen = torch.tensor([min(d, n, horizon) for d, n in zip(delays, lengths, strict=True)], device=effector.device)
+            last = left[torch.arange(rows), (frozen - 1).clamp_min(0)]
+            start = torch.where((frozen > 0)[:, None], last, effector)
+            self.rtc_calls += 1
+        delta = target - start
         dist = delta.norm(dim=1, keepdim=True)  # (B, 1)
         direction = delta / dist.clamp_min(1e-6)
-        travel = torch.minimum(self.reach[None, :], dist)  # (B, H)
-        return effector[:, None, :] + direction[:, None, :] * travel[:, :, None]
+        k = torch.arange(horizon, device=effector.device)
+        steps = (k[None, :] - frozen[:, None] + 1).clamp_min(0).float() * (self.config.max_speed / self.config.fps)
+        plan = start[:, None, :] + direction[:, None, :] * torch.minimum(steps, dist)[:, :, None]
+        if left is not None and int(frozen.max()) > 0:
+            keep = (k[None, :] < frozen[:, None])[:, :, None]
+            plan = torch.where(keep, left, plan)
+        return plan
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:

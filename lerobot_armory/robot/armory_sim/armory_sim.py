@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import deque
 from functools import cached_property
 from typing import Any
 
@@ -35,6 +36,12 @@ class ArmorySim(Robot):
         self._connected = False
         self._last_time: float | None = None
         self.clock = time.monotonic
+        # Action jerk: the third difference of successive commanded actions (per step³, so it
+        # does not depend on the control rate); a chunk switch that jumps shows up in it.
+        self._recent: deque[np.ndarray] = deque(maxlen=4)
+        self._jerk_sum = 0.0
+        self._jerk_n = 0
+        self._jerk_max = 0.0
 
     @cached_property
     def observation_features(self) -> dict[str, Any]:
@@ -76,15 +83,29 @@ class ArmorySim(Robot):
         self._require_connected()
         goal = np.array([float(action["x.pos"]), float(action["y.pos"])])
         self.env.set_goal(goal)
+        self._recent.append(goal)
+        if len(self._recent) == 4:
+            a0, a1, a2, a3 = self._recent
+            jerk = float(np.linalg.norm(a3 - 3 * a2 + 3 * a1 - a0))
+            self._jerk_sum += jerk
+            self._jerk_n += 1
+            self._jerk_max = max(self._jerk_max, jerk)
         x, y = self.env.goal
         return {"x.pos": float(x), "y.pos": float(y)}
 
     def disconnect(self) -> None:
         self._connected = False
 
-    def task_stats(self) -> dict[str, int]:
-        """Successes and attempts so far (the client adds them to its stats)."""
-        return {"successes": self.env.successes, "attempts": self.env.attempts}
+    def task_stats(self) -> dict[str, float | None]:
+        """Successes and attempts so far, and the commanded actions' jerk (mean and max of
+        ‖a_t − 3a_{t−1} + 3a_{t−2} − a_{t−3}‖ over every four successive actions; None before
+        four); the client adds them to its stats."""
+        return {
+            "successes": self.env.successes,
+            "attempts": self.env.attempts,
+            "action_jerk_mean": self._jerk_sum / self._jerk_n if self._jerk_n else None,
+            "action_jerk_max": self._jerk_max if self._jerk_n else None,
+        }
 
     def _require_connected(self) -> None:
         if not self._connected:
