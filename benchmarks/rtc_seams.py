@@ -55,14 +55,15 @@ def policy_for(chunk_size: int) -> str:
 
 
 def live(
-    preset: str, robots: int, rtc: bool, duration: float, median_ms: float = 0.0, sigma: float = 0.0, planner: bool = False, seed: int = 0
+    preset: str, robots: int, rtc: bool, duration: float, median_ms: float = 0.0, sigma: float = 0.0, planner: bool = False, seed: int = 0,
+    rtc_args: str = "",
 ) -> dict[str, Any]:
     """One live run (π0.5, or the analytic planner); returns seams, jerk and successes per tier
     and the delay-prediction pairs."""
     chunk = get_preset(preset).chunk_size
     cfg = BenchConfig(
         preset=preset, mix="half-fast", robots=robots, schedulers="edf", duration_s=duration,
-        policy_path=None if planner else policy_for(chunk), policy_args=f"--rtc.enabled={str(rtc).lower()}",
+        policy_path=None if planner else policy_for(chunk), policy_args=f"--rtc.enabled={str(rtc).lower()} {rtc_args}".strip(),
         net_median_ms=median_ms, net_sigma=sigma, groups=min(2, robots),
     )  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
@@ -226,11 +227,12 @@ def part_planner(args: argparse.Namespace, targets: Targets) -> tuple[list[str],
     seeds = 1 if args.quick else 3
     lines = ["## The analytic planner on the dynamic task (libero half-fast, N = 4, EDF, 10 ms median one-way delay, σ = 0.5)", ""]
     lines += ["| RTC | fast successes/min | fast starvation % | seam fast / slow | action jerk |", "|---|---|---|---|---|"]
-    for rtc in (False, True):
+    variants = [(False, "", "off"), (True, "", "on, horizon 10 (LeRobot's default)"), (True, "--rtc.execution_horizon=5", "on, horizon 5")]
+    for rtc, extra, label in variants:
         rows = []
         for seed in range(seeds):
-            print(f"[planner rtc={rtc} seed={seed}] ...", flush=True)
-            rows.append(live("libero", 4, rtc, args.duration_s, 10.0, 0.5, planner=True, seed=seed))
+            print(f"[planner {label} seed={seed}] ...", flush=True)
+            rows.append(live("libero", 4, rtc, args.duration_s, 10.0, 0.5, planner=True, seed=seed, rtc_args=extra))
         runs += rows
         succ = [r["successes_per_min"]["fast"] for r in rows]
         starv = [r["starvation_pct"]["fast"] for r in rows]
@@ -239,7 +241,7 @@ def part_planner(args: argparse.Namespace, targets: Targets) -> tuple[list[str],
         jerk = [r["action_jerk_mean"] for r in rows if r["action_jerk_mean"] is not None]
         spread = f" (seeds: {', '.join(f'{x:.1f}' for x in succ)})" if len(succ) > 1 else ""
         lines.append(
-            f"| {'on' if rtc else 'off'} | {np.mean(succ):.1f}{spread} | {np.mean(starv):.1f} | "
+            f"| {label} | {np.mean(succ):.1f}{spread} | {np.mean(starv):.1f} | "
             f"{_fmt(float(np.mean(fast)) if fast else None)} / {_fmt(float(np.mean(slow)) if slow else None)} | {_fmt(float(np.mean(jerk)) if jerk else None)} |"
         )
     return lines, runs

@@ -291,33 +291,21 @@ def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
     assert checked >= 6 and shared >= 1
 
 
-def test_the_planner_continues_its_plan_from_the_leftover(tmp_path):
-    """armory_planner's RTC contract: the delayed steps are the leftover's, the plan goes on from
-    the last of them (not from the effector observed before), per row."""
+def test_the_planner_blends_the_leftover_into_its_plan_as_rtc_weighs_it(tmp_path):
+    """armory_planner's RTC contract: the delayed steps are the leftover's, then a linear fade
+    to the fresh (closed-loop) plan at the execution horizon, per row."""
     from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
 
     path = tmp_path / "planner"
     make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=32))
-    engine = PolicyEngine(PolicyOptions(str(path), "cpu"), rtc.RTCOptions(enabled=True, delay_margin=0))
+    engine = PolicyEngine(PolicyOptions(str(path), "cpu"), rtc.RTCOptions(enabled=True, execution_horizon=6, delay_margin=0))
     obs = engine.example_observation(0)
-    obs["observation.state"][:] = 0.0
     leftover = np.stack([np.linspace(0.1, 0.5, 10), np.zeros(10)], axis=1).astype(np.float32)
     actions, model = engine.infer_guided([obs, obs], ["t", "t"], None, [rtc.Prefix(leftover, 3), None])
     plain = engine.infer([obs], ["t"])[0]
-    np.testing.assert_allclose(actions[0, :3], leftover[:3], atol=1e-6)
-    cfg = engine.policy.config
-    # From leftover[2] on, one speed-step per action (the target is farther than a step), not a
-    # jump back to the effector observed at 0.
-    assert np.linalg.norm(actions[0, 3] - leftover[2]) == pytest.approx(cfg.max_speed / cfg.fps, rel=1e-4)
-    assert np.linalg.norm(actions[0, 3] - plain[3]) > 0.1
+    np.testing.assert_allclose(actions[0, :3], leftover[:3], atol=1e-6)  # held: executed anyway
+    for k, w in ((3, 3 / 4), (4, 2 / 4), (5, 1 / 4)):  # LeRobot's LINEAR ramp from d = 3 to horizon 6
+        np.testing.assert_allclose(actions[0, k], w * leftover[k] + (1 - w) * plain[k], atol=1e-6)
+    np.testing.assert_allclose(actions[0, 6:], plain[6:], atol=1e-6)  # closed loop again
     np.testing.assert_allclose(actions[1], plain, atol=1e-6)  # the row without a prefix: unchanged
     np.testing.assert_allclose(model, actions, atol=1e-6)  # identity normalisation
-
-
-def test_a_robot_already_dry_continues_the_plan_of_the_chunk_it_ran_out_of():
-    m = _mirror(h_max=5)
-    a = _book(m, 0, 0.0, 0.0)  # executable 0..4; the policy planned all 10 actions
-    c = _book(m, 5, 0.9, 1.1)  # the robot holds at index 5 (dry): A left the queue
-    assert all(q.chunk_id != a.chunk_id for q in m.queue) and m.ran_out is a
-    p = m.prefix_of(c)
-    assert p.inference_delay == 0 and p.segments == ((a.chunk_id, 5, 0),) and p.length == 0

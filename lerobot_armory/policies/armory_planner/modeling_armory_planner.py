@@ -19,7 +19,7 @@ class ArmoryPlannerPolicy(PreTrainedPolicy):
     config_class = ArmoryPlannerConfig
     name = "armory_planner"
     # Real-time chunking, the planner's way: it takes one delay per row (the server's
-    # ``RowPrefixes``) and continues its plan from the leftover instead of the observed effector.
+    # ``RowPrefixes``) and blends the leftover into its fresh plan as RTC's guidance would.
     accepts_rtc_rows = True
     rtc_calls = 0
 
@@ -62,37 +62,34 @@ class ArmoryPlannerPolicy(PreTrainedPolicy):
         """``(B, H, 2)`` waypoints from the effector straight to the target, then on it.
 
         With a leftover (RTC's contract: ``prev_chunk_left_over`` ``(B, T, 2)`` and
-        ``inference_delay``, one int for every row or per-row ``delays`` / ``lengths``), row b's
-        first ``d_b`` actions are the leftover's (the robot executes them anyway while the chunk
-        is on its way) and the plan continues from the last of them instead of the effector
-        observed ``d_b`` steps earlier.
+        ``inference_delay``, one int for every row or per-row ``delays`` / ``horizons``), row b
+        is blended as RTC's LINEAR schedule weighs its guidance: the first ``d_b`` actions are
+        the leftover's (the robot executes them anyway while the chunk is on its way), the
+        weight then falls linearly to 0 at the row's execution horizon, and from there on the
+        plan is the fresh one (closed loop: from the effector observed, to the target seen).
         """
         effector = batch["observation.state"][:, :2].float()
         target = self.locate_target(batch[self.config.camera].float())
-        rows, horizon = effector.shape[0], self.reach.shape[0]
-        frozen = torch.zeros(rows, dtype=torch.long, device=effector.device)
-        start, left = effector, None
-        if prev_chunk_left_over is not None and inference_delay is not None:
-            given = prev_chunk_left_over if prev_chunk_left_over.ndim == 3 else prev_chunk_left_over[None].expand(rows, -1, -1)
-            left = torch.zeros(rows, horizon, 2, device=effector.device)
-            n = min(given.shape[1], horizon)
-            left[:, :n] = given[:, :n, :2].to(left)
-            delays = getattr(inference_delay, "delays", None) or [int(inference_delay)] * rows  # type: ignore[call-overload]
-            lengths = getattr(inference_delay, "lengths", None) or [left.shape[1]] * rows
-            frozen = torch.tensor([min(d, n, horizon) for d, n in zip(delays, lengths, strict=True)], device=effector.device)
-            last = left[torch.arange(rows), (frozen - 1).clamp_min(0)]
-            start = torch.where((frozen > 0)[:, None], last, effector)
-            self.rtc_calls += 1
-        delta = target - start
+        delta = target - effector
         dist = delta.norm(dim=1, keepdim=True)  # (B, 1)
         direction = delta / dist.clamp_min(1e-6)
-        k = torch.arange(horizon, device=effector.device)
-        steps = (k[None, :] - frozen[:, None] + 1).clamp_min(0).float() * (self.config.max_speed / self.config.fps)
-        plan = start[:, None, :] + direction[:, None, :] * torch.minimum(steps, dist)[:, :, None]
-        if left is not None and int(frozen.max()) > 0:
-            keep = (k[None, :] < frozen[:, None])[:, :, None]
-            plan = torch.where(keep, left, plan)
-        return plan
+        travel = torch.minimum(self.reach[None, :], dist)  # (B, H)
+        plan = effector[:, None, :] + direction[:, None, :] * travel[:, :, None]
+        if prev_chunk_left_over is None or inference_delay is None:
+            return plan
+        rows, horizon = plan.shape[:2]
+        given = prev_chunk_left_over if prev_chunk_left_over.ndim == 3 else prev_chunk_left_over[None].expand(rows, -1, -1)
+        left = torch.zeros(rows, horizon, 2, device=plan.device)
+        n = min(given.shape[1], horizon)
+        left[:, :n] = given[:, :n, :2].to(left)
+        delays = getattr(inference_delay, "delays", None) or [int(inference_delay)] * rows  # type: ignore[call-overload]
+        ends = getattr(inference_delay, "horizons", None) or [n] * rows
+        k = torch.arange(horizon, device=plan.device, dtype=torch.float32)
+        d = torch.tensor([min(x, e) for x, e in zip(delays, ends, strict=True)], device=plan.device, dtype=torch.float32)[:, None]
+        e = torch.tensor(list(ends), device=plan.device, dtype=torch.float32)[:, None]
+        weight = torch.where(k[None, :] < d, 1.0, ((e - k[None, :]) / (e - d + 1)).clamp(0.0, 1.0))  # (B, H)
+        self.rtc_calls += 1
+        return weight[:, :, None] * left + (1 - weight[:, :, None]) * plan
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
