@@ -1,4 +1,4 @@
-"""Fixtures shared by the server/robot tests: a tiny random ACT saved as a LeRobot policy dir."""
+"""Fixtures shared by the server/robot tests: a tiny random ACT and a tiny π0.5, saved as LeRobot policy dirs."""
 
 from __future__ import annotations
 
@@ -26,3 +26,13 @@ def engine(demo_policy_dir):
 
     torch.set_num_threads(1)  # tests share 2 cores with the server's threads
     return PolicyEngine(PolicyOptions(str(demo_policy_dir), "cpu"))
+
+
+@pytest.fixture(scope="session")
+def pi05_dir(tmp_path_factory):
+    """``lerobot-armory-make-demo-policy --kind=pi05 --size=tiny`` (chunk 10, armory_sim features)."""
+    from lerobot_armory.server.demo_policy import main
+
+    out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
+    main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
+    return out

@@ -28,16 +28,6 @@ from tests.vla_helpers import (
 
 
 @pytest.fixture(scope="session")
-def pi05_dir(tmp_path_factory):
-    """``lerobot-armory-make-demo-policy --kind=pi05 --size=tiny`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.server.demo_policy import main
-
-    out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
-    main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
-    return out
-
-
-@pytest.fixture(scope="session")
 def pi05(pi05_dir):
     import torch
 

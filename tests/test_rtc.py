@@ -95,15 +95,6 @@ def test_options_are_checked():
 
 
 @pytest.fixture(scope="module")
-def pi05_dir(tmp_path_factory):
-    from lerobot_armory.server.demo_policy import main
-
-    out = tmp_path_factory.mktemp("pi05rtc") / "pi05-tiny"
-    main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
-    return out
-
-
-@pytest.fixture(scope="module")
 def guided(pi05_dir):
     import torch
 

@@ -335,7 +335,11 @@ def _prefix(session: RobotSession, mirror: RobotMirror, chunk: Chunk) -> Prefix 
     stop: those actions are the policy's own continuation of the motion, and the new chunk,
     which a robot with ``h_max < H`` switches to right there, should continue it too.
     """
-    predicted = mirror.prefix_of(chunk)
+    try:
+        predicted = mirror.prefix_of(chunk)
+    except Exception as exc:  # a state the prediction cannot read: this robot's chunk goes unguided, the batch goes on
+        log.warning("no RTC prefix for robot %s: %s", mirror.spec.robot_id, exc)
+        return None
     if predicted is None:
         return None
     pieces = []
