@@ -63,7 +63,7 @@ class RegisterRequest(_message.Message):
     def __init__(self, robot_id: _Optional[str] = ..., task: _Optional[str] = ..., fps: _Optional[float] = ..., h_min: _Optional[int] = ..., h_max: _Optional[int] = ..., weight: _Optional[float] = ..., tier: _Optional[str] = ..., features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., client_send_time: _Optional[float] = ..., auth_token: _Optional[str] = ...) -> None: ...
 
 class RegisterResponse(_message.Message):
-    __slots__ = ("session_id", "action_names", "chunk_size", "action_dim", "server_recv_time", "server_send_time", "policy", "expected_features", "max_message_bytes", "granted")
+    __slots__ = ("session_id", "action_names", "chunk_size", "action_dim", "server_recv_time", "server_send_time", "policy", "expected_features", "max_message_bytes", "granted", "stream_address")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     ACTION_NAMES_FIELD_NUMBER: _ClassVar[int]
     CHUNK_SIZE_FIELD_NUMBER: _ClassVar[int]
@@ -74,6 +74,7 @@ class RegisterResponse(_message.Message):
     EXPECTED_FEATURES_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     GRANTED_FIELD_NUMBER: _ClassVar[int]
+    STREAM_ADDRESS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     action_names: _containers.RepeatedScalarFieldContainer[str]
     chunk_size: int
@@ -84,7 +85,8 @@ class RegisterResponse(_message.Message):
     expected_features: _containers.RepeatedCompositeFieldContainer[TensorSpec]
     max_message_bytes: int
     granted: Grant
-    def __init__(self, session_id: _Optional[str] = ..., action_names: _Optional[_Iterable[str]] = ..., chunk_size: _Optional[int] = ..., action_dim: _Optional[int] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., policy: _Optional[str] = ..., expected_features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., max_message_bytes: _Optional[int] = ..., granted: _Optional[_Union[Grant, _Mapping]] = ...) -> None: ...
+    stream_address: str
+    def __init__(self, session_id: _Optional[str] = ..., action_names: _Optional[_Iterable[str]] = ..., chunk_size: _Optional[int] = ..., action_dim: _Optional[int] = ..., server_recv_time: _Optional[float] = ..., server_send_time: _Optional[float] = ..., policy: _Optional[str] = ..., expected_features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., max_message_bytes: _Optional[int] = ..., granted: _Optional[_Union[Grant, _Mapping]] = ..., stream_address: _Optional[str] = ...) -> None: ...
 
 class Grant(_message.Message):
     __slots__ = ("weight", "tier", "fps", "h_min", "h_max", "max_device_share", "rule")
@@ -195,6 +197,7 @@ class Notice(_message.Message):
         SHUTDOWN: _ClassVar[Notice.Kind]
         DROPPED: _ClassVar[Notice.Kind]
         CLOCK: _ClassVar[Notice.Kind]
+        MOVED: _ClassVar[Notice.Kind]
     INFO: Notice.Kind
     REJECTED_OBSERVATION: Notice.Kind
     REJECTED_REPORT: Notice.Kind
@@ -202,6 +205,7 @@ class Notice(_message.Message):
     SHUTDOWN: Notice.Kind
     DROPPED: Notice.Kind
     CLOCK: Notice.Kind
+    MOVED: Notice.Kind
     KIND_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]

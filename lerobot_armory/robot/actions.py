@@ -58,6 +58,11 @@ class ActionBuffer:
     seam_log: deque = field(default_factory=lambda: deque(maxlen=MAX_SEAMS_KEPT))
     _current: BufferedChunk | None = None  # the chunk the last executed action came from
 
+    @property
+    def current(self) -> BufferedChunk | None:
+        """The chunk the last executed action came from."""
+        return self._current
+
     def add(self, chunk_id: int, i_start: int, actions: np.ndarray, arrival_time: float) -> None:
         """A chunk arrived (robot clock)."""
         self.chunks.append(BufferedChunk(chunk_id, i_start, actions, arrival_time))

@@ -10,6 +10,12 @@ buffered chunk is dropped and the robot holds (starves) while a background threa
 with exponential back-off, registers again and resumes. Chunks of an earlier session are
 recognised by their session epoch and never executed.
 
+Against a cluster (``lerobot-armory-cluster``) ``address`` is the front: registration answers
+with the replica to stream to and the connection follows it. When that replica dies the robot
+holds as above and registers with the front again, which places it on a live replica. When the
+cluster *moves* the robot (a ``MOVED`` notice, sent between two of its chunks) nothing is stale:
+the robot keeps executing the chunks it holds while it re-registers.
+
 The loop is independent of any hardware: it takes ``observe()`` and ``act(action)`` callables,
 so a LeRobot robot, a simulated robot or a test double plug in the same way.
 """
@@ -90,6 +96,8 @@ class ArmoryClient:
             included: a restarted server may serve another policy) before the stream opens; it
             raises :class:`RegistrationRefused` to refuse the policy, and the session is then
             given back at once, before a single chunk can arrive.
+        record_actions: keep ``(time, session epoch, chunk_id, chunk i_start, index)`` of every
+            executed action in ``executed_log`` (tests and failover checks).
     """
 
     def __init__(
@@ -107,6 +115,7 @@ class ArmoryClient:
         tls_ca: bytes | None = None,
         token: str = "",
         check_registration: Callable[[Registration], None] | None = None,
+        record_actions: bool = False,
     ) -> None:
         self.address = address
         self.identity = identity
@@ -124,6 +133,7 @@ class ArmoryClient:
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
         self._epoch = 0
+        self._moving = False  # a MOVED notice came: the held chunks stay valid through the re-registration
         self.connection: Connection | None = None
         self._reconnecting: threading.Thread | None = None
         self._stop = threading.Event()
@@ -138,6 +148,11 @@ class ArmoryClient:
         self.policy: str = ""
         self.chunk_size: int = 0
         self.granted: pb.Grant | None = None  # the fleet policy's grant of the current session, if the server sent one
+        # Outages: seconds from a lost connection to the next executed action (holding meanwhile).
+        self.outages: list[float] = []
+        self._lost_at: float | None = None
+        self.losses: list[tuple[float, int]] = []  # (robot time, session epoch) of every lost connection
+        self.executed_log: list[tuple[float, int, int, int, int]] | None = [] if record_actions else None
 
     # ---- connection --------------------------------------------------------------------------
 
@@ -191,13 +206,15 @@ class ArmoryClient:
         with self._lock:
             self._epoch += 1
             epoch = self._epoch
-            self.buffer.clear()  # nothing from an earlier session may ever run
+            if not self._moving:
+                self.buffer.clear()  # nothing from an earlier session may ever run
+            self._moving = False
             self.buffer.h_max = h_max  # a reconnect may be granted another horizon than the last session
             self.connection = conn
         self.policy, self.chunk_size, self.granted = reg.policy, reg.chunk_size, reg.granted
         conn.open_stream(
             lambda chunk: self._on_chunk(epoch, chunk),
-            self._on_notice,
+            lambda notice: self._on_notice(notice, epoch),
             lambda error: self._on_close(epoch, error),
         )
         log.info("registered as %s with %s (H=%d), session %d", ident.robot_id, reg.policy, reg.chunk_size, epoch)
@@ -247,11 +264,15 @@ class ArmoryClient:
             self.buffer.add(chunk.chunk_id, chunk.i_start, chunk.actions, chunk.arrival_time)
             self.chunks_received += 1
 
-    def _on_notice(self, notice: pb.Notice) -> None:
+    def _on_notice(self, notice: pb.Notice, epoch: int | None = None) -> None:
         self.notices.append(notice.message)
+        if notice.kind == pb.Notice.MOVED:
+            with self._lock:
+                if epoch == self._epoch:
+                    self._moving = True  # the stream's close that follows re-registers, keeping the buffer
         # SHUTDOWN and CLOCK are expected events (a reconnect or a sync request follows); DROPPED
         # (the server ended this session) is followed by the stream's close, which reconnects.
-        level = logging.INFO if notice.kind in (pb.Notice.SHUTDOWN, pb.Notice.CLOCK) else logging.WARNING
+        level = logging.INFO if notice.kind in (pb.Notice.SHUTDOWN, pb.Notice.CLOCK, pb.Notice.MOVED) else logging.WARNING
         log.log(level, "server: %s", notice.message)
 
     def _on_close(self, epoch: int, error: grpc.RpcError | None) -> None:
@@ -259,9 +280,16 @@ class ArmoryClient:
             if epoch != self._epoch or self._stop.is_set():
                 return
             lost, self.connection = self.connection, None
-            self.buffer.clear()  # hold: no stale actions while disconnected
-        reason = f"{error.code().name}: {error.details()}" if error is not None else "stream closed by the server"
-        log.warning("connection lost (%s); holding position and reconnecting", reason)
+            if not self._moving:
+                self.buffer.clear()  # hold: no stale actions while disconnected
+                if self._lost_at is None:
+                    self._lost_at = self.clock()
+                self.losses.append((self.clock(), epoch))
+        if self._moving:
+            log.info("moved by the cluster: re-registering, executing the chunks held meanwhile")
+        else:
+            reason = f"{error.code().name}: {error.details()}" if error is not None else "stream closed by the server"
+            log.warning("connection lost (%s); holding position and reconnecting", reason)
         if lost is not None:
             threading.Thread(target=lost.close, daemon=True).start()
         self._start_reconnect()
@@ -295,11 +323,18 @@ class ArmoryClient:
         if conn is not None:
             conn.send_observation(self.index, obs, capture_time=t, jpeg_quality=self.jpeg_quality)
         with self._lock:
-            action = self.buffer.action_for(self.index) if self.connection is not None else None
+            live = self.connection is not None or self._moving
+            action = self.buffer.action_for(self.index) if live else None
+            chunk, epoch = self.buffer.current, self._epoch
         self.ticks += 1
         if action is None:
             self.starved += 1
             return False
+        if self._lost_at is not None:
+            self.outages.append(self.clock() - self._lost_at)
+            self._lost_at = None
+        if self.executed_log is not None and chunk is not None:
+            self.executed_log.append((t, epoch, chunk.chunk_id, chunk.i_start, self.index))
         self.act(action)
         self.index += 1
         self.executed += 1
@@ -374,5 +409,6 @@ class ArmoryClient:
             "chunks_received": self.chunks_received,
             "first_executed_index": first,
             "reconnects": self.reconnects,
+            "outages_s": list(self.outages),
             **seams,
         }

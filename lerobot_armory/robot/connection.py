@@ -49,6 +49,7 @@ class Registration:
     clock_sync: pb.ClockSync
     action_dim: int = 0  # length of each action vector (0: a server that did not say)
     granted: pb.Grant | None = None  # what the fleet policy granted (None: a server that did not say)
+    stream_address: str = ""  # a cluster front's answer: the replica the stream goes to ("" : this server)
 
     @classmethod
     def from_response(cls, response: pb.RegisterResponse, clock_sync: pb.ClockSync) -> Registration:
@@ -66,6 +67,7 @@ class Registration:
             clock_sync,
             response.action_dim or len(response.action_names),
             granted,
+            response.stream_address,
         )
 
 
@@ -94,11 +96,9 @@ class Connection:
         self.clock = clock
         self.network = network
         self.token = token
-        options = [("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)]
-        if tls_ca is not None:
-            self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=tls_ca), options=options)
-        else:
-            self.channel = grpc.insecure_channel(address, options=options)
+        self._options = [("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)]
+        self._tls_ca = tls_ca
+        self.channel = self._open_channel(address)
         self.stub = ArmoryStub(self.channel)
         self.registration: Registration | None = None
         self._outgoing: queue.Queue = queue.Queue()
@@ -106,6 +106,12 @@ class Connection:
         self._receiver: threading.Thread | None = None
         self.closed = threading.Event()
         self.error: grpc.RpcError | None = None
+
+    def _open_channel(self, address: str) -> grpc.Channel:
+        if self._tls_ca is not None:
+            credentials = grpc.ssl_channel_credentials(root_certificates=self._tls_ca)
+            return grpc.secure_channel(address, credentials, options=self._options)
+        return grpc.insecure_channel(address, options=self._options)
 
     def wait_ready(self, timeout: float) -> bool:
         """True once the server's port accepts connections (within ``timeout`` seconds)."""
@@ -148,6 +154,13 @@ class Connection:
             client_recv_time=self.clock(),
         )
         self.registration = Registration.from_response(response, sync)
+        if response.stream_address and response.stream_address != self.address:
+            # A cluster's front placed this robot on a replica: the session lives there, so the
+            # stream (and everything after it) goes there, with the same TLS trust and limits.
+            self.channel.close()
+            self.address = response.stream_address
+            self.channel = self._open_channel(self.address)
+            self.stub = ArmoryStub(self.channel)
         return self.registration
 
     def open_stream(

@@ -325,8 +325,12 @@ def latency_learning(cfg: ServerConfig, profile: LatencyProfile) -> tuple[bool, 
     return True, "seeded with the start-up profile, follows the measured batch times"
 
 
-def serve(cfg: ServerConfig) -> None:
-    """Build everything, print the summary, serve until a signal."""
+def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
+    """Load the policy, warm it up, resolve ``d_infer`` and start serving on ``cfg.host:cfg.port``.
+
+    Returns the running server and its start-up summary. ``serve`` and each replica of a cluster
+    (:mod:`lerobot_armory.cluster.replica`) build the same server through here.
+    """
     cfg.validate()
     fleet_policy = cfg.fleet.load()  # before the model loads: a bad file is one line, at once
     tune_process()
@@ -362,7 +366,7 @@ def serve(cfg: ServerConfig) -> None:
     server.start()
     metrics_port = server.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
-    print(
+    summary = (
         f"lerobot-armory-server listening on {server.address}\n"
         f"  policy: {engine.description}\n"
         f"  observation features robots must send:\n{features}\n"
@@ -373,9 +377,15 @@ def serve(cfg: ServerConfig) -> None:
         f"  fleet policy: {fleet_policy.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
-        f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})",
-        flush=True,
+        f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})"
     )
+    return server, summary
+
+
+def serve(cfg: ServerConfig) -> None:
+    """Build everything, print the summary, serve until a signal."""
+    server, summary = build_server(cfg)
+    print(summary, flush=True)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame) -> None:

@@ -157,6 +157,9 @@ class RobotSession:
     # decayed device seconds spent on this robot (max_device_share) and when last decayed
     device_s: float = 0.0
     device_t: float = 0.0
+    # A cluster's front asked to move this robot to another replica: done right after the chunk
+    # in flight is queued, so the robot never loses a chunk it was promised.
+    move_after_chunk: bool = False
 
     @property
     def robot_id(self) -> str:
@@ -178,6 +181,7 @@ class Fleet:
         self.cond = threading.Condition()
         self.sessions: dict[str, RobotSession] = {}
         self.stopping = False
+        self.in_flight: set[str] = set()  # session ids in the batch the serving loop is running
 
     # ---- membership --------------------------------------------------------------------------
 
@@ -239,6 +243,29 @@ class Fleet:
             session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.DROPPED, message=reason[:MAX_NOTICE_CHARS])))
             self._drop(session.session_id)
             self.cond.notify_all()
+
+    def release(self, robot_id: str, reason: str = "moved to another replica by the cluster") -> bool:
+        """Move a robot away between two of its chunks (a cluster's rebalancing).
+
+        The robot is told ``MOVED`` and its stream ends; it keeps the chunks it holds (they answer
+        its own observations) and re-registers with its front. A robot whose request is in the
+        batch now running is moved right after that chunk is queued. False: no such robot streams.
+        """
+        with self.cond:
+            session = next((s for s in self.active() if s.robot_id == robot_id), None)
+            if session is None:
+                return False
+            if session.session_id in self.in_flight:
+                session.move_after_chunk = True
+            else:
+                self.move_now(session, reason)
+            return True
+
+    def move_now(self, session: RobotSession, reason: str = "moved to another replica by the cluster") -> None:
+        """Tell ``session`` it moves and end it (lock held)."""
+        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.MOVED, message=reason[:MAX_NOTICE_CHARS])))
+        self._drop(session.session_id)
+        self.cond.notify_all()
 
     def detach(self, session_id: str) -> None:
         """The stream ended: forget the robot (a reconnecting robot registers again)."""

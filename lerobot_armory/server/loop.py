@@ -194,6 +194,7 @@ class ServingLoop:
             self.stats.decision_cpu_ms.append(plan.decision_cpu_s * 1000.0)
             self.stats.failed_decisions += plan.fell_back
             chosen = [by_id[r.robot_id] for r in plan.requests]
+            fleet.in_flight = {s.session_id for s in chosen}
             prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if self.rtc else None
             return Batch(plan, chosen, [s.latest for s in chosen], prefixes)
 
@@ -238,6 +239,9 @@ class ServingLoop:
                 )
                 fleet.record_sent(session, t_done)
                 session.outbox.put(msg)
+                if session.move_after_chunk:
+                    fleet.move_now(session)
+            fleet.in_flight = set()
             fleet.charge_device(batch.sessions, t_done - t_start, t_done)
             self._finish(plan.size, t_start, t_done)
             fleet.cond.notify_all()
@@ -277,6 +281,7 @@ class ServingLoop:
         t_end = self.fleet.clock()
         with self.fleet.cond:
             self.dispatcher.cancel(plan)
+            self.fleet.in_flight = set()
             for request, session in zip(plan.requests, batch.sessions, strict=True):
                 session.outbox.put(
                     pb.ServerMessage(
@@ -287,6 +292,8 @@ class ServingLoop:
                         )
                     )
                 )
+                if session.move_after_chunk and self.fleet.sessions.get(session.session_id) is session:
+                    self.fleet.move_now(session)  # no chunk is coming: the move need not wait
             self.stats.failed_batches += 1
             self._finish(plan.size, t_start, t_end)
             self.fleet.cond.notify_all()

@@ -1,0 +1,174 @@
+"""``lerobot-armory-cluster``: K replicas of the server as Ray actors, and the front robots register with.
+
+    lerobot-armory-cluster --policy.path=lerobot/pi05_base --replicas=4 --port=8080
+    lerobot-armory-cluster --policy.path=... --replicas=8 --ray.address=auto --replica.host=0.0.0.0
+
+Every ``lerobot-armory-server`` option applies to each replica (``--policy.*``, ``--scheduler.*``,
+``--max_batch_size``, ``--fleet.policy``, ``--auth_token_file`` ...); ``--port`` is the front's.
+Robots use ``--server_address=`` the front and nothing else changes.
+
+Ray places the replicas (one GPU each by default), restarts one that dies, and keeps them when
+this process exits if they run in a cluster started with ``ray start --head``
+(``--ray.address=auto``): the replicas are *detached, named* actors, and a front started again
+finds them by name, with every robot still streaming.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
+from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
+from lerobot_armory.cluster.replica import ArmoryReplica, RayReplicas
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.server.app import ServerConfig
+from lerobot_armory.server.engine import PolicyOptions
+from lerobot_armory.server.logs import configure_logging
+
+log = logging.getLogger("lerobot_armory.cluster")
+
+NAME_PREFIX = "armory-replica-"
+START_TIMEOUT_S = 600.0  # loading and warming a VLA on a cold node takes minutes
+
+
+@dataclass
+class RayOptions:
+    """``--ray.address``: an existing Ray cluster (``auto``: the one ``ray start`` made on this
+    host); unset: a local cluster in this process (it ends with it). ``--ray.namespace``: where
+    the named replicas live (two clusters on one Ray cluster need two namespaces)."""
+
+    address: str | None = None
+    namespace: str = "lerobot-armory"
+
+
+@dataclass
+class ReplicaOptions:
+    """Per replica: ``--replica.num_gpus`` (0: a CPU replica), ``--replica.num_cpus``,
+    ``--replica.host`` (bind address; ``0.0.0.0`` to reach replicas on other hosts, which then
+    advertise their node's IP; default: ``--host``), ``--replica.max_restarts`` (-1: always)."""
+
+    num_gpus: float = 1.0
+    num_cpus: float = 1.0
+    host: str | None = None
+    max_restarts: int = -1
+
+
+@dataclass
+class ClusterConfig(ServerConfig):
+    """Options of ``lerobot-armory-cluster``: the server's, plus the cluster's own."""
+
+    replicas: int = 2
+    ray: RayOptions = field(default_factory=RayOptions)
+    replica: ReplicaOptions = field(default_factory=ReplicaOptions)
+    cluster: FrontOptions = field(default_factory=FrontOptions)
+
+    def validate(self) -> None:
+        super().validate()
+        if self.replicas < 1:
+            raise ConfigError("replicas", f"must be >= 1, got {self.replicas}")
+        if self.replica.num_gpus < 0 or self.replica.num_cpus < 0:
+            raise ConfigError("replica", "num_gpus and num_cpus must be >= 0")
+        self.cluster.validate()
+
+    def replica_config(self) -> ServerConfig:
+        """What each replica serves with: the server's options, its own bind host, a free port."""
+        base = {f.name: getattr(self, f.name) for f in dataclasses.fields(ServerConfig)}
+        base["host"] = self.replica.host or self.host
+        base["port"] = 0
+        base["status_interval_s"] = 0.0
+        return ServerConfig(**base)
+
+
+def start_replicas(cfg: ClusterConfig) -> RayReplicas:
+    """Find or start the K named replica actors; wait until each serves. Ray must be initialised."""
+    import ray
+
+    gpus = ray.cluster_resources().get("GPU", 0.0)
+    need = cfg.replicas * cfg.replica.num_gpus
+    if need > gpus:
+        raise ConfigError(
+            "replica.num_gpus",
+            f"{cfg.replicas} replicas x {cfg.replica.num_gpus:g} GPU need {need:g} GPUs and the Ray cluster has {gpus:g}; "
+            "add nodes (ray start --address=...), lower --replicas, or use --replica.num_gpus=0 for CPU replicas",
+        )
+    actor = ray.remote(ArmoryReplica)
+    handles: dict[str, Any] = {}
+    detached = cfg.ray.address is not None
+    for k in range(cfg.replicas):
+        rid = f"{NAME_PREFIX}{k}"
+        handles[rid] = actor.options(
+            name=rid,
+            namespace=cfg.ray.namespace,
+            get_if_exists=True,  # a front started again attaches to the replicas already serving
+            lifetime="detached" if detached else None,
+            max_restarts=cfg.replica.max_restarts,
+            num_gpus=cfg.replica.num_gpus,
+            num_cpus=cfg.replica.num_cpus,
+        ).remote(cfg.replica_config(), rid)
+    started = time.monotonic()
+    pending = {rid: h.info.remote() for rid, h in handles.items()}
+    while pending:
+        done, _ = ray.wait(list(pending.values()), num_returns=1, timeout=5.0)
+        for ref in done:
+            rid = next(r for r, v in pending.items() if v == ref)
+            info = ray.get(ref)  # a replica that failed to start raises here with its own error
+            print(f"  replica {rid} serving at {info['address']} (pid {info['pid']}, {info['policy']})", flush=True)
+            del pending[rid]
+        if pending and time.monotonic() - started > START_TIMEOUT_S:
+            raise ConfigError("replicas", f"{len(pending)} replicas did not start in {START_TIMEOUT_S:.0f} s: {', '.join(pending)}")
+        if pending and not done:
+            print(f"  waiting for {len(pending)} replicas to load the policy ({time.monotonic() - started:.0f} s)...", flush=True)
+    return RayReplicas(handles)
+
+
+def run(cfg: ClusterConfig) -> None:
+    """Start (or attach to) the replicas, serve the front until a signal."""
+    cfg.validate()
+    cfg.fleet.load()  # a bad fleet policy file is one line here, not K tracebacks in the replicas
+    configure_logging(cfg.log_level, cfg.log_format)
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("replicas", "the cluster needs Ray: pip install 'lerobot-armory[cluster]'") from None
+    ray.init(address=cfg.ray.address, namespace=cfg.ray.namespace, include_dashboard=False, log_to_driver=True)
+    print(f"lerobot-armory-cluster: starting {cfg.replicas} replicas of {cfg.policy.path} on Ray ...", flush=True)
+    replicas = start_replicas(cfg)
+    front = FrontServer(ClusterFront(replicas, cfg.cluster), cfg.host, cfg.port)
+    print(
+        f"lerobot-armory-cluster front listening on {front.address}: robots use --server_address={front.address}\n"
+        f"  placement: {cfg.cluster.placement}, health checks every {cfg.cluster.health_interval_s:g} s, "
+        f"rebalancing {'on' if cfg.cluster.rebalance else 'off'}\n{front.front.describe()}",
+        flush=True,
+    )
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    while not stop.wait(max(1.0, cfg.status_interval_s or 1.0)):
+        if cfg.status_interval_s > 0:
+            log.info("cluster:\n%s", front.front.describe())
+    front.stop()
+    if cfg.ray.address is not None:
+        print("front stopped; the replicas keep serving their robots (detached): start the front again to place new ones")
+    else:
+        print("front stopped; the local Ray cluster and its replicas stop with this process")
+    sys.stdout.flush()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point (``--policy.<field>=value`` passes through as on the server)."""
+    own = {f.name for f in dataclasses.fields(PolicyOptions)}
+    args, overrides = split_passthrough(argv, "policy", own)
+    cfg = parse_or_exit(ClusterConfig, args, "lerobot-armory-cluster")
+    cfg.policy.overrides = [*cfg.policy.overrides, *overrides]
+    run_or_exit(run, cfg, "lerobot-armory-cluster")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,326 @@
+"""The cluster's front: robots register here and are answered with the replica to stream to.
+
+The front holds no robot state of its own that matters: every few hundred milliseconds it asks
+each replica for its ``load`` (the robots streaming there, its ``d_infer`` table) and rebuilds its
+view from the answers. Robots stream to replicas directly, so a front that restarts loses no
+running robot: they keep streaming, and the new front's first refresh sees them all.
+
+Registration: the front chooses a replica (the robot's current one if it still streams there, a
+pending move's target, else the placement policy over the healthy replicas), forwards the
+robot's ``RegisterRequest`` to it unchanged (the replica checks features, tokens and the fleet
+policy as a single server does) and returns the replica's answer with ``stream_address`` set. A
+replica that does not answer is marked down and the next choice is tried, so a robot whose
+replica died is placed on a live one at its first re-registration.
+
+Rebalancing: when robots joined or left since the last refresh, the front asks
+:func:`~lerobot_armory.placement.rebalance` for one move and tells the source replica to release
+that robot, which it does between two of the robot's chunks (``Notice.MOVED``); the robot
+re-registers here and is steered to the target.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import grpc
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.placement import Capacity, Move, NoReplica, Placement, ReplicaView, make_placement, rebalance
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
+from lerobot_armory.proto.hardening import Malformed
+from lerobot_armory.server.peer_log import ThrottledLog
+from lerobot_armory.server.service import RunningServer, start_grpc_server
+from lerobot_armory.cluster.replica import ReplicaDown, ReplicaSet, spec_of
+
+log = logging.getLogger(__name__)
+
+# Answers from a replica that mean "try another replica" rather than "the robot is wrong".
+TRY_ANOTHER = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.RESOURCE_EXHAUSTED)
+# A robot the front just placed is counted on its replica until the replica reports it (or this passes).
+PENDING_S = 5.0
+# A moved robot is steered to its target for this long, and not moved again for MOVE_COOLDOWN_S.
+STEER_S = 10.0
+MOVE_COOLDOWN_S = 30.0
+
+
+@dataclass
+class FrontOptions:
+    """The front's knobs (``--cluster.*`` on ``lerobot-armory-cluster``).
+
+    Attributes:
+        placement: ``mirror_aware`` (by predicted load), ``least_loaded``, ``round_robin`` or ``random``.
+        health_interval_s: how often every replica is asked for its load.
+        call_timeout_s: how long a replica may take to answer the front.
+        rebalance: move robots between replicas (between chunks) when joins and leaves unbalance them.
+        one_way_ms: typical one-way network delay robots see, for the load prediction.
+    """
+
+    placement: str = "mirror_aware"
+    health_interval_s: float = 0.5
+    call_timeout_s: float = 2.0
+    rebalance: bool = True
+    one_way_ms: float = 3.75
+
+    def validate(self) -> None:
+        make_placement(self.placement)
+        for name in ("health_interval_s", "call_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"cluster.{name}", f"must be > 0, got {getattr(self, name)}")
+        if not self.one_way_ms >= 0:
+            raise ConfigError("cluster.one_way_ms", f"must be >= 0, got {self.one_way_ms}")
+
+
+@dataclass
+class ReplicaState:
+    """The front's view of one replica."""
+
+    view: ReplicaView
+    address: str = ""
+    chunk_size: int = 0
+    status: str = ""
+    pending: dict[str, tuple[RobotSpec, float]] = field(default_factory=dict)  # placed here, not yet reported
+    reported: dict[str, RobotSpec] = field(default_factory=dict)
+
+
+class ClusterFront(ArmoryServicer):
+    """``Register`` places and forwards; ``Stream`` is refused (robots stream to their replica)."""
+
+    def __init__(
+        self,
+        replicas: ReplicaSet,
+        options: FrontOptions | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        channel_factory: Callable[[str], grpc.Channel] | None = None,
+    ) -> None:
+        self.replicas = replicas
+        self.options = options or FrontOptions()
+        self.options.validate()
+        self.clock = clock
+        self.placement: Placement = make_placement(self.options.placement)
+        self._channel_factory = channel_factory or (lambda address: grpc.insecure_channel(address))
+        self._channels: dict[str, tuple[grpc.Channel, ArmoryStub]] = {}
+        self.lock = threading.RLock()
+        one_way = self.options.one_way_ms / 1000.0
+        # Until a replica first answers, it is unknown: down, with a placeholder capacity.
+        self.state: dict[str, ReplicaState] = {
+            rid: ReplicaState(ReplicaView(rid, Capacity((1.0,), one_way), healthy=False)) for rid in replicas.ids()
+        }
+        self.steer: dict[str, tuple[str, float]] = {}  # robot -> (target replica, until)
+        self.moved_at: dict[str, float] = {}
+        self.moves: list[Move] = []
+        self._members: frozenset[tuple[str, str]] = frozenset()
+        self.peer_log = ThrottledLog(log)
+
+    # ---- the view ----------------------------------------------------------------------------
+
+    def refresh(self) -> None:
+        """Ask every replica for its load; rebuild the view; rebalance if membership changed."""
+        answers: dict[str, dict[str, Any] | None] = {}
+        for rid in self.replicas.ids():
+            try:
+                answers[rid] = self.replicas.load(rid, self.options.call_timeout_s)
+            except ReplicaDown:
+                answers[rid] = None
+        now = self.clock()
+        with self.lock:
+            for rid, answer in answers.items():
+                state = self.state[rid]
+                was = state.view.healthy
+                if answer is None or not answer.get("alive", True):
+                    state.view.healthy = False
+                    state.reported = {}
+                    if was:
+                        log.warning("replica %s is down; its robots will be placed elsewhere", rid)
+                    continue
+                state.address = answer["address"]
+                state.chunk_size = int(answer["chunk_size"])
+                state.status = answer.get("status", "")
+                state.view.capacity = Capacity(tuple(answer["latency_s"]), self.options.one_way_ms / 1000.0)
+                state.view.max_robots = int(answer["max_robots"])
+                state.reported = {r["robot_id"]: spec_of(r) for r in answer["robots"]}
+                state.view.healthy = True
+                if not was:
+                    log.info("replica %s is up at %s", rid, state.address)
+                state.pending = {k: v for k, v in state.pending.items() if k not in state.reported and v[1] > now}
+                self._rebuild(state)
+            # A robot reported by two replicas (a move in progress) counts where it streams now.
+            members = frozenset((robot, rid) for rid, s in self.state.items() for robot in s.reported)
+            changed = members != self._members
+            self._members = members
+            self.steer = {k: v for k, v in self.steer.items() if v[1] > now}
+            move = self._plan_move(now) if changed and self.options.rebalance else None
+        if move is not None:
+            self._release(move, now)
+
+    def _rebuild(self, state: ReplicaState) -> None:
+        state.view.robots = {**state.reported, **{k: spec for k, (spec, _) in state.pending.items()}}
+
+    def _plan_move(self, now: float) -> Move | None:
+        views = [s.view for s in self.state.values()]
+        move = rebalance(views)
+        if move is None or now - self.moved_at.get(move.robot_id, -1e9) < MOVE_COOLDOWN_S:
+            return None
+        return move
+
+    def _release(self, move: Move, now: float) -> None:
+        with self.lock:
+            self.steer[move.robot_id] = (move.target, now + STEER_S)
+            self.moved_at[move.robot_id] = now
+        try:
+            released = self.replicas.release(move.source, move.robot_id, self.options.call_timeout_s)
+        except ReplicaDown:
+            released = False
+        if released:
+            self.moves.append(move)
+            log.info("rebalancing: moving %s from %s to %s (between two of its chunks)", move.robot_id, move.source, move.target)
+
+    def placements(self) -> dict[str, str]:
+        """Robot -> replica, as last reported by the replicas (pending placements included)."""
+        with self.lock:
+            return {robot: rid for rid, s in sorted(self.state.items()) for robot in s.view.robots if s.view.healthy}
+
+    def describe(self) -> str:
+        """One line per replica: health, address, robots, predicted utilization."""
+        with self.lock:
+            lines = []
+            for rid, s in sorted(self.state.items()):
+                health = "up" if s.view.healthy else "DOWN"
+                util = s.view.utilization() if s.view.healthy else 0.0
+                robots = ",".join(sorted(s.view.robots)) or "-"
+                lines.append(f"  {rid} {health:<4} {s.address or '-':<21} util={util:.2f} robots={robots}")
+            return "\n".join(lines)
+
+    # ---- Register ----------------------------------------------------------------------------
+
+    def _choices(self, request: pb.RegisterRequest) -> Iterator[str]:
+        """Replicas to try for a robot, best first, each at most once."""
+        tried: set[str] = set()
+        robot = request.robot_id
+        with self.lock:
+            steered = self.steer.get(robot, ("", 0.0))[0]
+            current = next((rid for rid, s in self.state.items() if robot in s.reported and s.view.healthy), "")
+        for rid in (steered, current):
+            if rid and rid not in tried:
+                tried.add(rid)
+                yield rid
+        while True:
+            with self.lock:
+                views = [s.view for rid, s in self.state.items() if rid not in tried]
+                spec = self._spec(request)
+                try:
+                    if spec is not None:
+                        rid = self.placement.choose(spec, views)
+                    else:  # the replica will refuse it and say why: any open one answers
+                        rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
+                except (NoReplica, ValueError):
+                    return
+            tried.add(rid)
+            yield rid
+
+    def _spec(self, request: pb.RegisterRequest) -> RobotSpec | None:
+        chunk = max((s.chunk_size for s in self.state.values() if s.view.healthy), default=0)
+        try:
+            # Placement weighs at most 1 here: the replica's fleet policy grants the real weight,
+            # and a robot must not buy a lighter replica by asking for a heavy one.
+            return RobotSpec(request.robot_id, request.fps, chunk, request.h_min, request.h_max, min(request.weight, 1.0), request.tier)
+        except (ConfigError, TypeError, ValueError):
+            return None
+
+    def _stub(self, address: str) -> ArmoryStub:
+        with self.lock:
+            if address not in self._channels:
+                channel = self._channel_factory(address)
+                self._channels[address] = (channel, ArmoryStub(channel))
+            return self._channels[address][1]
+
+    def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
+        if isinstance(request, Malformed):
+            self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
+        last = "no replica is up"
+        for rid in self._choices(request):
+            with self.lock:
+                state = self.state[rid]
+                address = state.address if state.view.healthy else ""
+            if not address:
+                continue
+            try:
+                response = self._stub(address).Register(request, timeout=self.options.call_timeout_s)
+            except grpc.RpcError as exc:
+                if exc.code() in TRY_ANOTHER:
+                    last = f"replica {rid}: {exc.code().name}: {exc.details()}"
+                    if exc.code() != grpc.StatusCode.RESOURCE_EXHAUSTED:
+                        self._mark_down(rid)
+                    continue
+                context.abort(exc.code(), exc.details() or exc.code().name)  # the robot's own problem: told as is
+            response.stream_address = address
+            with self.lock:
+                spec = self._spec(request)
+                if spec is not None:
+                    state.pending[request.robot_id] = (spec, self.clock() + PENDING_S)
+                    for other_id, other in self.state.items():  # placed here now, nowhere else
+                        if other_id != rid:
+                            other.pending.pop(request.robot_id, None)
+                            other.reported.pop(request.robot_id, None)
+                            self._rebuild(other)
+                    self._rebuild(state)
+            log.info("placed %s on %s (%s)", request.robot_id, rid, address)
+            return response
+        context.abort(grpc.StatusCode.UNAVAILABLE, f"no replica can take this robot now ({last}); retry")
+
+    def _mark_down(self, rid: str) -> None:
+        with self.lock:
+            state = self.state[rid]
+            if state.view.healthy:
+                log.warning("replica %s did not answer a registration; marked down until it answers again", rid)
+            state.view.healthy = False
+            state.reported = {}
+
+    def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:  # noqa: N802
+        context.abort(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            "this is a lerobot-armory cluster front: register here, then stream to the replica named in "
+            "RegisterResponse.stream_address (lerobot-armory's client follows it)",
+        )
+        yield from ()  # pragma: no cover - abort raises
+
+
+class FrontServer:
+    """The front on a gRPC port, with its health loop."""
+
+    def __init__(self, front: ClusterFront, host: str = "127.0.0.1", port: int = 0, max_message_bytes: int = 4 << 20) -> None:
+        self.front = front
+        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes)  # type: ignore[arg-type]
+        self.host = host
+        self._stop = threading.Event()
+        front.refresh()
+        self._thread = threading.Thread(target=self._loop, name="armory-front-health", daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return self.grpc.port
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.front.options.health_interval_s):
+            try:
+                self.front.refresh()
+            except Exception:  # noqa: BLE001 - the health loop must outlive a bad answer
+                log.exception("refreshing the replicas' load failed")
+
+    def stop(self, grace_s: float = 1.0) -> None:
+        self._stop.set()
+        self.grpc.set_serving(False)
+        self.grpc.server.stop(grace_s).wait()
+        self._thread.join(timeout=5)

@@ -1,0 +1,176 @@
+"""One replica of a cluster, and the sets of replicas a front talks to.
+
+A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.server.app.build_server` with the
+user's options on a free port. It adds three calls for the front: ``info`` (where it listens,
+its ``d_infer`` table), ``load`` (info plus the robots it serves, from its own fleet: the front
+rebuilds its whole view from these, so a restarted front loses nothing) and ``release`` (move a
+robot away between two of its chunks).
+
+:class:`ArmoryReplica` is a plain class; Ray runs it as an actor (:class:`RayReplicas`), tests
+and single-host setups can hold it in-process (:class:`LocalReplicas`). The front sees either
+through :class:`ReplicaSet`, whose calls raise :class:`ReplicaDown` for a replica that does not
+answer in time, whatever the transport.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import socket
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.server.app import ArmoryServer, ServerConfig, build_server
+
+log = logging.getLogger(__name__)
+
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+
+
+class ReplicaDown(Exception):
+    """A replica did not answer (dead, restarting, or unreachable)."""
+
+
+def advertised_host(bind_host: str, node_ip: Callable[[], str] | None = None) -> str:
+    """The host robots reach a replica at: the bind host, or this node's IP when bound to all."""
+    if bind_host not in WILDCARD_HOSTS:
+        return bind_host
+    if node_ip is not None:
+        return node_ip()
+    return socket.gethostbyname(socket.gethostname())
+
+
+class ArmoryReplica:
+    """One replica: the whole server, on its own port.
+
+    Args:
+        cfg: the server's options (as ``lerobot-armory-server`` takes them); its ``port`` is
+            ignored (each replica binds a free one) unless ``port`` is given.
+        replica_id: the replica's name in the cluster.
+        advertise_host: the host robots are told to stream to ("" : from ``cfg.host``).
+        port: a fixed port (0: a free one).
+    """
+
+    def __init__(self, cfg: ServerConfig, replica_id: str, advertise_host: str = "", port: int = 0) -> None:
+        self.replica_id = replica_id
+        cfg = dataclasses.replace(cfg, port=port, metrics_port=None, batch_log=None)
+        self.server: ArmoryServer
+        self.server, self.summary = build_server(cfg)
+        host = advertise_host or advertised_host(cfg.host, _ray_node_ip)
+        self.address = f"{host}:{self.server.port}"
+        log.info("replica %s serving at %s (pid %d)", replica_id, self.address, os.getpid())
+
+    def info(self) -> dict[str, Any]:
+        """Where it listens and what it can serve: id, address, ``d_infer`` table (s), limits."""
+        return {
+            "replica_id": self.replica_id,
+            "address": self.address,
+            "latency_s": list(self.server.scheduler.d_infer),
+            "max_robots": self.server.fleet.max_robots,
+            "chunk_size": self.server.policy.chunk_size,
+            "policy": self.server.policy.description,
+            "pid": os.getpid(),
+        }
+
+    def load(self) -> dict[str, Any]:
+        """``info`` plus the robots streaming here (their granted specs) and a status line."""
+        with self.server.fleet.cond:
+            robots = [
+                {**dataclasses.asdict(s.spec), "starvation_pct": s.reported_starvation_pct} for s in self.server.fleet.active()
+            ]
+        return {**self.info(), "robots": robots, "status": self.server.status_line(), "alive": self.server.loop.alive}
+
+    def release(self, robot_id: str) -> bool:
+        """Move ``robot_id`` away between two of its chunks (False: it does not stream here)."""
+        return self.server.fleet.release(robot_id)
+
+    def stop(self) -> None:
+        """Stop serving (robots are told, as on a server's shutdown)."""
+        self.server.stop()
+
+
+def _ray_node_ip() -> str:
+    try:
+        import ray
+
+        return ray.util.get_node_ip_address()
+    except Exception:  # noqa: BLE001 - outside Ray: this host's name resolves as well as it can
+        return socket.gethostbyname(socket.gethostname())
+
+
+def spec_of(robot: dict[str, Any]) -> RobotSpec:
+    """A robot's spec from a replica's ``load`` entry."""
+    fields = {f.name for f in dataclasses.fields(RobotSpec)}
+    return RobotSpec(**{k: v for k, v in robot.items() if k in fields})
+
+
+class ReplicaSet(Protocol):
+    """The replicas a front places robots on, whatever runs them."""
+
+    def ids(self) -> list[str]:
+        """Replica ids, stable for the cluster's life (a restarted replica keeps its id)."""
+        ...
+
+    def load(self, replica_id: str, timeout: float) -> dict[str, Any]:
+        """The replica's :meth:`ArmoryReplica.load` (:class:`ReplicaDown` if it does not answer)."""
+        ...
+
+    def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
+        """The replica's :meth:`ArmoryReplica.release` (:class:`ReplicaDown` if it does not answer)."""
+        ...
+
+
+class LocalReplicas:
+    """Replicas held in this process (tests, and one host without Ray). ``kill`` stops one."""
+
+    def __init__(self, replicas: dict[str, ArmoryReplica]) -> None:
+        self.replicas: dict[str, ArmoryReplica | None] = dict(replicas)
+
+    def ids(self) -> list[str]:
+        return sorted(self.replicas)
+
+    def _get(self, replica_id: str) -> ArmoryReplica:
+        replica = self.replicas.get(replica_id)
+        if replica is None:
+            raise ReplicaDown(f"replica {replica_id} is down")
+        return replica
+
+    def load(self, replica_id: str, timeout: float) -> dict[str, Any]:
+        return self._get(replica_id).load()
+
+    def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
+        return self._get(replica_id).release(robot_id)
+
+    def kill(self, replica_id: str) -> None:
+        """Stop a replica abruptly (its robots' streams end)."""
+        replica = self.replicas.get(replica_id)
+        self.replicas[replica_id] = None
+        if replica is not None:
+            replica.server.stop(grace_s=0.0)
+
+
+class RayReplicas:
+    """Replicas run as Ray actors (named, so a restarted front finds them again)."""
+
+    def __init__(self, handles: dict[str, Any]) -> None:
+        self.handles = dict(handles)
+
+    def ids(self) -> list[str]:
+        return sorted(self.handles)
+
+    def _call(self, replica_id: str, method: str, *args: Any, timeout: float) -> Any:
+        import ray
+        from ray import exceptions as rex
+
+        try:
+            return ray.get(getattr(self.handles[replica_id], method).remote(*args), timeout=timeout)
+        except (rex.GetTimeoutError, rex.RayActorError, rex.ActorUnavailableError) as exc:
+            raise ReplicaDown(f"replica {replica_id}: {type(exc).__name__}") from None
+
+    def load(self, replica_id: str, timeout: float) -> dict[str, Any]:
+        return self._call(replica_id, "load", timeout=timeout)
+
+    def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
+        return self._call(replica_id, "release", robot_id, timeout=timeout)

@@ -1,0 +1,242 @@
+"""Which GPU serves which robot: the predicted load of a replica, and the placement policies.
+
+Pure and deterministic like the mirror and the schedulers: no I/O, no clock. The cluster's front
+(:mod:`lerobot_armory.cluster.front`) places live robots with it; the multi-replica simulator
+(:mod:`lerobot_armory.sim.cluster`) places simulated ones with the same objects.
+
+The load model is the mirror's timing, summed. A robot executes at most ``h_max`` actions of a
+chunk at ``fps``; a chunk reaches it ``L`` seconds after the observation it answers (one full batch and two network
+crossings; waiting for the device is what utilization above 1 means). So the robot
+must be served at least every ``h_max / fps - L`` seconds (never more often than ``h_min / fps``,
+the mirror's rule), and each chunk costs ``d_infer(b) / b`` device seconds at the replica's batch
+cap ``b``. The robot's *demand* is that cost over that period, in device seconds per second; a
+replica's predicted *utilization* is the sum over its robots. Above 1 the replica cannot serve
+every robot on time and someone starves; the fast tier's short horizons make its robots the
+heaviest.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import RobotSpec
+
+# A robot's period is never taken shorter than one control tick: a robot whose horizon is shorter
+# than the round trip cannot be kept fed by any placement, and its demand is capped at "every tick".
+MIN_PERIOD_TICKS = 1.0
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """What one replica can serve: its ``d_infer(b)`` table and the network its robots cross.
+
+    Attributes:
+        latency_s: ``d_infer(b)`` in seconds for b = 1..max_batch_size.
+        one_way_s: typical one-way network delay to the robots, seconds.
+    """
+
+    latency_s: tuple[float, ...]
+    one_way_s: float = 0.00375
+
+    def __post_init__(self) -> None:
+        if not self.latency_s or any(not d > 0 for d in self.latency_s):
+            raise ConfigError("latency_profile", f"d_infer(b) must be > 0 for every b, got {list(self.latency_s)}")
+        if not self.one_way_s >= 0:
+            raise ConfigError("one_way_s", f"must be >= 0, got {self.one_way_s}")
+
+    @property
+    def max_batch_size(self) -> int:
+        return len(self.latency_s)
+
+    @property
+    def chunk_cost_s(self) -> float:
+        """Device seconds one chunk costs in a full batch."""
+        return self.latency_s[-1] / self.max_batch_size
+
+    @property
+    def round_trip_s(self) -> float:
+        """Observation to chunk in the robot's hands: one full batch and two network crossings."""
+        return self.latency_s[-1] + 2 * self.one_way_s
+
+
+def demand(spec: RobotSpec, capacity: Capacity) -> float:
+    """Device seconds per second ``spec`` needs from a replica of ``capacity`` to never run dry."""
+    period = spec.h_max / spec.fps - capacity.round_trip_s
+    period = max(period, spec.h_min / spec.fps, MIN_PERIOD_TICKS / spec.fps)
+    return capacity.chunk_cost_s / period
+
+
+@dataclass
+class ReplicaView:
+    """What placement knows of one replica.
+
+    Attributes:
+        replica_id: its name.
+        capacity: its ``d_infer`` and network.
+        robots: the robots placed on it, by id.
+        healthy: whether it answers its health checks (placement skips it when not).
+        max_robots: robots it accepts at most.
+    """
+
+    replica_id: str
+    capacity: Capacity
+    robots: dict[str, RobotSpec] = field(default_factory=dict)
+    healthy: bool = True
+    max_robots: int = 64
+
+    def utilization(self, extra: RobotSpec | None = None) -> float:
+        """Predicted utilization, with ``extra`` placed too when given."""
+        total = sum(demand(s, self.capacity) for s in self.robots.values())
+        return total + (demand(extra, self.capacity) if extra is not None else 0.0)
+
+    @property
+    def open(self) -> bool:
+        return self.healthy and len(self.robots) < self.max_robots
+
+
+class NoReplica(Exception):
+    """No healthy replica has room for another robot."""
+
+
+class Placement:
+    """Chooses a replica for a joining robot. Subclasses implement :meth:`choose`."""
+
+    name = "base"
+
+    def choose(self, spec: RobotSpec, replicas: Sequence[ReplicaView]) -> str:
+        """The id of the replica ``spec`` should join (:class:`NoReplica` if none is open)."""
+        candidates = [r for r in replicas if r.open]
+        if not candidates:
+            raise NoReplica("no healthy replica has room for another robot")
+        return self._choose(spec, candidates)
+
+    def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
+        raise NotImplementedError
+
+
+class RandomPlacement(Placement):
+    """Any open replica, uniformly (a load balancer that hashes robots to backends)."""
+
+    name = "random"
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = random.Random(seed)
+
+    def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
+        return self.rng.choice(list(candidates)).replica_id
+
+
+class RoundRobinPlacement(Placement):
+    """The next replica in turn, in the order of replica ids."""
+
+    name = "round_robin"
+
+    def __init__(self, seed: int = 0) -> None:
+        self.turn = 0
+
+    def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
+        ordered = sorted(candidates, key=lambda r: r.replica_id)
+        chosen = ordered[self.turn % len(ordered)]
+        self.turn += 1
+        return chosen.replica_id
+
+
+class LeastLoadedPlacement(Placement):
+    """The replica with the fewest robots ("least connections")."""
+
+    name = "least_loaded"
+
+    def __init__(self, seed: int = 0) -> None:
+        pass
+
+    def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
+        return min(candidates, key=lambda r: (len(r.robots), r.replica_id)).replica_id
+
+
+class MirrorAwarePlacement(Placement):
+    """The replica with the lowest predicted load once the robot is on it.
+
+    The load is the replica's predicted utilization plus, counted again, the utilization of the
+    robot's own tier: robots of one tier have the same deadlines and compete for the same batch
+    slots, so they are spread (a greedy choice by total utilization alone puts two fast robots
+    together when they happen to join in a row). Each robot's demand is measured against the
+    replica's own ``d_infer(b)``, so a slower GPU counts as fuller. Ties go to the replica with
+    the least weight already at the robot's weight or above.
+    """
+
+    name = "mirror_aware"
+
+    def __init__(self, seed: int = 0) -> None:
+        pass
+
+    def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
+        def key(r: ReplicaView) -> tuple[float, float, int, str]:
+            heavy = sum(s.weight for s in r.robots.values() if s.weight >= spec.weight)
+            own = demand(spec, r.capacity)
+            tier = sum(demand(s, r.capacity) for s in r.robots.values() if s.tier == spec.tier) + own
+            return (round(r.utilization(spec) + tier, 9), heavy, len(r.robots), r.replica_id)
+
+        return min(candidates, key=key).replica_id
+
+
+PLACEMENTS: dict[str, Callable[[int], Placement]] = {
+    "random": RandomPlacement,
+    "round_robin": RoundRobinPlacement,
+    "least_loaded": LeastLoadedPlacement,
+    "mirror_aware": MirrorAwarePlacement,
+}
+
+
+def make_placement(name: str, seed: int = 0) -> Placement:
+    """The placement policy called ``name`` (ConfigError listing the known ones)."""
+    if name not in PLACEMENTS:
+        raise ConfigError("placement", f"unknown placement {name!r}; known: {', '.join(PLACEMENTS)}")
+    return PLACEMENTS[name](seed)
+
+
+@dataclass(frozen=True)
+class Move:
+    """Move ``robot_id`` from replica ``source`` to ``target`` (done between two of its chunks)."""
+
+    robot_id: str
+    source: str
+    target: str
+
+
+def rebalance(replicas: Sequence[ReplicaView], min_gain: float = 0.1) -> Move | None:
+    """One move that lowers the highest predicted utilization by at least ``min_gain``, or None.
+
+    Called when robots join or leave. One move at a time: each costs the moved robot a
+    re-registration, so the front makes the best single move and looks again later.
+    """
+    healthy = [r for r in replicas if r.healthy]
+    if len(healthy) < 2:
+        return None
+    source = max(healthy, key=lambda r: (r.utilization(), r.replica_id))
+    before = source.utilization()
+    best: tuple[float, Move] | None = None
+    for robot_id, spec in sorted(source.robots.items()):
+        left = before - demand(spec, source.capacity)
+        for target in healthy:
+            if target is source or not target.open:
+                continue
+            after = max(left, target.utilization(spec))
+            if before - after >= min_gain and (best is None or after < best[0]):
+                best = (after, Move(robot_id, source.replica_id, target.replica_id))
+    return best[1] if best else None
+
+
+def place_all(
+    specs: Sequence[RobotSpec], replicas: Sequence[ReplicaView], placement: Placement
+) -> Mapping[str, str]:
+    """Place ``specs`` one after another (their order is the join order); returns robot -> replica."""
+    by_id = {r.replica_id: r for r in replicas}
+    where: dict[str, str] = {}
+    for spec in specs:
+        chosen = placement.choose(spec, replicas)
+        by_id[chosen].robots[spec.robot_id] = spec
+        where[spec.robot_id] = chosen
+    return where

@@ -1,0 +1,88 @@
+"""Shared by the cluster tests: replica options, armory_sim robots on threads, and the stale-action check."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
+from lerobot_armory.robot.features import FeatureMap
+from lerobot_armory.schedulers import EarliestDeadlineConfig
+from lerobot_armory.server.app import ServerConfig
+from lerobot_armory.server.emulation import EngineOptions
+from lerobot_armory.server.engine import PolicyOptions
+
+IMAGE = 32
+
+
+def make_planner(out) -> str:
+    """The analytic armory_planner (deterministic, cheap) saved as a LeRobot policy dir."""
+    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+
+    make_demo_policy(DemoPolicyConfig(output=str(out), kind="planner", chunk_size=10, image_size=IMAGE))
+    return str(out)
+
+
+def replica_config(policy_dir: str) -> ServerConfig:
+    """A replica: the planner on the CPU, batches taking an H100's π0.5 latency, EDF, b = 3."""
+    return ServerConfig(
+        policy=PolicyOptions(policy_dir, "cpu"),
+        engine=EngineOptions(emulate_profile="h100-pi05"),
+        scheduler=EarliestDeadlineConfig(),
+        max_batch_size=3,
+        status_interval_s=0.0,
+        log_level="warning",
+        port=0,
+    )
+
+
+@dataclass
+class SimRobot:
+    """One armory_sim robot running the real client loop on a thread."""
+
+    client: ArmoryClient
+    robot: ArmorySim
+    thread: threading.Thread | None = None
+    error: list[BaseException] = field(default_factory=list)
+
+    def start(self, duration_s: float) -> None:
+        def run() -> None:
+            try:
+                self.client.run(duration_s)
+            except BaseException as exc:  # noqa: BLE001 - surfaced by the test
+                self.error.append(exc)
+
+        self.robot.connect()
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+
+    def join(self) -> dict:
+        assert self.thread is not None
+        self.thread.join(timeout=60)
+        self.client.close()
+        self.robot.disconnect()
+        assert not self.error, self.error
+        return self.client.stats()
+
+
+def sim_robot(address: str, robot_id: str, fast: bool, seed: int) -> SimRobot:
+    scene = "dynamic" if fast else "static"
+    robot = ArmorySim(ArmorySimConfig(scene=scene, image_size=IMAGE, seed=seed))
+    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+    client = ArmoryClient(
+        address,
+        RobotIdentity(robot_id, 20.0, 1, 6 if fast else 10, 1.0, "fast" if fast else "slow", scene),
+        fmap.wire_features(),
+        observe=lambda: fmap.to_wire(robot.get_observation()),
+        act=lambda vector: robot.send_action(fmap.to_action(vector)),
+        backoff=Backoff(0.1, 0.5, give_up_s=30.0),
+        record_actions=True,
+    )
+    return SimRobot(client, robot)
+
+
+def stale_actions(client: ArmoryClient) -> list[tuple]:
+    """Actions executed after a lost connection from a chunk of the lost session (or an older one)."""
+    log = client.executed_log or []
+    return [e for lost_t, lost_epoch in client.losses for e in log if e[0] >= lost_t and e[1] <= lost_epoch]

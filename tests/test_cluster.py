@@ -1,0 +1,173 @@
+"""The cluster's front and replicas in one process (no Ray): placement, redirect, failover, moves, front restart.
+
+The same front runs over Ray actors in test_cluster_ray.py; here the replicas are held in-process
+(:class:`LocalReplicas`) so each behaviour is checked quickly and deterministically.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+import grpc
+import numpy as np
+import pytest
+
+from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
+from lerobot_armory.cluster.replica import ArmoryReplica, LocalReplicas
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.robot.connection import Connection
+from tests.cluster_helpers import make_planner, replica_config, sim_robot, stale_actions
+
+
+@pytest.fixture(scope="module")
+def planner_dir(tmp_path_factory):
+    return make_planner(tmp_path_factory.mktemp("planner") / "planner")
+
+
+@pytest.fixture
+def cluster(planner_dir):
+    """3 in-process replicas and a front; stopped afterwards."""
+    replicas = LocalReplicas({f"r{k}": ArmoryReplica(replica_config(planner_dir), f"r{k}") for k in range(3)})
+    front = FrontServer(ClusterFront(replicas, FrontOptions(health_interval_s=0.2)))
+    yield front, replicas
+    front.stop(0)
+    for rid in replicas.ids():
+        replicas.kill(rid)
+
+
+def wait_for(predicate, timeout: float = 10.0, step: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return False
+
+
+def start_fleet(address: str, n: int = 6, duration_s: float = 8.0):
+    robots = [sim_robot(address, f"robot{k}", fast=k % 2 == 0, seed=k) for k in range(n)]
+    for r in robots:
+        r.start(duration_s)
+        time.sleep(0.05)  # robots join one after another, as placement sees them
+    return robots
+
+
+def test_robots_are_placed_balanced_and_follow_the_redirect(cluster):
+    front, replicas = cluster
+    robots = start_fleet(front.address, duration_s=5.0)
+    assert wait_for(lambda: len(front.front.placements()) == 6)
+    where = front.front.placements()
+    per_replica = Counter(where.values())
+    assert sorted(per_replica.values()) == [2, 2, 2], where
+    # mirror-aware placement spreads the fast robots: one per replica
+    fast_per_replica = Counter(rid for robot, rid in where.items() if int(robot[-1]) % 2 == 0)
+    assert sorted(fast_per_replica.values()) == [1, 1, 1], where
+    stats = [r.join() for r in robots]
+    for s in stats:
+        assert s["executed_steps"] > 40, s  # every robot was served by its replica
+    # each robot streamed to the replica the front named, not to the front
+    for r in robots:
+        assert r.client.connection is None or r.client.connection.address != front.address
+
+
+def test_a_dead_replica_s_robots_resume_elsewhere_within_3_s_and_never_run_a_stale_action(cluster):
+    front, replicas = cluster
+    robots = start_fleet(front.address, duration_s=9.0)
+    assert wait_for(lambda: len(front.front.placements()) == 6)
+    time.sleep(2.0)
+    victim = front.front.placements()["robot0"]
+    moved = [robot for robot, rid in front.front.placements().items() if rid == victim]
+    replicas.kill(victim)
+    everyone = {f"robot{k}" for k in range(6)}
+    assert wait_for(lambda: set(front.front.placements()) == everyone and victim not in front.front.placements().values())
+    stats = {r.client.identity.robot_id: (r, r.join()) for r in robots}
+    for robot_id in moved:
+        r, s = stats[robot_id]
+        assert r.client.reconnects >= 1, s
+        assert s["outages_s"] and max(s["outages_s"]) < 3.0, s["outages_s"]
+        assert stale_actions(r.client) == []
+
+
+def test_a_restarted_front_loses_no_running_robot(cluster, planner_dir):
+    front, replicas = cluster
+    robots = start_fleet(front.address, duration_s=7.0)
+    assert wait_for(lambda: len(front.front.placements()) == 6)
+    before = front.front.placements()
+    port = front.port
+    front.stop(0)
+    executed = [r.client.executed for r in robots]
+    time.sleep(1.5)
+    assert all(r.client.executed > e + 10 for r, e in zip(robots, executed, strict=True))  # still served
+    assert all(r.client.reconnects == 0 for r in robots)
+    again = FrontServer(ClusterFront(replicas, FrontOptions(health_interval_s=0.2)), port=port)
+    try:
+        assert again.front.placements() == before  # the first refresh rebuilt the view from the replicas
+        for r in robots:
+            r.join()
+    finally:
+        again.stop(0)
+
+
+def test_a_move_happens_between_chunks_and_costs_the_robot_no_action(cluster):
+    front, replicas = cluster
+    robots = start_fleet(front.address, n=2, duration_s=6.0)
+    assert wait_for(lambda: len(front.front.placements()) == 2)
+    time.sleep(1.5)
+    source = front.front.placements()["robot0"]
+    target = next(rid for rid in replicas.ids() if rid not in front.front.placements().values())
+    from lerobot_armory.placement import Move
+
+    front.front._release(Move("robot0", source, target), time.monotonic())
+    assert wait_for(lambda: front.front.placements().get("robot0") == target, timeout=5.0)
+    stats = robots[0].join()
+    robots[1].join()
+    assert robots[0].client.reconnects == 1
+    assert stats["outages_s"] == []  # it kept executing the chunks it held while re-registering
+    assert any("moved" in n for n in robots[0].client.notices)
+
+
+def test_the_front_forwards_refusals_and_refuses_streams(cluster):
+    front, _ = cluster
+    conn = Connection(front.address)
+    assert conn.wait_ready(5)
+    with pytest.raises(grpc.RpcError) as refused:
+        conn.register("bad", {"nope": ("float32", (3,))}, 20.0, 1, 10)
+    assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "nope" in refused.value.details()  # the replica's own explanation, passed through
+    call = conn.stub.Stream(iter(()))
+    with pytest.raises(grpc.RpcError) as streamed:
+        list(call)
+    assert streamed.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert "stream_address" in streamed.value.details()
+    conn.close()
+
+
+def test_a_chunk_through_the_cluster_equals_a_single_server_s(cluster, planner_dir):
+    front, _ = cluster
+    single = ArmoryReplica(replica_config(planner_dir), "single")
+    try:
+        chunks = []
+        for address in (front.address, single.address):
+            conn = Connection(address)
+            assert conn.wait_ready(5)
+            robot = sim_robot(address, "same", fast=True, seed=7).robot
+            from lerobot_armory.robot.features import FeatureMap
+
+            fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+            reg = conn.register("same", fmap.wire_features(), 20.0, 1, 6, tier="fast")
+            assert (reg.stream_address != "") == (address == front.address)
+            got: list = []
+            conn.open_stream(got.append)
+            rng = np.random.default_rng(0)
+            obs = {
+                name: (rng.integers(0, 255, size=shape, dtype=np.uint8) if dtype == "uint8" else rng.normal(size=shape).astype(dtype))
+                for name, (dtype, shape) in fmap.wire_features().items()
+            }
+            conn.send_observation(0, obs, capture_time=time.monotonic())
+            assert wait_for(lambda: bool(got), timeout=5.0)
+            chunks.append(got[0].actions)
+            conn.close()
+        np.testing.assert_array_equal(chunks[0], chunks[1])
+    finally:
+        single.stop()
