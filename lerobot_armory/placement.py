@@ -206,7 +206,7 @@ class Move:
     target: str
 
 
-def rebalance(replicas: Sequence[ReplicaView], min_gain: float = 0.1) -> Move | None:
+def rebalance(replicas: Sequence[ReplicaView], min_gain: float = 0.05) -> Move | None:
     """One move that lowers the highest predicted utilization by at least ``min_gain``, or None.
 
     Called when robots join or leave. One move at a time: each costs the moved robot a

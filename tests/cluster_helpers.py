@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.schedulers import EarliestDeadlineConfig
@@ -86,3 +90,41 @@ def stale_actions(client: ArmoryClient) -> list[tuple]:
     """Actions executed after a lost connection from a chunk of the lost session (or an older one)."""
     log = client.executed_log or []
     return [e for lost_t, lost_epoch in client.losses for e in log if e[0] >= lost_t and e[1] <= lost_epoch]
+
+
+def wait_for(predicate, timeout: float = 10.0, step: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return False
+
+
+def start_fleet(address: str, n: int = 6, duration_s: float = 8.0):
+    robots = [sim_robot(address, f"robot{k}", fast=k % 2 == 0, seed=k) for k in range(n)]
+    for r in robots:
+        r.start(duration_s)
+        time.sleep(0.05)  # robots join one after another, as placement sees them
+    return robots
+
+
+
+def one_chunk(address: str) -> tuple[np.ndarray, str]:
+    """Register robot "same" at ``address``, send one fixed observation; (its chunk, the stream address answered)."""
+    conn = Connection(address)
+    assert conn.wait_ready(5)
+    robot = ArmorySim(ArmorySimConfig(scene="dynamic", image_size=IMAGE, seed=7))
+    fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+    reg = conn.register("same", fmap.wire_features(), 20.0, 1, 6, tier="fast")
+    got: list = []
+    conn.open_stream(got.append)
+    rng = np.random.default_rng(0)
+    obs = {
+        name: rng.integers(0, 255, size=shape, dtype=np.uint8) if dtype == "uint8" else rng.normal(size=shape).astype(dtype)
+        for name, (dtype, shape) in fmap.wire_features().items()
+    }
+    conn.send_observation(0, obs, capture_time=time.monotonic())
+    assert wait_for(lambda: bool(got), timeout=5.0)
+    conn.close()
+    return got[0].actions, reg.stream_address

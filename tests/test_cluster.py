@@ -15,9 +15,8 @@ import pytest
 
 from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.cluster.replica import ArmoryReplica, LocalReplicas
-from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.connection import Connection
-from tests.cluster_helpers import make_planner, replica_config, sim_robot, stale_actions
+from tests.cluster_helpers import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -34,23 +33,6 @@ def cluster(planner_dir):
     front.stop(0)
     for rid in replicas.ids():
         replicas.kill(rid)
-
-
-def wait_for(predicate, timeout: float = 10.0, step: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return False
-
-
-def start_fleet(address: str, n: int = 6, duration_s: float = 8.0):
-    robots = [sim_robot(address, f"robot{k}", fast=k % 2 == 0, seed=k) for k in range(n)]
-    for r in robots:
-        r.start(duration_s)
-        time.sleep(0.05)  # robots join one after another, as placement sees them
-    return robots
 
 
 def test_robots_are_placed_balanced_and_follow_the_redirect(cluster):
@@ -147,27 +129,9 @@ def test_a_chunk_through_the_cluster_equals_a_single_server_s(cluster, planner_d
     front, _ = cluster
     single = ArmoryReplica(replica_config(planner_dir), "single")
     try:
-        chunks = []
-        for address in (front.address, single.address):
-            conn = Connection(address)
-            assert conn.wait_ready(5)
-            robot = sim_robot(address, "same", fast=True, seed=7).robot
-            from lerobot_armory.robot.features import FeatureMap
-
-            fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
-            reg = conn.register("same", fmap.wire_features(), 20.0, 1, 6, tier="fast")
-            assert (reg.stream_address != "") == (address == front.address)
-            got: list = []
-            conn.open_stream(got.append)
-            rng = np.random.default_rng(0)
-            obs = {
-                name: (rng.integers(0, 255, size=shape, dtype=np.uint8) if dtype == "uint8" else rng.normal(size=shape).astype(dtype))
-                for name, (dtype, shape) in fmap.wire_features().items()
-            }
-            conn.send_observation(0, obs, capture_time=time.monotonic())
-            assert wait_for(lambda: bool(got), timeout=5.0)
-            chunks.append(got[0].actions)
-            conn.close()
-        np.testing.assert_array_equal(chunks[0], chunks[1])
+        via_front, placed_at = one_chunk(front.address)
+        alone, direct = one_chunk(single.address)
+        assert placed_at != "" and direct == ""  # the front redirected; the single server did not
+        np.testing.assert_array_equal(via_front, alone)
     finally:
         single.stop()

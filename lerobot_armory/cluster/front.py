@@ -115,7 +115,7 @@ class ClusterFront(ArmoryServicer):
         self.steer: dict[str, tuple[str, float]] = {}  # robot -> (target replica, until)
         self.moved_at: dict[str, float] = {}
         self.moves: list[Move] = []
-        self._members: frozenset[tuple[str, str]] = frozenset()
+        self._members: frozenset[tuple[str, str]] = frozenset()  # (robot, replica) pairs and ("", replica up)
         self.peer_log = ThrottledLog(log)
 
     # ---- the view ----------------------------------------------------------------------------
@@ -150,8 +150,11 @@ class ClusterFront(ArmoryServicer):
                     log.info("replica %s is up at %s", rid, state.address)
                 state.pending = {k: v for k, v in state.pending.items() if k not in state.reported and v[1] > now}
                 self._rebuild(state)
-            # A robot reported by two replicas (a move in progress) counts where it streams now.
-            members = frozenset((robot, rid) for rid, s in self.state.items() for robot in s.reported)
+            # Membership: who streams where, and which replicas are up (a replica back from a
+            # restart is empty: robots may move onto it).
+            members = frozenset((robot, rid) for rid, s in self.state.items() for robot in s.reported) | frozenset(
+                ("", rid) for rid, s in self.state.items() if s.view.healthy
+            )
             changed = members != self._members
             self._members = members
             self.steer = {k: v for k, v in self.steer.items() if v[1] > now}
