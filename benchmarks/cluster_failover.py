@@ -26,9 +26,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Targets  # noqa: E402
+from _common import Targets
 
-from tests.cluster_helpers import make_planner, replica_config, stale_actions, start_fleet, wait_for  # noqa: E402
+from tests.cluster_helpers import make_planner, replica_config, stale_actions, start_fleet, wait_for
 
 
 def main() -> int:

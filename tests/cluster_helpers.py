@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
-from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
+from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ServerConfig

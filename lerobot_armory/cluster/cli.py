@@ -24,6 +24,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import grpc
+
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
 from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.cluster.replica import ArmoryReplica, RayReplicas
@@ -31,6 +33,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.server.app import ServerConfig
 from lerobot_armory.server.engine import PolicyOptions
 from lerobot_armory.server.logs import configure_logging
+from lerobot_armory.server.security import read_tls
 
 log = logging.getLogger("lerobot_armory.cluster")
 
@@ -140,7 +143,16 @@ def run(cfg: ClusterConfig) -> None:
     ray.init(address=cfg.ray.address, namespace=cfg.ray.namespace, include_dashboard=False, log_to_driver=True)
     print(f"lerobot-armory-cluster: starting {cfg.replicas} replicas of {cfg.policy.path} on Ray ...", flush=True)
     replicas = start_replicas(cfg)
-    front = FrontServer(ClusterFront(replicas, cfg.cluster), cfg.host, cfg.port)
+    tls = read_tls(cfg.tls_cert, cfg.tls_key)
+    channels = None
+    if tls is not None:
+        # The replicas serve TLS with the same certificate (it must name every replica's host):
+        # the front trusts it to forward registrations.
+        cert = tls[1]
+        channels = lambda address: grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=cert))
+    front = FrontServer(
+        ClusterFront(replicas, cfg.cluster, channel_factory=channels), cfg.host, cfg.port, int(cfg.max_message_mb * (1 << 20)), tls
+    )
     print(
         f"lerobot-armory-cluster front listening on {front.address}: robots use --server_address={front.address}\n"
         f"  placement: {cfg.cluster.placement}, health checks every {cfg.cluster.health_interval_s:g} s, "

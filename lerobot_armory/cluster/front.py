@@ -29,6 +29,7 @@ from typing import Any
 
 import grpc
 
+from lerobot_armory.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.placement import Capacity, Move, NoReplica, Placement, ReplicaView, make_placement, rebalance
@@ -37,7 +38,6 @@ from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
 from lerobot_armory.proto.hardening import Malformed
 from lerobot_armory.server.peer_log import ThrottledLog
 from lerobot_armory.server.service import RunningServer, start_grpc_server
-from lerobot_armory.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 
 log = logging.getLogger(__name__)
 
@@ -243,7 +243,7 @@ class ClusterFront(ArmoryServicer):
                 self._channels[address] = (channel, ArmoryStub(channel))
             return self._channels[address][1]
 
-    def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:  # noqa: N802
+    def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:
         if isinstance(request, Malformed):
             self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
@@ -286,7 +286,7 @@ class ClusterFront(ArmoryServicer):
             state.view.healthy = False
             state.reported = {}
 
-    def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:  # noqa: N802
+    def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:
         context.abort(
             grpc.StatusCode.FAILED_PRECONDITION,
             "this is a lerobot-armory cluster front: register here, then stream to the replica named in "
@@ -298,9 +298,16 @@ class ClusterFront(ArmoryServicer):
 class FrontServer:
     """The front on a gRPC port, with its health loop."""
 
-    def __init__(self, front: ClusterFront, host: str = "127.0.0.1", port: int = 0, max_message_bytes: int = 4 << 20) -> None:
+    def __init__(
+        self,
+        front: ClusterFront,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        max_message_bytes: int = 4 << 20,
+        tls: tuple[bytes, bytes] | None = None,
+    ) -> None:
         self.front = front
-        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes)  # type: ignore[arg-type]
+        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls)  # type: ignore[arg-type]
         self.host = host
         self._stop = threading.Event()
         front.refresh()
@@ -319,7 +326,7 @@ class FrontServer:
         while not self._stop.wait(self.front.options.health_interval_s):
             try:
                 self.front.refresh()
-            except Exception:  # noqa: BLE001 - the health loop must outlive a bad answer
+            except Exception:
                 log.exception("refreshing the replicas' load failed")
 
     def stop(self, grace_s: float = 1.0) -> None:
