@@ -17,6 +17,7 @@ heaviest.
 
 from __future__ import annotations
 
+import functools
 import random
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -62,11 +63,52 @@ class Capacity:
         return self.latency_s[-1] + 2 * self.one_way_s
 
 
+@functools.lru_cache(maxsize=65536)  # specs and capacities are frozen; a fleet has few distinct ones
 def demand(spec: RobotSpec, capacity: Capacity) -> float:
     """Device seconds per second ``spec`` needs from a replica of ``capacity`` to never run dry."""
     period = spec.h_max / spec.fps - capacity.round_trip_s
     period = max(period, spec.h_min / spec.fps, MIN_PERIOD_TICKS / spec.fps)
     return capacity.chunk_cost_s / period
+
+
+class RobotTable(dict):
+    """``robot_id -> RobotSpec`` that counts its changes, so a replica's load is summed once per change."""
+
+    version = 0
+
+    def _changed(self) -> None:
+        self.version += 1
+
+    def __setitem__(self, key: str, value: RobotSpec) -> None:
+        super().__setitem__(key, value)
+        self._changed()
+
+    def __delitem__(self, key: str) -> None:
+        super().__delitem__(key)
+        self._changed()
+
+    def pop(self, *args: object) -> object:  # type: ignore[override]
+        value = super().pop(*args)
+        self._changed()
+        return value
+
+    def popitem(self) -> tuple[str, RobotSpec]:
+        item = super().popitem()
+        self._changed()
+        return item
+
+    def clear(self) -> None:
+        super().clear()
+        self._changed()
+
+    def update(self, *args: object, **kwargs: RobotSpec) -> None:  # type: ignore[override]
+        super().update(*args, **kwargs)
+        self._changed()
+
+    def setdefault(self, key: str, default: RobotSpec) -> RobotSpec:  # type: ignore[override]
+        value = super().setdefault(key, default)
+        self._changed()
+        return value
 
 
 @dataclass
@@ -76,21 +118,51 @@ class ReplicaView:
     Attributes:
         replica_id: its name.
         capacity: its ``d_infer`` and network.
-        robots: the robots placed on it, by id.
+        robots: the robots placed on it, by id (a plain dict assigned here becomes a
+            :class:`RobotTable`, whose changes invalidate the summed load).
         healthy: whether it answers its health checks (placement skips it when not).
         max_robots: robots it accepts at most.
     """
 
     replica_id: str
     capacity: Capacity
-    robots: dict[str, RobotSpec] = field(default_factory=dict)
+    robots: dict[str, RobotSpec] = field(default_factory=RobotTable)
     healthy: bool = True
     max_robots: int = 64
 
+    def __setattr__(self, name: str, value: object) -> None:
+        if name == "robots" and not isinstance(value, RobotTable):
+            value = RobotTable(value)  # type: ignore[arg-type]
+        super().__setattr__(name, value)
+
+    def _sums(self) -> tuple[float, dict[str, float], dict[float, float]]:
+        """(total demand, demand per tier, weight-at-or-above memo), recomputed after a change."""
+        robots = self.robots
+        key = (id(robots), robots.version, self.capacity)  # type: ignore[attr-defined]
+        memo = self.__dict__.get("_memo")
+        if memo is None or memo[0] != key:
+            by_tier: dict[str, float] = {}
+            for s in robots.values():
+                by_tier[s.tier] = by_tier.get(s.tier, 0.0) + demand(s, self.capacity)
+            memo = (key, (sum(by_tier.values()), by_tier, {}))
+            self.__dict__["_memo"] = memo
+        return memo[1]
+
     def utilization(self, extra: RobotSpec | None = None) -> float:
         """Predicted utilization, with ``extra`` placed too when given."""
-        total = sum(demand(s, self.capacity) for s in self.robots.values())
+        total = self._sums()[0]
         return total + (demand(extra, self.capacity) if extra is not None else 0.0)
+
+    def tier_utilization(self, tier: str) -> float:
+        """Predicted utilization of this replica's robots of ``tier``."""
+        return self._sums()[1].get(tier, 0.0)
+
+    def weight_at_or_above(self, weight: float) -> float:
+        """Summed weight of the robots weighing ``weight`` or more."""
+        memo = self._sums()[2]
+        if weight not in memo:
+            memo[weight] = sum(s.weight for s in self.robots.values() if s.weight >= weight)
+        return memo[weight]
 
     @property
     def open(self) -> bool:
@@ -174,10 +246,9 @@ class MirrorAwarePlacement(Placement):
 
     def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
         def key(r: ReplicaView) -> tuple[float, float, int, str]:
-            heavy = sum(s.weight for s in r.robots.values() if s.weight >= spec.weight)
             own = demand(spec, r.capacity)
-            tier = sum(demand(s, r.capacity) for s in r.robots.values() if s.tier == spec.tier) + own
-            return (round(r.utilization(spec) + tier, 9), heavy, len(r.robots), r.replica_id)
+            load = r.utilization() + own + r.tier_utilization(spec.tier) + own
+            return (round(load, 9), r.weight_at_or_above(spec.weight), len(r.robots), r.replica_id)
 
         return min(candidates, key=key).replica_id
 

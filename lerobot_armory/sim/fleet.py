@@ -1,0 +1,352 @@
+"""Fleet files: the robots a cluster must serve, what serves them, and the preset shorthand.
+
+A fleet file (YAML ``.yaml``/``.yml`` or JSON) describes a fleet by groups of identical robots::
+
+    latency_profile: l40s-pi05      # built-in profile name or a JSON profile file
+    max_batch_size: 3
+    scheduler: edf                  # rr | edf | lookahead, or {type: lookahead, depth: 2}; default edf
+    network: {median_ms: 3.75, sigma: 0.2}   # one-way delay, log-normal (default: 3.75 ms, σ 0.2)
+    max_robots_per_gpu: 64          # optional; default: no limit
+    robots:
+      - {count: 40, fps: 20, chunk_size: 10, h_min: 1, h_max: 6, weight: 3, tier: fast}
+      - {count: 60, fps: 20, chunk_size: 10, h_min: 1, h_max: 10, tier: slow}
+
+``weight`` defaults to 1 and ``tier`` to ``slow``; a group may carry a ``name`` (its robots are
+called ``NAME-000``, ``NAME-001``...; default ``g<k>``). Every field is checked: an unknown key or
+a bad value is one :class:`~lerobot_armory.errors.ConfigError` naming the field
+(``robots[1].h_max: ...``), which the command lines print as one line and exit 2.
+
+Instead of a file, ``preset:NAME:MIX:N[:FAST_WEIGHT]`` (e.g. ``preset:libero:half-fast:100``)
+takes a reference preset's robots (SPEC §5) with its default profile, batch cap and network, and
+EDF.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.mirror import TIERS, RobotSpec, spec_problems
+from lerobot_armory.placement import Capacity, demand
+from lerobot_armory.schedulers import EarliestDeadlineConfig, SchedulerConfig, make_scheduler_config
+from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
+
+PRESET_PREFIX = "preset:"
+DEFAULT_NET_MEDIAN_MS = 3.75
+DEFAULT_NET_SIGMA = 0.2
+# A fleet file describes a fleet, not a stress test of the parser: bound what it may ask for.
+MAX_ROBOTS = 100_000
+
+TOP_KEYS = ("latency_profile", "max_batch_size", "scheduler", "network", "max_robots_per_gpu", "robots")
+GROUP_KEYS = ("count", "fps", "chunk_size", "h_min", "h_max", "weight", "tier", "name")
+NETWORK_KEYS = ("median_ms", "sigma")
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
+
+
+@dataclass(frozen=True)
+class RobotGroup:
+    """``count`` identical robots.
+
+    Attributes:
+        name: prefix of the robots' ids.
+        count: how many.
+        fps / chunk_size / h_min / h_max / weight / tier: as :class:`~lerobot_armory.mirror.RobotSpec`.
+    """
+
+    name: str
+    count: int
+    fps: float
+    chunk_size: int
+    h_min: int
+    h_max: int
+    weight: float = 1.0
+    tier: str = "slow"
+
+    def specs(self) -> list[RobotSpec]:
+        """The group's robots, ids ``NAME-000``, ``NAME-001``, ..."""
+        width = max(3, len(str(self.count - 1)))
+        return [
+            RobotSpec(
+                f"{self.name}-{k:0{width}d}", self.fps, self.chunk_size, self.h_min, self.h_max, self.weight, self.tier
+            )
+            for k in range(self.count)
+        ]
+
+
+@dataclass
+class Fleet:
+    """A fleet and what serves it: one latency profile and batch cap per GPU, one scheduler, one network.
+
+    Attributes:
+        groups: the robots, by group.
+        latency_profile: built-in profile name or JSON profile file (every GPU runs it).
+        max_batch_size: batch cap b of every GPU.
+        scheduler: the scheduler every GPU runs (each GPU builds its own).
+        net_median_ms / net_sigma: one-way network delay, log-normal, uplink and downlink alike.
+        max_robots_per_gpu: robots one GPU accepts at most (None: no limit).
+        source: the file or shorthand it came from (for messages).
+    """
+
+    groups: tuple[RobotGroup, ...]
+    latency_profile: str
+    max_batch_size: int
+    scheduler: SchedulerConfig = field(default_factory=EarliestDeadlineConfig)
+    net_median_ms: float = DEFAULT_NET_MEDIAN_MS
+    net_sigma: float = DEFAULT_NET_SIGMA
+    max_robots_per_gpu: int | None = None
+    source: str = "<fleet>"
+
+    @property
+    def robots(self) -> int:
+        return sum(g.count for g in self.groups)
+
+    def specs(self) -> list[RobotSpec]:
+        """Every robot, group by group (the join order is shuffled by the cluster simulation)."""
+        return [s for g in self.groups for s in g.specs()]
+
+    def profile(self, name: str | None = None) -> LatencyProfile:
+        """The fleet's latency profile (or ``name``, for a GPU of another kind)."""
+        return load_profile(name or self.latency_profile)
+
+    def network(self) -> LogNormalDelay:
+        return LogNormalDelay(self.net_median_ms / 1000.0, self.net_sigma)
+
+    def capacity(self, profile: str | None = None) -> Capacity:
+        """One GPU's :class:`~lerobot_armory.placement.Capacity` at the fleet's batch cap and network median."""
+        return Capacity(tuple(self.profile(profile).table_s(self.max_batch_size)), self.net_median_ms / 1000.0)
+
+    def total_demand(self, profile: str | None = None) -> float:
+        """Predicted GPUs' worth of device time the whole fleet needs (the placement load model)."""
+        cap = self.capacity(profile)
+        return sum(g.count * demand(g.specs()[0], cap) for g in self.groups if g.count)
+
+    def tier_counts(self) -> dict[str, int]:
+        counts = dict.fromkeys(TIERS, 0)
+        for g in self.groups:
+            counts[g.tier] += g.count
+        return counts
+
+    def describe(self) -> str:
+        """One line: size, tiers, profile, cap, scheduler, network."""
+        tiers = ", ".join(f"{n} {t}" for t, n in self.tier_counts().items() if n)
+        return (
+            f"{self.source}: {self.robots} robots ({tiers}); {self.latency_profile}, b={self.max_batch_size}, "
+            f"{self.scheduler.label()}, network {self.net_median_ms:g} ms / σ {self.net_sigma:g}"
+        )
+
+
+def load_fleet(arg: str) -> Fleet:
+    """A fleet from a file path or the ``preset:NAME:MIX:N[:FAST_WEIGHT]`` shorthand (ConfigError if bad)."""
+    if not arg:
+        raise ConfigError(
+            "fleet", "give a fleet file (YAML or JSON) or preset:NAME:MIX:N, e.g. preset:libero:half-fast:100"
+        )
+    if arg.startswith(PRESET_PREFIX):
+        return preset_fleet(arg)
+    path = Path(arg)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError("fleet", f"cannot read {arg}: {exc}") from None
+    yaml = None
+    if path.suffix in (".yaml", ".yml"):
+        try:
+            import yaml
+        except ImportError:
+            raise ConfigError(
+                "fleet", f"{arg}: reading YAML needs PyYAML (pip install pyyaml); or write the file as JSON"
+            ) from None
+    try:
+        data = yaml.safe_load(text) if yaml is not None else json.loads(text)
+    except Exception as exc:  # yaml.YAMLError / json.JSONDecodeError: one line either way
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise ConfigError("fleet", f"{arg} does not parse: {first}") from None
+    return fleet_from_dict(data, arg)
+
+
+def preset_fleet(arg: str) -> Fleet:
+    """``preset:NAME:MIX:N[:FAST_WEIGHT]``: a reference preset's fleet, its defaults, EDF."""
+    parts = arg[len(PRESET_PREFIX) :].split(":")
+    usage = f"expected preset:NAME:MIX:N[:FAST_WEIGHT] (e.g. preset:libero:half-fast:100), got {arg!r}"
+    if len(parts) not in (3, 4):
+        raise ConfigError("fleet", usage)
+    name, mix, n_text = parts[:3]
+    preset = get_preset(name)
+    if mix not in MIXES:
+        raise ConfigError("fleet", f"unknown mix {mix!r} in {arg!r}; known: {', '.join(MIXES)}")
+    try:
+        n = int(n_text)
+        fast_weight = float(parts[3]) if len(parts) == 4 else 1.0
+    except ValueError:
+        raise ConfigError("fleet", usage) from None
+    if not 1 <= n <= MAX_ROBOTS:
+        raise ConfigError("fleet", f"robot count must be in [1, {MAX_ROBOTS}], got {n}")
+    specs = fleet_specs(preset, mix, n, fast_weight)
+    groups = []
+    for tier in TIERS:
+        rows = [s for s in specs if s.tier == tier]
+        if rows:
+            s = rows[0]
+            groups.append(RobotGroup(tier, len(rows), s.fps, s.chunk_size, s.h_min, s.h_max, s.weight, tier))
+    return Fleet(
+        tuple(groups), preset.latency_profile, preset.default_batch_cap(mix), EarliestDeadlineConfig(),
+        preset.net_median_ms, preset.net_sigma, None, arg,
+    )  # fmt: skip
+
+
+def fleet_from_dict(data: Any, source: str = "<dict>") -> Fleet:
+    """Check a parsed fleet file field by field; the first problem is a ConfigError naming its field."""
+
+    def err(field_name: str, message: str) -> ConfigError:
+        return ConfigError(field_name, f"{message} (in {source})")
+
+    if not isinstance(data, dict):
+        raise err("fleet", f"expected a mapping with {', '.join(TOP_KEYS)}, got {type(data).__name__}")
+    _no_unknown(data, TOP_KEYS, "", err)
+    if "latency_profile" not in data:
+        raise err("latency_profile", "missing (a built-in profile name or a JSON profile file)")
+    profile_name = data["latency_profile"]
+    if not isinstance(profile_name, str) or not profile_name:
+        raise err("latency_profile", f"must be a profile name or file, got {profile_name!r}")
+    if (
+        not (Path(profile_name).is_absolute() or profile_name in _builtin_names())
+        and (Path(source).parent / profile_name).is_file()
+    ):
+        profile_name = str(Path(source).parent / profile_name)  # a profile file beside the fleet file
+    try:
+        profile = load_profile(profile_name)
+    except ConfigError as exc:
+        raise err("latency_profile", exc.message) from None
+    cap = data.get("max_batch_size")
+    if not (_is_int(cap) and 1 <= cap <= 1024):
+        raise err("max_batch_size", f"must be an integer in [1, 1024], got {cap!r}")
+    scheduler = _scheduler(data.get("scheduler", "edf"), profile, cap, err)
+    network = data.get("network", {})
+    if not isinstance(network, dict):
+        raise err("network", f"must be a mapping with {', '.join(NETWORK_KEYS)}, got {network!r}")
+    _no_unknown(network, NETWORK_KEYS, "network.", err)
+    median = network.get("median_ms", DEFAULT_NET_MEDIAN_MS)
+    sigma = network.get("sigma", DEFAULT_NET_SIGMA)
+    if not (_is_real(median) and math.isfinite(median) and 0 <= median <= 10_000):
+        raise err("network.median_ms", f"must be a number of ms in [0, 10000], got {median!r}")
+    if not (_is_real(sigma) and math.isfinite(sigma) and 0 <= sigma <= 10):
+        raise err("network.sigma", f"must be a number in [0, 10], got {sigma!r}")
+    per_gpu = data.get("max_robots_per_gpu")
+    if per_gpu is not None and not (_is_int(per_gpu) and per_gpu >= 1):
+        raise err("max_robots_per_gpu", f"must be an integer >= 1, got {per_gpu!r}")
+    groups = _groups(data.get("robots"), err)
+    return Fleet(tuple(groups), profile_name, cap, scheduler, float(median), float(sigma), per_gpu, source)
+
+
+def _groups(raw: Any, err) -> list[RobotGroup]:
+    if not isinstance(raw, list) or not raw:
+        raise err("robots", "must be a non-empty list of robot groups ({count, fps, chunk_size, h_min, h_max, ...})")
+    groups, names, total = [], set(), 0
+    for k, entry in enumerate(raw):
+        where = f"robots[{k}]"
+        if not isinstance(entry, dict):
+            raise err(where, f"must be a mapping of {', '.join(GROUP_KEYS)}, got {entry!r}")
+        _no_unknown(entry, GROUP_KEYS, f"{where}.", err)
+        for key in ("count", "fps", "chunk_size", "h_min", "h_max"):
+            if key not in entry:
+                raise err(f"{where}.{key}", "missing")
+        count = entry["count"]
+        if not (_is_int(count) and 1 <= count <= MAX_ROBOTS):
+            raise err(f"{where}.count", f"must be an integer in [1, {MAX_ROBOTS}], got {count!r}")
+        total += count
+        if total > MAX_ROBOTS:
+            raise err("robots", f"more than {MAX_ROBOTS} robots in all")
+        name = entry.get("name", f"g{k}")
+        if not (isinstance(name, str) and _NAME.fullmatch(name)):
+            raise err(f"{where}.name", f"must be a short identifier (letters, digits, - and _), got {name!r}")
+        if name in names:
+            raise err(f"{where}.name", f"{name!r} names two groups")
+        names.add(name)
+        weight, tier = entry.get("weight", 1.0), entry.get("tier", "slow")
+        problems = spec_problems(
+            f"{name}-0", entry["fps"], entry["chunk_size"], entry["h_min"], entry["h_max"], weight, tier
+        )
+        if problems:  # the mirror's own validator: the fleet file and a live registration agree
+            field_name, _, why = problems[0].partition(": ")
+            raise err(f"{where}.{field_name}", why)
+        groups.append(
+            RobotGroup(
+                name,
+                count,
+                float(entry["fps"]),
+                entry["chunk_size"],
+                entry["h_min"],
+                entry["h_max"],
+                float(weight),
+                tier,
+            )
+        )
+    return groups
+
+
+def _scheduler(raw: Any, profile: LatencyProfile, cap: int, err) -> SchedulerConfig:
+    if isinstance(raw, str):
+        name, knobs = raw, {}
+    elif isinstance(raw, dict) and isinstance(raw.get("type"), str):
+        name, knobs = raw["type"], {k: v for k, v in raw.items() if k != "type"}
+    else:
+        raise err(
+            "scheduler", f"must be a scheduler name (rr, edf, lookahead) or {{type: NAME, knob: value}}, got {raw!r}"
+        )
+    try:
+        cfg = make_scheduler_config(name, **knobs)
+    except ConfigError as exc:
+        raise err("scheduler", exc.message) from None
+    except TypeError:
+        known = [f for f in getattr(make_scheduler_config(name), "__dataclass_fields__", {})]
+        raise err(
+            "scheduler", f"unknown knob(s) {', '.join(sorted(knobs))} for {name} (known: {', '.join(known) or 'none'})"
+        ) from None
+    try:
+        cfg.build(profile, cap)  # the scheduler's own checks of its knobs
+    except ConfigError as exc:
+        name = exc.field if exc.field.startswith("scheduler") else f"scheduler.{exc.field}"
+        raise err(name, exc.message) from None
+    except (TypeError, ValueError) as exc:
+        raise err("scheduler", str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    return cfg
+
+
+def _no_unknown(mapping: dict, known: tuple[str, ...], prefix: str, err) -> None:
+    unknown = sorted(str(k) for k in mapping if k not in known)
+    if unknown:
+        raise err(f"{prefix}{unknown[0]}", f"unknown key (known: {', '.join(known)})")
+
+
+def _builtin_names() -> set[str]:
+    from lerobot_armory.latency import BUILTIN_PROFILES
+
+    return set(BUILTIN_PROFILES)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def with_overrides(fleet: Fleet, latency_profile: str | None = None, max_batch_size: int | None = None) -> Fleet:
+    """The fleet on another GPU kind or batch cap (command-line overrides), checked."""
+    changes: dict[str, Any] = {}
+    if latency_profile:
+        load_profile(latency_profile)
+        changes["latency_profile"] = latency_profile
+    if max_batch_size is not None:
+        if max_batch_size < 1:
+            raise ConfigError("max_batch_size", f"must be >= 1, got {max_batch_size}")
+        changes["max_batch_size"] = max_batch_size
+    return replace(fleet, **changes) if changes else fleet
