@@ -18,6 +18,7 @@ heaviest.
 from __future__ import annotations
 
 import functools
+import itertools
 import random
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -71,10 +72,21 @@ def demand(spec: RobotSpec, capacity: Capacity) -> float:
     return capacity.chunk_cost_s / period
 
 
+_TABLES = itertools.count(1)
+
+
 class RobotTable(dict):
-    """``robot_id -> RobotSpec`` that counts its changes, so a replica's load is summed once per change."""
+    """``robot_id -> RobotSpec`` that counts its changes, so a replica's load is summed once per change.
+
+    Each table has its own ``serial`` (never reused, unlike ``id()``), so a view given a new table
+    never reads a sum made for an old one.
+    """
 
     version = 0
+
+    def __init__(self, *args: object, **kwargs: RobotSpec) -> None:
+        super().__init__(*args, **kwargs)
+        self.serial = next(_TABLES)
 
     def _changed(self) -> None:
         self.version += 1
@@ -138,7 +150,7 @@ class ReplicaView:
     def _sums(self) -> tuple[float, dict[str, float], dict[float, float]]:
         """(total demand, demand per tier, weight-at-or-above memo), recomputed after a change."""
         robots = self.robots
-        key = (id(robots), robots.version, self.capacity)  # type: ignore[attr-defined]
+        key = (robots.serial, robots.version, self.capacity)  # type: ignore[attr-defined]
         memo = self.__dict__.get("_memo")
         if memo is None or memo[0] != key:
             by_tier: dict[str, float] = {}

@@ -128,3 +128,46 @@ def one_chunk(address: str) -> tuple[np.ndarray, str]:
     assert wait_for(lambda: bool(got), timeout=5.0)
     conn.close()
     return got[0].actions, reg.stream_address
+
+
+class FreezableProxy:
+    """A TCP proxy to ``127.0.0.1:target_port`` that can go silent: ``freeze()`` stops forwarding
+    in both directions but keeps every connection open (a host that vanished without a reset)."""
+
+    def __init__(self, target_port: int) -> None:
+        import socket
+
+        self._socket = socket
+        self.target_port = target_port
+        self.frozen = threading.Event()
+        self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.listener.bind(("127.0.0.1", 0))
+        self.listener.listen(64)
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            upstream = self._socket.create_connection(("127.0.0.1", self.target_port))
+            for src, dst in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(src, dst), daemon=True).start()
+
+    def _pump(self, src, dst) -> None:
+        try:
+            while True:
+                data = src.recv(65536)
+                if not data:
+                    break
+                while self.frozen.is_set():
+                    time.sleep(0.05)  # hold everything: nothing is forwarded, nothing is closed
+                dst.sendall(data)
+        except OSError:
+            pass
+
+    def freeze(self) -> None:
+        self.frozen.set()

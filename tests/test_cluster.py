@@ -106,6 +106,9 @@ def test_a_move_happens_between_chunks_and_costs_the_robot_no_action(cluster):
     robots[1].join()
     assert robots[0].client.reconnects == 1
     assert stats["outages_s"] == []  # it kept executing the chunks it held while re-registering
+    log = robots[0].client.executed_log
+    sessions = [e[1] for e in log]
+    assert sessions == sorted(sessions) and set(sessions) == {1, 2}  # the first session's chunks ran out, then the second's
     assert any("moved" in n for n in robots[0].client.notices)
 
 
@@ -135,3 +138,48 @@ def test_a_chunk_through_the_cluster_equals_a_single_server_s(cluster, planner_d
         np.testing.assert_array_equal(via_front, alone)
     finally:
         single.stop()
+
+
+def test_a_replica_gone_silent_is_detected_by_keepalive_and_its_robot_resumes_elsewhere(planner_dir):
+    """No reset, no close: the replica's host just stops answering. gRPC keepalive breaks the
+    stream (5 s pings, 3 s timeout) and the robot fails over through the front."""
+    from tests.cluster_helpers import FreezableProxy
+
+    hidden = ArmoryReplica(replica_config(planner_dir), "r0")
+    proxy = FreezableProxy(hidden.server.port)
+    hidden.address = f"127.0.0.1:{proxy.port}"  # robots and the front reach r0 only through the proxy
+    replicas = LocalReplicas({"r0": hidden, "r1": ArmoryReplica(replica_config(planner_dir), "r1")})
+    front = FrontServer(ClusterFront(replicas, FrontOptions(health_interval_s=0.2, rebalance=False)))
+    try:
+        robots = start_fleet(front.address, n=1, duration_s=18.0)
+        assert wait_for(lambda: front.front.placements().get("robot0") == "r0", timeout=5)
+        time.sleep(1.0)
+        proxy.freeze()
+        frozen_at = time.monotonic()
+        assert wait_for(lambda: robots[0].client.reconnects >= 1, timeout=14)
+        detected = time.monotonic() - frozen_at
+        stats = robots[0].join()
+        print(f"silent replica: stream broken {detected:.1f} s after the freeze; outage {max(stats['outages_s']):.1f} s")
+        assert detected < 12.0, detected
+        assert stats["outages_s"] and max(stats["outages_s"]) < 12.0, stats["outages_s"]
+        assert stale_actions(robots[0].client) == []
+        assert robots[0].client.connection is None or robots[0].client.executed > 200
+    finally:
+        front.stop(0)
+        for rid in replicas.ids():
+            replicas.kill(rid)
+
+
+def test_receipts_of_an_earlier_session_are_not_reported_to_the_next_server():
+    """Chunk ids restart with each session: a chunk kept across a move must not be reported to
+    the new replica as one of its own (its delay estimate would be wrong)."""
+    from lerobot_armory.robot.actions import ActionBuffer
+
+    buf = ActionBuffer(h_max=4)
+    buf.session = 1
+    buf.add(0, 0, np.zeros((10, 2), np.float32), 0.1)
+    buf.action_for(0)  # executed in session 1
+    buf.session = 2
+    buf.add(0, 2, np.ones((10, 2), np.float32), 0.2)
+    buf.action_for(2)
+    assert buf.take_receipts(session=2) == [(0, 0.2, 0)]

@@ -122,12 +122,28 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
         for ref in done:
             rid = next(r for r, v in pending.items() if v == ref)
             info = ray.get(ref)  # a replica that failed to start raises here with its own error
+            if cfg.policy.path and cfg.policy.path not in info["policy"]:
+                # get_if_exists found a replica of an earlier cluster: it keeps its own options.
+                raise ConfigError(
+                    "replicas",
+                    f"{rid} already runs in Ray namespace {cfg.ray.namespace!r} serving {info['policy']}, not "
+                    f"{cfg.policy.path}: stop the old cluster's replicas first, or use another --ray.namespace",
+                )
             print(f"  replica {rid} serving at {info['address']} (pid {info['pid']}, {info['policy']})", flush=True)
             del pending[rid]
         if pending and time.monotonic() - started > START_TIMEOUT_S:
             raise ConfigError("replicas", f"{len(pending)} replicas did not start in {START_TIMEOUT_S:.0f} s: {', '.join(pending)}")
         if pending and not done:
             print(f"  waiting for {len(pending)} replicas to load the policy ({time.monotonic() - started:.0f} s)...", flush=True)
+    extra = sorted(
+        name for name in ray.util.list_named_actors() if name.startswith(NAME_PREFIX) and name not in handles
+    )
+    if extra:
+        log.warning(
+            "Ray namespace %r also holds %s from an earlier, larger cluster: the front does not place robots on them "
+            "or fail their robots over; ray.kill them if they are not wanted",
+            cfg.ray.namespace, ", ".join(extra),
+        )  # fmt: skip
     return RayReplicas(handles)
 
 

@@ -41,13 +41,23 @@ from lerobot_armory.server.service import RunningServer, start_grpc_server
 
 log = logging.getLogger(__name__)
 
-# Answers from a replica that mean "try another replica" rather than "the robot is wrong".
-TRY_ANOTHER = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.RESOURCE_EXHAUSTED)
+# Answers from a replica that mean "try another replica" rather than "the robot is wrong" (UNKNOWN
+# and INTERNAL: the replica broke while answering; the robot would otherwise give up).
+TRY_ANOTHER = (
+    grpc.StatusCode.UNAVAILABLE,
+    grpc.StatusCode.DEADLINE_EXCEEDED,
+    grpc.StatusCode.RESOURCE_EXHAUSTED,
+    grpc.StatusCode.UNKNOWN,
+    grpc.StatusCode.INTERNAL,
+)
+# Of those, the answers after which the replica counts as down until its next health check.
+DOWN = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
 # A robot the front just placed is counted on its replica until the replica reports it (or this passes).
 PENDING_S = 5.0
 # A moved robot is steered to its target for this long, and not moved again for MOVE_COOLDOWN_S.
 STEER_S = 10.0
 MOVE_COOLDOWN_S = 30.0
+MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
 
 
 @dataclass
@@ -128,6 +138,9 @@ class ClusterFront(ArmoryServicer):
                 answers[rid] = self.replicas.load(rid, self.options.call_timeout_s)
             except ReplicaDown:
                 answers[rid] = None
+            except Exception as exc:  # noqa: BLE001 - one replica's bad answer must not stop the others' refresh
+                log.warning("replica %s answered its load check with %s: %s; counted as down", rid, type(exc).__name__, exc)
+                answers[rid] = None
         now = self.clock()
         with self.lock:
             for rid, answer in answers.items():
@@ -158,6 +171,11 @@ class ClusterFront(ArmoryServicer):
             changed = members != self._members
             self._members = members
             self.steer = {k: v for k, v in self.steer.items() if v[1] > now}
+            self.moved_at = {k: t for k, t in self.moved_at.items() if now - t < MOVE_COOLDOWN_S}
+            del self.moves[:-MAX_MOVES_KEPT]
+            current = {st.address for st in self.state.values()}
+            for address in [a for a in self._channels if a not in current]:  # a restarted replica's old port
+                self._channels.pop(address)[0].close()
             move = self._plan_move(now) if changed and self.options.rebalance else None
         if move is not None:
             self._release(move, now)
@@ -252,31 +270,42 @@ class ClusterFront(ArmoryServicer):
             with self.lock:
                 state = self.state[rid]
                 address = state.address if state.view.healthy else ""
+                spec = self._spec(request)
+                if address and spec is not None:
+                    # Reserved before the call: robots registering at the same moment (the robots
+                    # of a replica that just died) see each other and spread.
+                    state.pending[request.robot_id] = (spec, self.clock() + PENDING_S)
+                    self._rebuild(state)
             if not address:
                 continue
+            remaining = context.time_remaining()
+            timeout = self.options.call_timeout_s if remaining is None else max(0.05, min(self.options.call_timeout_s, remaining))
             try:
-                response = self._stub(address).Register(request, timeout=self.options.call_timeout_s)
+                response = self._stub(address).Register(request, timeout=timeout)
             except grpc.RpcError as exc:
+                self._unreserve(rid, request.robot_id)
                 if exc.code() in TRY_ANOTHER:
                     last = f"replica {rid}: {exc.code().name}: {exc.details()}"
-                    if exc.code() != grpc.StatusCode.RESOURCE_EXHAUSTED:
+                    if exc.code() in DOWN:
                         self._mark_down(rid)
                     continue
                 context.abort(exc.code(), exc.details() or exc.code().name)  # the robot's own problem: told as is
             response.stream_address = address
             with self.lock:
-                spec = self._spec(request)
-                if spec is not None:
-                    state.pending[request.robot_id] = (spec, self.clock() + PENDING_S)
-                    for other_id, other in self.state.items():  # placed here now, nowhere else
-                        if other_id != rid:
-                            other.pending.pop(request.robot_id, None)
-                            other.reported.pop(request.robot_id, None)
-                            self._rebuild(other)
-                    self._rebuild(state)
+                for other_id, other in self.state.items():  # placed here now, nowhere else
+                    if other_id != rid:
+                        other.pending.pop(request.robot_id, None)
+                        other.reported.pop(request.robot_id, None)
+                        self._rebuild(other)
             log.info("placed %s on %s (%s)", request.robot_id, rid, address)
             return response
         context.abort(grpc.StatusCode.UNAVAILABLE, f"no replica can take this robot now ({last}); retry")
+
+    def _unreserve(self, rid: str, robot_id: str) -> None:
+        with self.lock:
+            state = self.state[rid]
+            if state.pending.pop(robot_id, None) is not None:
+                self._rebuild(state)
 
     def _mark_down(self, rid: str) -> None:
         with self.lock:

@@ -30,3 +30,19 @@ DEFAULT_MAX_MESSAGE_BYTES = 16 << 20
 # receipts held the GIL for seconds and cost ~400 MiB (honest robots starved 7-8 % in the
 # adversarial bench).
 MAX_REPORT_BYTES = 64 << 10
+
+# HTTP/2 keepalive. A robot whose server's host vanished without closing the connection (power
+# loss, a pod's node gone) would otherwise wait on a silent stream; pinging every KEEPALIVE_MS and
+# giving up KEEPALIVE_TIMEOUT_MS later turns that into a broken stream (hold, re-register) within
+# about 8 s. The server accepts pings that often (its default would answer them with GOAWAY).
+KEEPALIVE_MS = 5000
+KEEPALIVE_TIMEOUT_MS = 3000
+CLIENT_KEEPALIVE_OPTIONS = (
+    ("grpc.keepalive_time_ms", KEEPALIVE_MS),
+    ("grpc.keepalive_timeout_ms", KEEPALIVE_TIMEOUT_MS),
+    ("grpc.http2.max_pings_without_data", 0),
+)
+SERVER_KEEPALIVE_OPTIONS = (
+    ("grpc.http2.min_recv_ping_interval_without_data_ms", KEEPALIVE_MS // 2),
+    ("grpc.http2.max_ping_strikes", 0),
+)

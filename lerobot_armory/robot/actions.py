@@ -31,6 +31,7 @@ class BufferedChunk:
     actions: np.ndarray  # (H, action_dim)
     arrival_time: float
     first_executed: int | None = None  # offset into the chunk of its first executed action
+    session: int = 0  # the client's session epoch the chunk arrived in
 
     def covers(self, index: int, h_max: int) -> bool:
         return self.i_start <= index < self.i_start + min(h_max, len(self.actions))
@@ -57,6 +58,7 @@ class ActionBuffer:
     # benchmark relate each seam to what the server predicted for that chunk (RTC's delay).
     seam_log: deque = field(default_factory=lambda: deque(maxlen=MAX_SEAMS_KEPT))
     _current: BufferedChunk | None = None  # the chunk the last executed action came from
+    session: int = 0  # the client's session epoch: chunks added now belong to it
 
     @property
     def current(self) -> BufferedChunk | None:
@@ -64,8 +66,8 @@ class ActionBuffer:
         return self._current
 
     def add(self, chunk_id: int, i_start: int, actions: np.ndarray, arrival_time: float) -> None:
-        """A chunk arrived (robot clock)."""
-        self.chunks.append(BufferedChunk(chunk_id, i_start, actions, arrival_time))
+        """A chunk arrived (robot clock), in the current ``session``."""
+        self.chunks.append(BufferedChunk(chunk_id, i_start, actions, arrival_time, session=self.session))
         self.received += 1
 
     def action_for(self, index: int) -> np.ndarray | None:
@@ -92,7 +94,7 @@ class ActionBuffer:
         if best.first_executed is None:
             best.first_executed = index - best.i_start
             self.first_executed_index[str(best.first_executed)] += 1
-            self.pending_receipts.append((best.chunk_id, best.arrival_time, best.first_executed))
+            self.pending_receipts.append((best.chunk_id, best.arrival_time, best.first_executed, best.session))
         return best.actions[index - best.i_start]
 
     def _seam(self, old: BufferedChunk | None, new: BufferedChunk, index: int) -> None:
@@ -124,12 +126,16 @@ class ActionBuffer:
     def _retire(self, c: BufferedChunk) -> None:
         if c.first_executed is None:
             self.first_executed_index["unused"] += 1
-            self.pending_receipts.append((c.chunk_id, c.arrival_time, -1))
+            self.pending_receipts.append((c.chunk_id, c.arrival_time, -1, c.session))
 
-    def take_receipts(self) -> list[tuple[int, float, int]]:
-        """Receipts not reported yet (cleared)."""
+    def take_receipts(self, session: int | None = None) -> list[tuple[int, float, int]]:
+        """Receipts not reported yet (cleared): ``(chunk_id, arrival_time, first_executed or -1)``.
+
+        With ``session``, only that session's: chunk ids restart with each session, so a chunk
+        kept across a move must not be reported to the new server as one of its own.
+        """
         out, self.pending_receipts = self.pending_receipts, []
-        return out
+        return [(c, a, f) for c, a, f, s in out if session is None or s == session]
 
     def clear(self) -> None:
         """Forget every chunk (after a reconnect, old chunks must never run)."""

@@ -96,8 +96,8 @@ class ArmoryClient:
             included: a restarted server may serve another policy) before the stream opens; it
             raises :class:`RegistrationRefused` to refuse the policy, and the session is then
             given back at once, before a single chunk can arrive.
-        record_actions: keep ``(time, session epoch, chunk_id, chunk i_start, index)`` of every
-            executed action in ``executed_log`` (tests and failover checks).
+        record_actions: keep ``(time, session epoch of the chunk, chunk_id, chunk i_start, index)``
+            of every executed action in ``executed_log`` (tests and failover checks).
     """
 
     def __init__(
@@ -209,6 +209,7 @@ class ArmoryClient:
             if not self._moving:
                 self.buffer.clear()  # nothing from an earlier session may ever run
             self._moving = False
+            self.buffer.session = epoch
             self.buffer.h_max = h_max  # a reconnect may be granted another horizon than the last session
             self.connection = conn
         self.policy, self.chunk_size, self.granted = reg.policy, reg.chunk_size, reg.granted
@@ -280,6 +281,8 @@ class ArmoryClient:
             if epoch != self._epoch or self._stop.is_set():
                 return
             lost, self.connection = self.connection, None
+            if error is not None:
+                self._moving = False  # a MOVED followed by a broken stream is a loss like any other
             if not self._moving:
                 self.buffer.clear()  # hold: no stale actions while disconnected
                 if self._lost_at is None:
@@ -325,7 +328,7 @@ class ArmoryClient:
         with self._lock:
             live = self.connection is not None or self._moving
             action = self.buffer.action_for(self.index) if live else None
-            chunk, epoch = self.buffer.current, self._epoch
+            chunk = self.buffer.current
         self.ticks += 1
         if action is None:
             self.starved += 1
@@ -334,7 +337,7 @@ class ArmoryClient:
             self.outages.append(self.clock() - self._lost_at)
             self._lost_at = None
         if self.executed_log is not None and chunk is not None:
-            self.executed_log.append((t, epoch, chunk.chunk_id, chunk.i_start, self.index))
+            self.executed_log.append((t, chunk.session, chunk.chunk_id, chunk.i_start, self.index))
         self.act(action)
         self.index += 1
         self.executed += 1
@@ -346,7 +349,7 @@ class ArmoryClient:
         if conn is None:
             return
         with self._lock:
-            receipts = self.buffer.take_receipts()
+            receipts = self.buffer.take_receipts(self._epoch)
         conn.send_report(self.index, self.executed, self.starved, receipts)
 
     def run(self, duration_s: float = 0.0) -> dict[str, Any]:

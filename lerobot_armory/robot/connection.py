@@ -18,7 +18,7 @@ import numpy as np
 
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
-from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES, SESSION_KEY, TOKEN_KEY
+from lerobot_armory.proto.limits import CLIENT_KEEPALIVE_OPTIONS, DEFAULT_MAX_MESSAGE_BYTES, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.wire import FeatureSpec, decode, encode
 
@@ -96,7 +96,11 @@ class Connection:
         self.clock = clock
         self.network = network
         self.token = token
-        self._options = [("grpc.max_receive_message_length", max_message_bytes), ("grpc.max_send_message_length", max_message_bytes)]
+        self._options = [
+            ("grpc.max_receive_message_length", max_message_bytes),
+            ("grpc.max_send_message_length", max_message_bytes),
+            *CLIENT_KEEPALIVE_OPTIONS,
+        ]
         self._tls_ca = tls_ca
         self.channel = self._open_channel(address)
         self.stub = ArmoryStub(self.channel)

@@ -24,7 +24,7 @@ from lerobot_armory.mirror import RobotSpec, spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
 from lerobot_armory.proto.hardening import Malformed, add_armory_to_server
-from lerobot_armory.proto.limits import SERVICE_NAME, SESSION_KEY, TOKEN_KEY
+from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.server.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
 from lerobot_armory.server.fleet_policy import FleetPolicy, Request, describe_grant
 from lerobot_armory.server.peer_log import ThrottledLog
@@ -340,6 +340,7 @@ def start_grpc_server(
             ("grpc.so_reuseport", 0),
             ("grpc.server_handshake_timeout_ms", HANDSHAKE_TIMEOUT_MS),
             ("grpc.max_connection_idle_ms", MAX_CONNECTION_IDLE_MS),
+            *SERVER_KEEPALIVE_OPTIONS,
             ("grpc.max_allowed_incoming_connections", _connection_cap(max_robots, fd_limit)),
         ],
     )
