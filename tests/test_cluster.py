@@ -183,3 +183,31 @@ def test_receipts_of_an_earlier_session_are_not_reported_to_the_next_server():
     buf.add(0, 2, np.ones((10, 2), np.float32), 0.2)
     buf.action_for(2)
     assert buf.take_receipts(session=2) == [(0, 0.2, 0)]
+
+
+def test_lying_and_absurd_registrations_are_refused_by_the_replica_and_hurt_nobody(cluster):
+    """NaN fps, negative horizons, an absurd weight, a megabyte id: the replica's own refusal comes
+    back through the front; the front keeps placing honest robots, and no reservation is left."""
+    front, _ = cluster
+    conn = Connection(front.address)
+    assert conn.wait_ready(5)
+    from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+    from lerobot_armory.robot.features import FeatureMap
+
+    robot = ArmorySim(ArmorySimConfig(scene="static", image_size=32, seed=0))
+    features = FeatureMap.for_robot(robot.observation_features, robot.action_features).wire_features()
+    for robot_id, fps, h_min, h_max, weight in [
+        ("nan", float("nan"), 1, 10, 1.0),
+        ("neg", 20.0, -3, -1, 1.0),
+        ("heavy", 20.0, 1, 10, 1e300),
+        ("x" * 100_000, 20.0, 1, 10, 1.0),
+    ]:
+        with pytest.raises(grpc.RpcError) as refused:
+            conn.register(robot_id, features, fps, h_min, h_max, weight)
+        assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (robot_id[:10], refused.value)
+    assert all(not s.pending for s in front.front.state.values())  # nothing reserved for the refused
+    honest = Connection(front.address)
+    reg = honest.register("honest", features, 20.0, 1, 10)
+    assert reg.stream_address
+    honest.end_session()
+    conn.close()
