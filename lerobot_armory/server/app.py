@@ -37,6 +37,8 @@ from lerobot_armory.server.fleet_policy import FleetPolicy
 from lerobot_armory.server.logs import configure_logging
 from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
 from lerobot_armory.server.metrics import ServerMetrics
+from lerobot_armory.server.openpi.endpoint import OpenpiEndpoint, OpenpiOptions
+from lerobot_armory.server.openpi.keymap import KeyMap
 from lerobot_armory.server.rtc import RTCOptions
 from lerobot_armory.server.security import AuthTokens, read_tls
 from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
@@ -93,6 +95,9 @@ class ServerConfig:
         fleet: ``--fleet.policy=FILE`` (YAML or JSON): what each robot may be granted (weight,
             tier, fps and horizon bounds, device share); see server/fleet_policy.py. Without it
             every robot's weight is capped at 1.
+        openpi: ``--openpi.port=8000``: also speak openpi's websocket policy protocol (an
+            unchanged openpi client is served batched with the gRPC robots); ``--openpi.keymap``,
+            ``--openpi.fps``, ``--openpi.replan_steps``, ``--openpi.tier`` (server/openpi/).
     """
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
@@ -117,6 +122,7 @@ class ServerConfig:
     auth_token_file: str | None = None
     max_obs_rate_hz: float = 200.0
     fleet: FleetOptions = field(default_factory=lambda: FleetOptions())
+    openpi: OpenpiOptions = field(default_factory=OpenpiOptions)
 
     def validate(self) -> None:
         if self.max_batch_size < 1:
@@ -138,6 +144,7 @@ class ServerConfig:
         if self.max_obs_rate_hz < 0:
             raise ConfigError("max_obs_rate_hz", f"must be >= 0, got {self.max_obs_rate_hz}")
         self.rtc.validate()
+        self.openpi.validate()
 
 
 class ArmoryServer:
@@ -185,6 +192,8 @@ class ArmoryServer:
         self.batch_listeners.append(self.metrics.on_batch)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None
+        self._auth, self._fleet_policy = auth, fleet_policy
+        self.openpi: OpenpiEndpoint | None = None
         self._host, self._port = host, port
         self._max_robots, self._max_message_bytes = max_robots, max_message_bytes
         self.grpc: RunningServer | None = None
@@ -221,6 +230,16 @@ class ArmoryServer:
         bound, self._stop_metrics = self.metrics.serve(port, self._host)
         return bound
 
+    def serve_openpi(self, options: OpenpiOptions, keymap: str | None = None) -> int:
+        """Start the openpi-compatible websocket endpoint on the gRPC host; returns its port."""
+        self.openpi = OpenpiEndpoint(
+            self.fleet, KeyMap.load(self.policy.wire_features, keymap), options, self.policy.chunk_size,
+            {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,
+             "action_names": self.policy.action_names},
+            self._host, self._max_message_bytes, self._fleet_policy, self._auth,
+        ).start()  # fmt: skip
+        return self.openpi.port
+
     def start(self) -> ArmoryServer:
         self.loop.start()
         self.grpc = start_grpc_server(self.service, self._host, self._port, self._max_robots, self._max_message_bytes, self._tls)
@@ -233,6 +252,8 @@ class ArmoryServer:
         self._stopped.set()
         if self.grpc is not None:
             self.grpc.set_serving(False)
+        if self.openpi is not None:
+            self.openpi.stop()
         self.loop.stop(timeout=60.0)  # the in-flight batch completes and its chunks are queued
         shutdown_notice(self.fleet)()
         if self.grpc is not None:
@@ -365,6 +386,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         server.log_batches_to(cfg.batch_log)
     server.start()
     metrics_port = server.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
+    openpi_port = server.serve_openpi(cfg.openpi, cfg.openpi.keymap) if cfg.openpi.port is not None else None
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
     summary = (
         f"lerobot-armory-server listening on {server.address}\n"
@@ -376,6 +398,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
         f"  fleet policy: {fleet_policy.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
+        f"  openpi clients: {f'ws://{cfg.host}:{openpi_port} (replan {cfg.openpi.replan_steps} steps at {cfg.openpi.fps:g} fps)' if openpi_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
         f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})"
     )

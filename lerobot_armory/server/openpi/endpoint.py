@@ -1,0 +1,255 @@
+"""``--openpi.port``: openpi's websocket policy protocol, served by the same fleet, mirrors and scheduler.
+
+An unchanged ``openpi_client.websocket_client_policy.WebsocketClientPolicy`` connects; the server
+speaks first with its metadata; then each ``infer(obs)`` is one binary msgpack frame in and one
+out (``{"actions": (H, A) float32, "server_timing": {...}}``), as openpi's own server does. A
+message that does not decode or fit the policy gets a *text* frame saying why (openpi's client
+raises it as ``RuntimeError``) and the connection stays open; no other robot notices.
+
+Each connection is a robot of the fleet. openpi's client asks when it needs a chunk and waits, so
+the mirror models it as a robot whose request is due now: it executes ``--openpi.replan_steps``
+actions per chunk (``h_max``) at ``--openpi.fps``, its clock is the server's (zero offset), and
+every request after the first comes with the receipt of the chunk before (executed from its
+start). Its observations enter the same :class:`Fleet` as the gRPC robots', so openpi and gRPC
+robots share batches under any scheduler.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from http import HTTPStatus
+from typing import Any
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
+from lerobot_armory.server.fleet_policy import FleetPolicy, Request
+from lerobot_armory.server.openpi.keymap import KeyMap
+from lerobot_armory.server.openpi.wire import pack, unpack
+from lerobot_armory.server.security import AuthTokens
+from lerobot_armory.wire import WireError
+
+log = logging.getLogger(__name__)
+
+CHUNK_TIMEOUT_S = 30.0  # a chunk not served in this long is an error frame, not a hang
+
+
+@dataclass
+class OpenpiOptions:
+    """``--openpi.*``: the openpi-compatible endpoint (off unless ``--openpi.port`` is set).
+
+    Attributes:
+        port: websocket port (openpi's default is 8000); unset: no endpoint.
+        keymap: JSON/YAML file mapping openpi observation keys to the policy's features.
+        fps: control rate the mirror assumes for openpi clients (they do not say theirs).
+        replan_steps: actions an openpi client executes per chunk (LIBERO's example: 5).
+        tier: ``fast`` or ``slow`` for the schedulers' reports.
+    """
+
+    port: int | None = None
+    keymap: str | None = None
+    fps: float = 20.0
+    replan_steps: int = 5
+    tier: str = "slow"
+
+    def validate(self) -> None:
+        if self.port is not None and not 0 <= self.port <= 65535:
+            raise ConfigError("openpi.port", f"must be in 0..65535, got {self.port}")
+        if not self.fps > 0:
+            raise ConfigError("openpi.fps", f"must be > 0, got {self.fps}")
+        if self.replan_steps < 1:
+            raise ConfigError("openpi.replan_steps", f"must be >= 1, got {self.replan_steps}")
+
+
+class OpenpiSession:
+    """One openpi connection as a robot of the fleet (blocking calls; run off the event loop)."""
+
+    def __init__(self, fleet: Fleet, session: RobotSession, keymap: KeyMap, replan_steps: int) -> None:
+        self.fleet = fleet
+        self.session = session
+        self.keymap = keymap
+        self.replan = replan_steps
+        self.index = 0
+        self.last_chunk: tuple[int, float] | None = None  # (chunk_id, sent time) of the chunk before
+        self.executed = 0
+        self.last_total_s: float | None = None
+
+    def infer(self, obs: Any) -> dict[str, Any]:
+        """One request: the observation in, the chunk out (WireError / RuntimeError on failure)."""
+        start = time.perf_counter()
+        arrays, task = self.keymap.apply(obs)
+        now = self.fleet.clock()
+        if self.last_chunk is not None:
+            chunk_id, sent = self.last_chunk
+            self.executed += self.replan
+            report = pb.ExecutionReport(
+                report_time=now, index=self.index, executed_steps=self.executed, starved_steps=0,
+                chunks=[pb.ChunkReceipt(chunk_id=chunk_id, arrival_time=sent, first_executed_index=0)],
+            )  # fmt: skip
+            self.fleet.on_report(self.session, report, now)
+        self.session.task = task or self.session.task
+        try:
+            self.fleet.on_observation(self.session, self.index, now, arrays, now)
+        except ValueError as exc:
+            raise WireError(str(exc)) from None
+        deadline = time.monotonic() + CHUNK_TIMEOUT_S
+        while True:
+            msg = self.session.outbox.get(timeout=max(0.0, deadline - time.monotonic()))
+            if msg is None:
+                raise RuntimeError("no chunk: " + ("the server dropped this client" if self.session.outbox.closed else "timed out"))
+            kind = msg.WhichOneof("kind")
+            if kind == "chunk":
+                break
+            if kind == "notice" and msg.notice.kind in (pb.Notice.INFERENCE_FAILED, pb.Notice.DROPPED, pb.Notice.SHUTDOWN):
+                raise RuntimeError(msg.notice.message)
+        from lerobot_armory.wire import decode
+
+        chunk = msg.chunk
+        actions = decode(chunk.actions)
+        sent = self.fleet.clock()
+        self.last_chunk = (chunk.chunk_id, sent)
+        self.index = chunk.i_start + self.replan  # what it will have executed when it asks again
+        total = time.perf_counter() - start
+        timing = {"infer_ms": total * 1000.0}
+        if self.last_total_s is not None:
+            timing["prev_total_ms"] = self.last_total_s * 1000.0
+        self.last_total_s = total
+        return {"actions": actions, "server_timing": timing}
+
+
+class OpenpiEndpoint:
+    """The websocket server (its own thread and event loop) in front of a :class:`Fleet`."""
+
+    def __init__(
+        self,
+        fleet: Fleet,
+        keymap: KeyMap,
+        options: OpenpiOptions,
+        chunk_size: int,
+        metadata: dict[str, Any],
+        host: str = "127.0.0.1",
+        max_message_bytes: int = 16 << 20,
+        fleet_policy: FleetPolicy | None = None,
+        auth: AuthTokens | None = None,
+    ) -> None:
+        self.fleet = fleet
+        self.keymap = keymap
+        self.options = options
+        self.chunk_size = chunk_size
+        self.metadata = metadata
+        self.host = host
+        self.max_message_bytes = max_message_bytes
+        self.fleet_policy = fleet_policy or FleetPolicy.builtin()
+        self.auth = auth
+        self._ids = itertools.count()
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._server: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="armory-openpi", daemon=True)
+        self.port = 0
+
+    def start(self) -> OpenpiEndpoint:
+        self._thread.start()
+        self._ready.wait(30)
+        if self._error is not None:
+            raise ConfigError("openpi.port", f"cannot serve on {self.host}:{self.options.port}: {self._error}")
+        return self
+
+    def _run(self) -> None:
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._loop.run_until_complete(self._serve())
+        except BaseException as exc:  # noqa: BLE001 - reported by start()
+            self._error = exc
+            self._ready.set()
+            return
+        self._loop.run_forever()
+
+    async def _serve(self) -> None:
+        from websockets.asyncio.server import serve
+
+        def health(connection: Any, request: Any) -> Any:
+            if request.path == "/healthz":  # openpi's health check
+                return connection.respond(HTTPStatus.OK, "OK\n")
+            return None
+
+        self._server = await serve(
+            self._handle, self.host, self.options.port or 0, compression=None, max_size=self.max_message_bytes,
+            process_request=health,
+        )  # fmt: skip
+        self.port = self._server.sockets[0].getsockname()[1]
+        self._ready.set()
+
+    def _register(self, api_key: str) -> RobotSession:
+        robot_id = f"openpi-{next(self._ids)}"
+        credential = None
+        if self.auth is not None:
+            credential = self.auth.identify(robot_id, api_key)
+            if credential is None:
+                raise FleetError("UNAUTHENTICATED", "missing or wrong api key (openpi client's api_key)")
+        opts = self.options
+        h_max = min(opts.replan_steps, self.chunk_size)
+        asked = Request(robot_id, opts.fps, 1, h_max, 1.0, opts.tier)
+        grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
+        if grant is None:
+            raise FleetError("INVALID_ARGUMENT", "; ".join(problems))
+        spec = RobotSpec(robot_id, grant.fps, self.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
+        features = {f.name: f for f in self.keymap.features}
+        now = self.fleet.clock()
+        session = self.fleet.register(spec, "", features, credential.digest if credential else None, grant, register_recv=now)
+        # Its clock is ours: complete the registration exchange with zero offset and no delay.
+        assert session.register_stamps is not None
+        b, s = session.register_stamps
+        self.fleet.on_clock_sync(session, pb.ClockSync(client_send_time=b, client_recv_time=s), now)
+        self.fleet.attach(session.session_id, credential.digest if credential else None)
+        return session
+
+    async def _handle(self, websocket: Any) -> None:
+        header = websocket.request.headers.get("Authorization", "") if websocket.request is not None else ""
+        api_key = header.removeprefix("Api-Key ").strip()
+        try:
+            session = await asyncio.to_thread(self._register, api_key)
+        except FleetError as exc:
+            await websocket.send(f"lerobot-armory refused this client: {exc}")
+            await websocket.close()
+            return
+        peer = OpenpiSession(self.fleet, session, self.keymap, min(self.options.replan_steps, self.chunk_size))
+        log.info("openpi client %s connected as %s", websocket.remote_address, session.robot_id)
+        try:
+            await websocket.send(pack(self.metadata))
+            async for frame in websocket:
+                if isinstance(frame, str):
+                    await websocket.send("expected a binary msgpack frame (openpi's client packs the observation), got text")
+                    continue
+                try:
+                    obs = unpack(frame, self.max_message_bytes)
+                    reply = await asyncio.to_thread(peer.infer, obs)
+                except (WireError, RuntimeError) as exc:
+                    session.rejected += 1
+                    await websocket.send(f"lerobot-armory: request refused: {exc}")
+                    continue
+                await websocket.send(pack(reply))
+        except Exception as exc:  # noqa: BLE001 - a connection's failure is its own
+            log.info("openpi client %s: connection ended (%s)", session.robot_id, type(exc).__name__)
+        finally:
+            await asyncio.to_thread(self.fleet.detach, session.session_id)
+            log.info("openpi client %s disconnected", session.robot_id)
+
+    def stop(self) -> None:
+        if self._server is None:
+            return
+
+        async def close() -> None:
+            self._server.close()
+            await self._server.wait_closed()
+
+        asyncio.run_coroutine_threadsafe(close(), self._loop).result(timeout=10)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=10)
