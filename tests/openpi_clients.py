@@ -1,13 +1,14 @@
 """openpi clients, run in openpi-client's own environment (numpy < 2), as on a robot computer.
 
-    python openpi_clients.py PORT OUT_DIR MODE N REQUESTS [DURATION_S]
+    python openpi_clients.py PORT OUT_DIR MODE N REQUESTS [DURATION_S] [PACE_S]
 
 MODE:
 - ``infer``: N concurrent ``WebsocketClientPolicy`` clients, REQUESTS ``infer`` calls each; client k
   saves its first observation and chunk to OUT_DIR/client{k}.npz and its latencies to a JSON.
 - ``broker``: one ``ActionChunkBroker(WebsocketClientPolicy, action_horizon=5)``, REQUESTS steps.
 - ``bad``: N - 1 good clients as in ``infer`` while one more sends garbage and a wrong observation.
-- ``bench``: N clients calling ``infer`` back to back for DURATION_S seconds; latencies to JSON.
+- ``bench``: N clients calling ``infer`` for DURATION_S seconds, each waiting PACE_S after every
+  reply (the time its robot takes to execute the chunk's first actions); latencies to JSON.
 
 Only openpi_client, numpy and websockets are imported here: nothing of lerobot-armory.
 """
@@ -35,7 +36,9 @@ def observation(seed: int) -> dict:
     }
 
 
-def good_client(port: int, out: Path, k: int, requests: int, results: dict, duration_s: float = 0.0) -> None:
+def good_client(
+    port: int, out: Path, k: int, requests: int, results: dict, duration_s: float = 0.0, pace_s: float = 0.0
+) -> None:
     policy = websocket_client_policy.WebsocketClientPolicy(host="127.0.0.1", port=port)
     latencies = []
     first = None
@@ -49,6 +52,8 @@ def good_client(port: int, out: Path, k: int, requests: int, results: dict, dura
         if first is None:
             first = (obs, reply["actions"])
         n += 1
+        if pace_s:
+            time.sleep(pace_s)
     elapsed = time.perf_counter() - start
     assert first is not None
     np.savez(out / f"client{k}.npz", image=first[0]["observation/image"], state=first[0]["observation/state"], actions=first[1])
@@ -77,6 +82,7 @@ def bad_client(port: int, results: dict) -> None:
 def main() -> None:
     port, out, mode, n, requests = int(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
     duration_s = float(sys.argv[6]) if len(sys.argv) > 6 else 0.0
+    pace_s = float(sys.argv[7]) if len(sys.argv) > 7 else 0.0
     out.mkdir(parents=True, exist_ok=True)
     results: dict = {}
     if mode == "broker":
@@ -91,7 +97,7 @@ def main() -> None:
         threads = []
         good = n - 1 if mode == "bad" else n
         for k in range(good):
-            args = (port, out, k, requests, results, duration_s if mode == "bench" else 0.0)
+            args = (port, out, k, requests, results, duration_s if mode == "bench" else 0.0, pace_s)
             threads.append(threading.Thread(target=good_client, args=args))
         if mode == "bad":
             threads.append(threading.Thread(target=bad_client, args=(port, results)))
