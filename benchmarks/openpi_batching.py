@@ -36,10 +36,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Targets  # noqa: E402
+from _common import Targets
 
-from tests.cluster_helpers import make_planner, replica_config  # noqa: E402
-from tests.openpi_env import openpi_python  # noqa: E402
+from tests.cluster_helpers import make_planner, replica_config
+from tests.openpi_env import openpi_python
 
 CLIENTS = ROOT / "tests" / "openpi_clients.py"
 PACE_S = 5 / 20.0

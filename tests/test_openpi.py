@@ -8,6 +8,7 @@ batches taking the H100 π0.5 profile's time, EDF, b = 4).
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import time
 from collections import Counter
@@ -188,3 +189,44 @@ def test_a_slow_client_or_a_hung_one_does_not_hold_the_others(server, tmp_path):
             t = time.monotonic()
             reply = unpack(ws.recv(timeout=10), 1 << 20)
             assert reply["actions"].shape == (10, 2) and time.monotonic() - t < 5
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
+def test_with_tls_and_tokens_the_endpoint_is_wss_and_checks_the_api_key(tmp_path):
+    """The gRPC port's certificate serves wss://; openpi's ``api_key`` (``Authorization: Api-Key``)
+    is checked against the server's tokens; a wrong key is told why and closed."""
+    import ssl
+
+    from websockets.sync.client import connect
+
+    key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert), "-days", "1",
+         "-subj", "/CN=localhost", "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    tokens = tmp_path / "tokens.txt"
+    tokens.write_text("fleet-token-0123456789abcdef\n")
+    planner = make_planner(tmp_path / "planner")
+    cfg = ServerConfig(
+        policy=PolicyOptions(planner, "cpu"), engine=EngineOptions(emulate_profile="h100-pi05"), status_interval_s=0.0,
+        log_level="warning", port=0, openpi=OpenpiOptions(port=0), tls_cert=str(cert), tls_key=str(key),
+        auth_token_file=str(tokens),
+    )  # fmt: skip
+    server, summary = build_server(cfg)
+    try:
+        assert "wss://" in summary
+        trust = ssl.create_default_context(cafile=str(cert))
+        url = f"wss://localhost:{server.openpi.port}"
+        with connect(url, ssl=trust, additional_headers={"Authorization": "Api-Key wrong"}) as ws:
+            assert "api key" in ws.recv()
+        good = {"Authorization": "Api-Key fleet-token-0123456789abcdef"}
+        with connect(url, ssl=trust, additional_headers=good, compression=None, max_size=None) as ws:
+            unpack(ws.recv(), 1 << 20)
+            ws.send(pack({"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}))
+            assert unpack(ws.recv(timeout=10), 1 << 20)["actions"].shape == (10, 2)
+        with pytest.raises(Exception):  # noqa: B017 - plaintext against a TLS port fails in the handshake
+            with connect(f"ws://localhost:{server.openpi.port}", open_timeout=3) as ws:
+                ws.recv(timeout=3)
+    finally:
+        server.stop()

@@ -236,7 +236,7 @@ class ArmoryServer:
             self.fleet, KeyMap.load(self.policy.wire_features, keymap), options, self.policy.chunk_size,
             {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,
              "action_names": self.policy.action_names},
-            self._host, self._max_message_bytes, self._fleet_policy, self._auth,
+            self._host, self._max_message_bytes, self._fleet_policy, self._auth, self._tls,
         ).start()  # fmt: skip
         return self.openpi.port
 
@@ -398,7 +398,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
         f"  fleet policy: {fleet_policy.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
-        f"  openpi clients: {f'ws://{cfg.host}:{openpi_port} (replan {cfg.openpi.replan_steps} steps at {cfg.openpi.fps:g} fps)' if openpi_port is not None else 'off'}\n"
+        f"  openpi clients: {f'{"wss" if tls else "ws"}://{cfg.host}:{openpi_port} (replan {cfg.openpi.replan_steps} steps at {cfg.openpi.fps:g} fps)' if openpi_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
         f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})"
     )

@@ -137,6 +137,7 @@ class OpenpiEndpoint:
         max_message_bytes: int = 16 << 20,
         fleet_policy: FleetPolicy | None = None,
         auth: AuthTokens | None = None,
+        tls: tuple[bytes, bytes] | None = None,
     ) -> None:
         self.fleet = fleet
         self.keymap = keymap
@@ -147,6 +148,7 @@ class OpenpiEndpoint:
         self.max_message_bytes = max_message_bytes
         self.fleet_policy = fleet_policy or FleetPolicy.builtin()
         self.auth = auth
+        self.tls = tls
         self._ids = itertools.count()
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
@@ -182,10 +184,31 @@ class OpenpiEndpoint:
 
         self._server = await serve(
             self._handle, self.host, self.options.port or 0, compression=None, max_size=self.max_message_bytes,
-            process_request=health,
+            process_request=health, ssl=self._ssl_context(),
         )  # fmt: skip
         self.port = self._server.sockets[0].getsockname()[1]
         self._ready.set()
+
+    def _ssl_context(self) -> Any:
+        """wss:// with the gRPC port's certificate when the server has one (openpi's client takes
+        ``host="wss://..."``); None: plaintext ws://."""
+        if self.tls is None:
+            return None
+        import os
+        import ssl
+        import tempfile
+
+        key, cert = self.tls
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        # ssl loads PEM from files only: private temporary files, removed at once.
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = [os.path.join(tmp, "cert.pem"), os.path.join(tmp, "key.pem")]
+            for path, data in zip(paths, (cert, key), strict=True):
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+                with os.fdopen(fd, "wb") as handle:
+                    handle.write(data)
+            context.load_cert_chain(paths[0], paths[1])
+        return context
 
     def _register(self, api_key: str) -> RobotSession:
         robot_id = f"openpi-{next(self._ids)}"
