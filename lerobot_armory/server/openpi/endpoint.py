@@ -185,6 +185,9 @@ class OpenpiEndpoint:
         self._server = await serve(
             self._handle, self.host, self.options.port or 0, compression=None, max_size=self.max_message_bytes,
             process_request=health, ssl=self._ssl_context(),
+            # A client that sends without waiting for replies queues at most this many frames
+            # here (each up to max_size): openpi's client sends one and waits.
+            max_queue=4,
         )  # fmt: skip
         self.port = self._server.sockets[0].getsockname()[1]
         self._ready.set()
