@@ -17,6 +17,7 @@ heaviest.
 
 from __future__ import annotations
 
+import abc
 import functools
 import itertools
 import random
@@ -185,8 +186,8 @@ class NoReplica(Exception):
     """No healthy replica has room for another robot."""
 
 
-class Placement:
-    """Chooses a replica for a joining robot. Subclasses implement :meth:`choose`."""
+class Placement(abc.ABC):
+    """Chooses a replica for a joining robot. Subclasses implement :meth:`_choose`."""
 
     name = "base"
 
@@ -197,8 +198,9 @@ class Placement:
             raise NoReplica("no healthy replica has room for another robot")
         return self._choose(spec, candidates)
 
+    @abc.abstractmethod
     def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
-        raise NotImplementedError
+        """The id of one of ``candidates`` (all open) for ``spec``."""
 
 
 class RandomPlacement(Placement):
