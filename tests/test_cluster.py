@@ -211,3 +211,47 @@ def test_lying_and_absurd_registrations_are_refused_by_the_replica_and_hurt_nobo
     assert reg.stream_address
     honest.end_session()
     conn.close()
+
+
+@pytest.mark.skipif(__import__("shutil").which("openssl") is None, reason="openssl not installed")
+def test_with_tls_the_front_and_the_replicas_speak_tls_end_to_end(planner_dir, tmp_path):
+    """The front forwards over TLS (trusting the shared certificate), the robot follows the
+    redirect with the same trust root, and a plaintext robot is refused at the front."""
+    import dataclasses
+    import subprocess
+
+    key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert), "-days", "1",
+         "-subj", "/CN=localhost", "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    cfg = dataclasses.replace(replica_config(planner_dir), tls_cert=str(cert), tls_key=str(key))
+    replicas = LocalReplicas({f"r{k}": ArmoryReplica(cfg, f"r{k}") for k in range(2)})
+    pem = cert.read_bytes()
+    channels = lambda address: grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=pem))  # noqa: E731
+    front = FrontServer(ClusterFront(replicas, FrontOptions(health_interval_s=0.2), channel_factory=channels),
+                        tls=(key.read_bytes(), pem))  # fmt: skip
+    try:
+        from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
+        from lerobot_armory.robot.features import FeatureMap
+
+        robot = ArmorySim(ArmorySimConfig(scene="static", image_size=32, seed=0))
+        fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
+        secure = Connection(f"localhost:{front.port}", tls_ca=pem)
+        reg = secure.register("tls-robot", fmap.wire_features(), 20.0, 1, 10)
+        assert reg.stream_address and secure.address == reg.stream_address
+        got: list = []
+        secure.open_stream(got.append)
+        robot.connect()
+        secure.send_observation(0, fmap.to_wire(robot.get_observation()))
+        assert wait_for(lambda: bool(got), timeout=5.0)  # the chunk came over the replica's TLS stream
+        secure.close()
+        plain = Connection(f"localhost:{front.port}")
+        with pytest.raises(grpc.RpcError):
+            plain.register("plain", fmap.wire_features(), 20.0, 1, 10, timeout=3)
+        plain.close()
+    finally:
+        front.stop(0)
+        for rid in replicas.ids():
+            replicas.kill(rid)
