@@ -230,3 +230,20 @@ def test_with_tls_and_tokens_the_endpoint_is_wss_and_checks_the_api_key(tmp_path
                 ws.recv(timeout=3)
     finally:
         server.stop()
+
+
+def test_a_chunk_left_over_from_a_timed_out_request_never_answers_the_next_one(server):
+    from websockets.sync.client import connect
+
+    from lerobot_armory.proto import armory_pb2 as pb
+    from lerobot_armory.wire import encode
+
+    with connect(f"ws://127.0.0.1:{server.openpi.port}", compression=None, max_size=None) as ws:
+        unpack(ws.recv(), 1 << 20)
+        with server.fleet.cond:
+            mine = [s for s in server.fleet.sessions.values() if s.robot_id.startswith("openpi-")][-1]
+        stale = np.full((10, 2), 99.0, np.float32)
+        mine.outbox.put(pb.ServerMessage(chunk=pb.ActionChunk(chunk_id=999, i_start=0, actions=encode("action", stale))))
+        ws.send(pack({"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}))
+        reply = unpack(ws.recv(timeout=10), 1 << 20)
+        assert not np.any(reply["actions"] == 99.0)

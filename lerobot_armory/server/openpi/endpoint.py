@@ -33,7 +33,7 @@ from lerobot_armory.server.fleet_policy import FleetPolicy, Request
 from lerobot_armory.server.openpi.keymap import KeyMap
 from lerobot_armory.server.openpi.wire import pack, unpack
 from lerobot_armory.server.security import AuthTokens
-from lerobot_armory.wire import WireError
+from lerobot_armory.wire import WireError, decode
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +94,10 @@ class OpenpiSession:
             )  # fmt: skip
             self.fleet.on_report(self.session, report, now)
         self.session.task = task or self.session.task
+        # A chunk that came after its request timed out answers an older observation: never
+        # hand it to this one.
+        while self.session.outbox.get(timeout=0) is not None:
+            pass
         try:
             self.fleet.on_observation(self.session, self.index, now, arrays, now)
         except ValueError as exc:
@@ -108,8 +112,6 @@ class OpenpiSession:
                 break
             if kind == "notice" and msg.notice.kind in (pb.Notice.INFERENCE_FAILED, pb.Notice.DROPPED, pb.Notice.SHUTDOWN):
                 raise RuntimeError(msg.notice.message)
-        from lerobot_armory.wire import decode
-
         chunk = msg.chunk
         actions = decode(chunk.actions)
         sent = self.fleet.clock()
