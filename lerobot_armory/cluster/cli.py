@@ -26,12 +26,11 @@ from typing import Any
 
 import grpc
 
-from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
+from lerobot_armory.cli_util import run_or_exit
 from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.cluster.replica import ArmoryReplica, RayReplicas
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.app import ServerConfig
-from lerobot_armory.server.engine import PolicyOptions
+from lerobot_armory.server.app import ServerConfig, parse_server_args
 from lerobot_armory.server.logs import configure_logging
 from lerobot_armory.server.security import read_tls
 
@@ -191,11 +190,7 @@ def run(cfg: ClusterConfig) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (``--policy.<field>=value`` passes through as on the server)."""
-    own = {f.name for f in dataclasses.fields(PolicyOptions)}
-    args, overrides = split_passthrough(argv, "policy", own)
-    cfg = parse_or_exit(ClusterConfig, args, "lerobot-armory-cluster")
-    cfg.policy.overrides = [*cfg.policy.overrides, *overrides]
-    run_or_exit(run, cfg, "lerobot-armory-cluster")
+    run_or_exit(run, parse_server_args(ClusterConfig, argv, "lerobot-armory-cluster"), "lerobot-armory-cluster")
 
 
 if __name__ == "__main__":

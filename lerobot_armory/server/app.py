@@ -430,14 +430,25 @@ def serve(cfg: ServerConfig) -> None:
     log.info("stopped cleanly")
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Console entry point. ``--policy.<field>=value`` for any field of the policy's own config
-    (``--policy.dtype=bfloat16``) is passed to LeRobot's config parser when the policy loads."""
+ConfigT = TypeVar("ConfigT", bound=ServerConfig)
+
+
+def parse_server_args(config_class: type[ConfigT], argv: list[str] | None, prog: str) -> ConfigT:
+    """Parse a server's options (``lerobot-armory-server``, ``lerobot-armory-cluster``).
+
+    ``--policy.<field>=value`` for any field of the policy's own config (``--policy.dtype=bfloat16``)
+    is kept aside and passed to LeRobot's config parser when the policy loads.
+    """
     own = {f.name for f in dataclasses.fields(PolicyOptions)}
     args, overrides = split_passthrough(argv, "policy", own)
-    cfg = parse_or_exit(ServerConfig, args, "lerobot-armory-server")
+    cfg = parse_or_exit(config_class, args, prog)
     cfg.policy.overrides = [*cfg.policy.overrides, *overrides]
-    run_or_exit(serve, cfg, "lerobot-armory-server")
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point (see :func:`parse_server_args` for ``--policy.<field>``)."""
+    run_or_exit(serve, parse_server_args(ServerConfig, argv, "lerobot-armory-server"), "lerobot-armory-server")
 
 
 if __name__ == "__main__":
