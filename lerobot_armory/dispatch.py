@@ -15,6 +15,12 @@ of the mirrors (the live loop in ``server/loop.py`` on wall time, the simulator 
 - :meth:`Dispatcher.cancel`: the batch failed; its robots are useful again and the prediction
   no longer counts on their chunks.
 
+A plan may also say *wait* (:attr:`Plan.wait_until`, nothing booked): the scheduler's dispatch
+timing (:mod:`lerobot_armory.schedulers.timing`) predicts that an observation about to land makes
+the batch better at no cost. The driver then plans again at ``wait_until`` or as soon as any
+observation lands, whichever is first; the dispatcher caps the total wait of one free device at
+the scheduler's ``max_wait_s``, so a wait can never become a stall.
+
 The dispatcher holds no clock and does no I/O, like the mirror and the schedulers.
 """
 
@@ -62,6 +68,8 @@ class Plan:
         quarantined: ``(robot_id, why)`` of robots left out because their mirror cannot be
             evaluated (only with ``isolate_failures``): the driver ends their sessions.
         fell_back: the scheduler failed even without them, so the first useful robots were taken.
+        wait_until: set (and ``requests`` empty) when the device should wait: plan again at this
+            time or when an observation lands, whichever is first.
     """
 
     now: float
@@ -71,6 +79,7 @@ class Plan:
     decision_cpu_s: float = 0.0
     quarantined: list[tuple[str, str]] = field(default_factory=list)
     fell_back: bool = False
+    wait_until: float | None = None
 
     @property
     def size(self) -> int:
@@ -96,6 +105,9 @@ class Dispatcher:
     def __init__(self, scheduler: Scheduler, isolate_failures: bool = False) -> None:
         self.scheduler = scheduler
         self.isolate_failures = isolate_failures
+        self._held_since: float | None = None  # the device has been waiting (dispatch timing) since
+        self.held_s = 0.0  # total time the device waited on purpose (dispatch timing)
+        self.holds = 0  # plans that said wait
 
     @staticmethod
     def has_work(mirrors: Sequence[RobotMirror]) -> bool:
@@ -108,10 +120,16 @@ class Dispatcher:
         Returns None when no robot has a useful request.
         """
         if not self.has_work(mirrors):
+            self._stop_holding(now)
             return None
         t0, c0 = time.perf_counter(), time.thread_time()
         chosen, quarantined, fell_back = self._choose(mirrors, now)
+        hold = self._hold(mirrors, chosen, now) if chosen and not fell_back and not quarantined else None
         decision_s, decision_cpu_s = time.perf_counter() - t0, time.thread_time() - c0
+        if hold is not None:
+            self.holds += 1
+            return Plan(now, [], now, decision_s, decision_cpu_s, wait_until=hold)
+        self._stop_holding(now)
         if not chosen:  # every useful robot was quarantined
             return Plan(now, [], now, decision_s, decision_cpu_s, quarantined, fell_back)
         t_done = now + self.scheduler.d_infer[len(chosen) - 1]
@@ -133,6 +151,33 @@ class Dispatcher:
             request.mirror.on_cancel(request.chunk, request.previous_last_served)
 
     # ---- the decision -------------------------------------------------------------------------
+
+    def _stop_holding(self, now: float) -> None:
+        if self._held_since is not None:
+            self.held_s += max(0.0, now - self._held_since)
+            self._held_since = None
+
+    def _hold(self, mirrors: Sequence[RobotMirror], batch: list[RobotMirror], now: float) -> float | None:
+        """The scheduler's wait, if any, capped so the device waits at most ``max_wait_s`` in
+        all since it was first told to wait (None: dispatch now)."""
+        scheduler = self.scheduler
+        if scheduler.max_wait_s <= 0:
+            return None
+        start = now if self._held_since is None else self._held_since
+        limit = start + scheduler.max_wait_s
+        if now >= limit:
+            return None
+        try:
+            until = scheduler.hold(mirrors, batch, now)
+        except Exception:
+            if not self.isolate_failures:
+                raise
+            log.exception("%s failed to time its batch; dispatching now", type(scheduler).__name__)
+            return None
+        if until is None or not until > now:
+            return None
+        self._held_since = start
+        return min(until, limit)
 
     def _choose(self, mirrors: Sequence[RobotMirror], now: float) -> tuple[list[RobotMirror], list[tuple[str, str]], bool]:
         scheduler = self.scheduler

@@ -20,7 +20,7 @@ DOCUMENTED_KEYS = {
     "batch_sizes",
     "decision_ms_p99",
 }
-TIMING_KEYS = {"wall_s", "decision_ms_p50", "decision_ms_p99"}
+TIMING_KEYS = {"wall_s", "decision_ms_p50", "decision_ms_p99", "decision_cpu_ms_p50", "decision_cpu_ms_p99"}
 
 
 def run_cli(args, tmp_path, name="out.json"):

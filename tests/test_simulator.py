@@ -14,7 +14,7 @@ from lerobot_armory.sim import MIXES, PRESETS, FleetSimulator, LogNormalDelay, f
 from lerobot_armory.sim.presets import fast_count
 from lerobot_armory.sim.run import SimConfig, run_label, simulate, table
 
-TIMING_KEYS = {"wall_s", "decision_ms_p50", "decision_ms_p99"}
+TIMING_KEYS = {"wall_s", "decision_ms_p50", "decision_ms_p99", "decision_cpu_ms_p50", "decision_cpu_ms_p99"}
 
 
 def config(scheduler="lookahead", **kwargs) -> SimConfig:

@@ -328,7 +328,7 @@ def simulate_same(
     true = None
     if overhead_ms > 0:
         true = LatencyProfile(f"{profile.name}+{overhead_ms:.1f}ms", tuple(v + overhead_ms for v in profile.latency_ms), profile.device)
-    result = FleetSimulator(specs, sched_cfg.build(profile, cap), cfg.duration_s, net, net, seed, true_latency=true).run()
+    result = FleetSimulator(specs, sched_cfg.make(profile, cap), cfg.duration_s, net, net, seed, true_latency=true).run()
     return {tier: result.tier_starvation_pct(tier) for tier in TIERS if result.tier(tier)}
 
 

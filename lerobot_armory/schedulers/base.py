@@ -33,6 +33,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.mirror import RobotMirror
 from lerobot_armory.schedulers.plugins import discover_once
+from lerobot_armory.schedulers.timing import check_timing, hold_until
 
 
 class Scheduler(abc.ABC):
@@ -40,8 +41,15 @@ class Scheduler(abc.ABC):
 
     Contract (checked by :func:`check_batch`): called only when the device is free and at least
     one robot :meth:`~RobotMirror.is_useful`; returns a non-empty list of distinct useful
-    robots, at most ``max_batch_size`` long. All schedulers are work-conserving.
+    robots, at most ``max_batch_size`` long.
+
+    Dispatch timing (:mod:`.timing`): with ``max_wait_s > 0`` the dispatcher asks :meth:`hold`
+    after :meth:`select` whether to wait (at most ``max_wait_s`` per free device) for an
+    observation about to land; with 0 (the default) the scheduler is work-conserving.
     """
+
+    max_wait_s: float = 0.0
+    wait_margin_s: float = 0.002
 
     def __init__(self, profile: LatencyProfile, max_batch_size: int) -> None:
         if max_batch_size < 1:
@@ -50,11 +58,17 @@ class Scheduler(abc.ABC):
         self.max_batch_size = max_batch_size
         # d_infer(b) in seconds, index b-1: looked up on every decision.
         self.d_infer = profile.table_s(max_batch_size)
-        self.d_infer = profile.table_s(max_batch_size)
 
     @abc.abstractmethod
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
         """Pick the next batch among ``robots`` (all robots, in registration order) at ``now``."""
+
+    def hold(self, robots: Sequence[RobotMirror], batch: Sequence[RobotMirror], now: float) -> float | None:
+        """The instant to wait for before dispatching ``batch`` (chosen at ``now``), or None to
+        dispatch now. The default is :func:`.timing.hold_until` with this scheduler's knobs."""
+        if self.max_wait_s <= 0:
+            return None
+        return hold_until(robots, batch, now, self.d_infer, self.max_wait_s, self.wait_margin_s)
 
 
 def useful(robots: Sequence[RobotMirror]) -> list[RobotMirror]:
@@ -77,7 +91,18 @@ def check_batch(batch: Sequence[RobotMirror], max_batch_size: int, name: str) ->
 
 @dataclass
 class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
-    """Base of the per-scheduler configs; ``--scheduler.type=NAME`` picks a registered one."""
+    """Base of the per-scheduler configs; ``--scheduler.type=NAME`` picks a registered one.
+
+    Attributes (every scheduler's, :mod:`.timing`):
+        wait_ms: dispatch timing: the device may wait up to this long after it is free for an
+            observation about to land, when the mirrors predict that its chunk lands as early and
+            fresher and nobody else's chunk lands later (0: work-conserving, dispatch at once).
+        wait_margin_ms: a wait must still pay off if the dispatch happens this much later
+            (latency and network prediction error).
+    """
+
+    wait_ms: float = 0.0
+    wait_margin_ms: float = 2.0
 
     @classmethod
     def default_choice_name(cls) -> str | None:
@@ -103,11 +128,28 @@ class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
 
     @abc.abstractmethod
     def build(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
-        """Instantiate the scheduler for a latency profile and batch cap."""
+        """Instantiate the scheduler for a latency profile and batch cap (its own knobs only:
+        drivers call :meth:`make`, which adds the dispatch timing)."""
+
+    def make(self, profile: LatencyProfile, max_batch_size: int) -> Scheduler:
+        """The scheduler, with this config's dispatch timing (``wait_ms``, ``wait_margin_ms``)."""
+        for name, value in (("wait_ms", self.wait_ms), ("wait_margin_ms", self.wait_margin_ms)):
+            try:
+                check_timing(float(value) / 1000.0, 0.0)
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"scheduler.{name}", str(exc)) from None
+        scheduler = self.build(profile, max_batch_size)
+        scheduler.max_wait_s = self.wait_ms / 1000.0
+        scheduler.wait_margin_s = self.wait_margin_ms / 1000.0
+        return scheduler
 
     def label(self) -> str:
         """Short name for tables and plots."""
-        return self.type
+        return self.type + self.timing_label()
+
+    def timing_label(self) -> str:
+        """`` +wait N ms`` when dispatch timing is on (appended to every label)."""
+        return f" +wait {self.wait_ms:g} ms" if self.wait_ms > 0 else ""
 
 
 def scheduler_names() -> list[str]:

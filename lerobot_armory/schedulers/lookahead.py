@@ -180,4 +180,4 @@ class LookaheadConfig(SchedulerConfig):
         return LookaheadScheduler(profile, max_batch_size, self.depth, self.window_s, self.time_budget_ms)
 
     def label(self) -> str:
-        return f"lookahead L={self.depth}" if self.depth != 1 else "lookahead"
+        return (f"lookahead L={self.depth}" if self.depth != 1 else "lookahead") + self.timing_label()

@@ -177,7 +177,7 @@ class ArmoryServer:
         self.policy = policy
         self.profile = profile
         self.scheduler_config = scheduler
-        self.scheduler = scheduler.build(profile, max_batch_size)
+        self.scheduler = scheduler.make(profile, max_batch_size)
         self.fleet = Fleet(clock, max_robots)
         self.batch_log: list[BatchRecord] = []
         self.batch_listeners: list[Callable[[BatchRecord], None]] = [self._keep_recent]

@@ -171,21 +171,30 @@ class ServingLoop:
         fleet = self.fleet
         with fleet.cond:
             while True:
-                if fleet.stopping:
-                    return None
-                now = fleet.clock()
-                # A robot over its granted share of device time waits until the share decays; a
-                # robot without a stored observation has nothing to serve.
-                active = fleet.active()
-                sessions = [s for s in active if s.latest is not None and not fleet.over_share(s, now)]
-                mirrors = [s.mirror for s in sessions]
-                if self.dispatcher.has_work(mirrors):
+                while True:
+                    if fleet.stopping:
+                        return None
+                    now = fleet.clock()
+                    # A robot over its granted share of device time waits until the share decays;
+                    # a robot without a stored observation has nothing to serve.
+                    active = fleet.active()
+                    sessions = [s for s in active if s.latest is not None and not fleet.over_share(s, now)]
+                    mirrors = [s.mirror for s in sessions]
+                    if self.dispatcher.has_work(mirrors):
+                        break
+                    fleet.cond.wait(0.05 if len(sessions) < len(active) else 0.25)
+                plan = self.dispatcher.plan(mirrors, now)
+                assert plan is not None  # has_work held under the same lock
+                if plan.wait_until is None:
                     break
-                fleet.cond.wait(0.05 if len(sessions) < len(active) else 0.25)
+                # Dispatch timing: an observation about to land makes the batch better. Every
+                # observation notifies the condition, so the loop plans again as soon as one
+                # lands, or when the wait ends (the dispatcher caps it at the scheduler's max).
+                self.stats.decision_ms.append(plan.decision_s * 1000.0)
+                self.stats.decision_cpu_ms.append(plan.decision_cpu_s * 1000.0)
+                fleet.cond.wait(max(0.0, plan.wait_until - now))
             if self._last_end is not None and self._work_at_last_end:
                 self.stats.idle_with_work_s += max(0.0, now - self._last_end)
-            plan = self.dispatcher.plan(mirrors, now)
-            assert plan is not None  # has_work held under the same lock
             by_id = {s.robot_id: s for s in sessions}
             for robot_id, why in plan.quarantined:
                 log.error("dropping robot %s: its state cannot be scheduled (%s)", robot_id, why)

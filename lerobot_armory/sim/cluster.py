@@ -191,7 +191,7 @@ def simulate_composition(
     specs = [
         RobotSpec(f"r{k:04d}", fps, h, h_min, h_max, w, tier) for k, (tier, fps, h, h_min, h_max, w) in enumerate(comp)
     ]
-    scheduler = fleet.scheduler.build(profile, fleet.max_batch_size)  # one per replica: schedulers keep state
+    scheduler = fleet.scheduler.make(profile, fleet.max_batch_size)  # one per replica: schedulers keep state
     net = fleet.network()
     result = FleetSimulator(specs, scheduler, duration_s, net, net, seed).run()
     return tuple((r.tier, r.starved_steps, r.ticks) for r in result.robots)

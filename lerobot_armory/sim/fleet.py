@@ -310,7 +310,7 @@ def _scheduler(raw: Any, profile: LatencyProfile, cap: int, err) -> SchedulerCon
             "scheduler", f"unknown knob(s) {', '.join(sorted(knobs))} for {name} (known: {', '.join(known) or 'none'})"
         ) from None
     try:
-        cfg.build(profile, cap)  # the scheduler's own checks of its knobs
+        cfg.make(profile, cap)  # the scheduler's own checks of its knobs
     except ConfigError as exc:
         name = exc.field if exc.field.startswith("scheduler") else f"scheduler.{exc.field}"
         raise err(name, exc.message) from None

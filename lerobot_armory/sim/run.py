@@ -34,6 +34,7 @@ class SimConfig:
         net_median_ms: median one-way network delay, ms (default: the preset's).
         net_sigma: log-normal shape of the network delay (default: the preset's).
         duration_s: simulated seconds per run.
+        warmup_s: the first seconds are not scored (steady state, no cold start); 0 scores all.
         seeds: number of seeds (runs seed, seed+1, ...).
         seed: first seed.
         output: write the runs as JSON here.
@@ -49,6 +50,7 @@ class SimConfig:
     net_median_ms: float | None = None
     net_sigma: float | None = None
     duration_s: float = 300.0
+    warmup_s: float = 0.0
     seeds: int = 1
     seed: int = 0
     output: str | None = None
@@ -64,6 +66,8 @@ class SimConfig:
             raise ConfigError("seeds", f"must be >= 1, got {self.seeds}")
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ConfigError("duration_s", f"must be > 0, got {self.duration_s}")
+        if not (math.isfinite(self.warmup_s) and 0 <= self.warmup_s < self.duration_s):
+            raise ConfigError("warmup_s", f"must be in [0, duration_s), got {self.warmup_s}")
         cfg = replace(
             self,
             max_batch_size=preset.default_batch_cap(self.mix) if self.max_batch_size is None else self.max_batch_size,
@@ -74,7 +78,7 @@ class SimConfig:
         if cfg.max_batch_size < 1:
             raise ConfigError("max_batch_size", f"must be >= 1, got {cfg.max_batch_size}")
         # Build once to validate the profile, the network and the scheduler's own knobs.
-        cfg.scheduler.build(load_profile(cfg.latency_profile), cfg.max_batch_size)
+        cfg.scheduler.make(load_profile(cfg.latency_profile), cfg.max_batch_size)
         cfg.network()
         fleet_specs(preset, cfg.mix, cfg.robots, cfg.fast_weight)
         return cfg
@@ -89,11 +93,11 @@ def simulate(cfg: SimConfig, seed: int) -> dict[str, Any]:
     preset = get_preset(cfg.preset)
     profile = load_profile(cfg.latency_profile)
     assert cfg.max_batch_size is not None
-    scheduler = cfg.scheduler.build(profile, cfg.max_batch_size)
+    scheduler = cfg.scheduler.make(profile, cfg.max_batch_size)
     specs = fleet_specs(preset, cfg.mix, cfg.robots, cfg.fast_weight)
     net = cfg.network()
     start = time.perf_counter()
-    result = FleetSimulator(specs, scheduler, cfg.duration_s, net, net, seed).run()
+    result = FleetSimulator(specs, scheduler, cfg.duration_s, net, net, seed, warmup_s=cfg.warmup_s).run()
     return run_record(cfg, seed, result, time.perf_counter() - start, profile.is_extrapolated(cfg.max_batch_size))
 
 
@@ -111,7 +115,8 @@ def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extr
             }
     return {
         "scheduler": sched.type,
-        "label": run_label(sched.type, cfg.fast_weight, getattr(sched, "depth", 1)),
+        "label": run_label(sched.type, cfg.fast_weight, getattr(sched, "depth", 1)) + sched.timing_label(),
+        "wait_ms": sched.wait_ms,
         "depth": getattr(sched, "depth", None),
         "preset": cfg.preset,
         "mix": cfg.mix,
@@ -124,6 +129,7 @@ def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extr
         "net_median_ms": cfg.net_median_ms,
         "net_sigma": cfg.net_sigma,
         "duration_s": cfg.duration_s,
+        "warmup_s": cfg.warmup_s,
         "avg_starvation_pct": result.avg_starvation_pct,
         "tiers": tiers,
         "executed_s": result.executed_s,
@@ -132,6 +138,9 @@ def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extr
         "first_executed_index": dict(sorted(result.first_executed_index().items(), key=_index_key)),
         "decision_ms_p50": result.decision_ms(50),
         "decision_ms_p99": result.decision_ms(99),
+        "decision_cpu_ms_p50": result.decision_cpu_ms(50),
+        "decision_cpu_ms_p99": result.decision_cpu_ms(99),
+        "held_s": result.held_s,
         "mirror_index_error_p99": float(np.percentile(result.mirror_index_error, 99)) if result.mirror_index_error else 0.0,
         "per_robot": [
             {"robot_id": r.robot_id, "tier": r.tier, "starvation_pct": r.starvation_pct, "executed_s": r.executed_s}

@@ -72,6 +72,8 @@ class SimResult:
     decision_s: list[float]
     duration_s: float
     mirror_index_error: list[int]  # |predicted - true| index at every decision, for fidelity checks
+    held_s: float = 0.0  # time the device waited on purpose (dispatch timing, ``wait_ms``)
+    decision_cpu_s: list[float] = field(default_factory=list)  # the decisions' CPU (thread) time
 
     @property
     def avg_starvation_pct(self) -> float:
@@ -95,6 +97,10 @@ class SimResult:
     def decision_ms(self, q: float) -> float:
         return float(np.percentile(self.decision_s, q) * 1000) if self.decision_s else 0.0
 
+    def decision_cpu_ms(self, q: float) -> float:
+        """Percentile ``q`` of the decisions' CPU time (the scheduler's own cost), ms."""
+        return float(np.percentile(self.decision_cpu_s, q) * 1000) if self.decision_cpu_s else 0.0
+
     def first_executed_index(self) -> Counter:
         total: Counter = Counter()
         for r in self.robots:
@@ -114,6 +120,9 @@ class FleetSimulator:
         true_latency: how long batches really take, when that differs from the profile the
             scheduler plans with (e.g. a live server's measured per-batch overhead added);
             default: the scheduler's profile.
+        warmup_s: ticks before this time are not scored (``ticks`` and ``executed_steps`` count
+            from the first tick at or after it): a steady-state measurement without the cold
+            start. Nothing is told to the scheduler: it runs the same either way.
     """
 
     def __init__(
@@ -125,6 +134,7 @@ class FleetSimulator:
         downlink: LogNormalDelay,
         seed: int = 0,
         true_latency: LatencyProfile | None = None,
+        warmup_s: float = 0.0,
     ) -> None:
         if not specs:
             raise ConfigError("robots", "the fleet is empty")
@@ -132,6 +142,9 @@ class FleetSimulator:
             raise ConfigError("duration_s", f"must be > 0, got {duration_s}")
         if len({s.robot_id for s in specs}) != len(specs):
             raise ConfigError("robots", "robot ids must be unique")
+        if not 0 <= warmup_s < duration_s:
+            raise ConfigError("warmup_s", f"must be in [0, duration_s), got {warmup_s}")
+        self.warmup_s = warmup_s
         self.specs = list(specs)
         self.scheduler = scheduler
         self.duration_s = duration_s
@@ -147,6 +160,8 @@ class FleetSimulator:
         phase = [rng.uniform(0.0, 1.0 / s.fps) for s in self.specs]
         offset = [rng.uniform(-MAX_CLOCK_OFFSET_S, MAX_CLOCK_OFFSET_S) for _ in self.specs]  # server - robot
         n_ticks = [max(0, int(np.ceil((T - phase[j]) * s.fps - 1e-9))) for j, s in enumerate(self.specs)]
+        warm_tick = [max(0, int(np.ceil((self.warmup_s - phase[j]) * s.fps - 1e-9))) for j, s in enumerate(self.specs)]
+        warm_index: list[int | None] = [None] * n
 
         # Observation k of robot j is captured at its tick k and reaches the server at obs_arr[j][k].
         # The latest observation the server holds at t is the largest k with obs_arr <= t; a
@@ -164,7 +179,7 @@ class FleetSimulator:
             t0, up, down = -1.0, self.uplink.sample(rng), self.downlink.sample(rng)
             m.estimator.add_exchange(t0 - offset[j], t0 + up, t0 + up, t0 + up + down - offset[j])
 
-        results = [RobotResult(s.robot_id, s.tier, s.weight, s.fps, n_ticks[j], 0, 0) for j, s in enumerate(self.specs)]
+        results = [RobotResult(s.robot_id, s.tier, s.weight, s.fps, n_ticks[j] - warm_tick[j], 0, 0) for j, s in enumerate(self.specs)]
         used: list[set[int]] = [set() for _ in self.specs]
 
         def on_use_for(j: int):
@@ -182,10 +197,18 @@ class FleetSimulator:
         reports: list[tuple[float, int, int, float]] = []  # heap of (server receipt, robot, chunk id, arrival robot clock)
         batch_sizes: Counter = Counter()
         decision_s: list[float] = []
+        decision_cpu_s: list[float] = []
         index_error: list[int] = []
         d_infer = self.scheduler.d_infer
         if self.true_latency is not None:
             d_infer = self.true_latency.table_s(self.scheduler.max_batch_size)
+
+        def run_truth(j: int, k: int) -> None:
+            # The scored window starts at the warm-up's tick: note the index there on the way.
+            if warm_index[j] is None and k >= warm_tick[j]:
+                truth[j].run_to(warm_tick[j], hooks[j])
+                warm_index[j] = truth[j].index
+            truth[j].run_to(k, hooks[j])
 
         def sync(t: float) -> None:
             """Deliver to the mirrors everything that reached the server by time t."""
@@ -196,7 +219,7 @@ class FleetSimulator:
                 k = int(np.searchsorted(suffix_min[j], t, side="right")) - 1
                 if k > fed_tick[j]:
                     k = int(k if obs_arr[j][k] <= t else _latest_arrived(obs_arr[j], k, t))
-                    truth[j].run_to(k, hooks[j])
+                    run_truth(j, k)
                     fed_tick[j] = k
                     capture_robot = phase[j] + k / self.specs[j].fps - offset[j]
                     mirrors[j].on_observation(truth[j].index, capture_robot, float(obs_arr[j][k]))
@@ -212,6 +235,11 @@ class FleetSimulator:
                 plan = dispatcher.plan(mirrors, t)
                 assert plan is not None
                 decision_s.append(plan.decision_s)
+                decision_cpu_s.append(plan.decision_cpu_s)
+                if plan.wait_until is not None:
+                    # Dispatch timing: plan again when the wait ends or any observation lands.
+                    t = min(plan.wait_until, _next_arrival(sorted_arr, t))
+                    continue
                 batch_sizes[plan.size] += 1
                 t_done = t + d_infer[plan.size - 1]
                 dispatcher.complete(plan, t_done)
@@ -226,18 +254,23 @@ class FleetSimulator:
                 t = t_done
             else:
                 # GPU idle, nobody useful: jump to the next observation arrival.
-                nxt = [sa[i] for sa in sorted_arr if (i := int(np.searchsorted(sa, t, side="right"))) < len(sa)]
-                if not nxt:
+                t = _next_arrival(sorted_arr, t)
+                if t == np.inf:
                     break
-                t = float(min(nxt))
 
         for j, tl in enumerate(truth):
-            tl.run_to(n_ticks[j], hooks[j])
-            results[j].executed_steps = tl.index
+            run_truth(j, n_ticks[j])
+            results[j].executed_steps = tl.index - (warm_index[j] or 0)
             unused = results[j].chunks_received - len(used[j])
             if unused > 0:
                 results[j].first_executed_index["unused"] += unused
-        return SimResult(results, batch_sizes, decision_s, T, index_error)
+        return SimResult(results, batch_sizes, decision_s, T, index_error, dispatcher.held_s, decision_cpu_s)
+
+
+def _next_arrival(sorted_arr: list[np.ndarray], t: float) -> float:
+    """The first observation arrival of any robot strictly after ``t`` (inf: none left)."""
+    nxt = [sa[i] for sa in sorted_arr if (i := int(np.searchsorted(sa, t, side="right"))) < len(sa)]
+    return float(min(nxt)) if nxt else float(np.inf)
 
 
 def _latest_arrived(arr: np.ndarray, k: int, t: float) -> int:

@@ -190,7 +190,7 @@ def weighted_value(result: EpisodeResult, weights: Sequence[float]) -> float:
 def play_contender(preset: str, mix: str, robots: int, horizon_s: float, who: Contender) -> EpisodeResult:
     """``who`` on the deterministic episode (its weight only changes what the scheduler sees)."""
     ep = episode_for(preset, mix, robots, horizon_s, fast_weight=who.weight)
-    scheduler = make_scheduler_config(who.name).build(load_profile(get_preset(preset).latency_profile), ep.max_batch_size)
+    scheduler = make_scheduler_config(who.name).make(load_profile(get_preset(preset).latency_profile), ep.max_batch_size)
     return play(ep, scheduler)
 
 

@@ -282,6 +282,10 @@ def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> Epis
             if plan is None:
                 t = ep.next_observation(t)
                 continue
+            if plan.wait_until is not None:  # dispatch timing: wait (an idle action)
+                batches.append(())
+                t = min(plan.wait_until, ep.next_observation(t))
+                continue
             t_done = t + ep.d_infer_s[plan.size - 1]
             dispatcher.complete(plan, t_done)
             for req in plan.requests:

@@ -29,4 +29,4 @@ __all__ = ["Targets", "play_episode", "sim"]
 def play_episode(preset: str, ep: Episode, scheduler: str, options: dict[str, object], tell_end: bool) -> EpisodeResult:
     """``scheduler`` (with ``options``, the preset's latency profile) on a deterministic episode."""
     profile = load_profile(get_preset(preset).latency_profile)
-    return play(ep, make_scheduler_config(scheduler, **options).build(profile, ep.max_batch_size), tell_end=tell_end)
+    return play(ep, make_scheduler_config(scheduler, **options).make(profile, ep.max_batch_size), tell_end=tell_end)
