@@ -63,6 +63,7 @@ class BenchConfig:
         net_median_ms / net_sigma: client-side emulated one-way delay (log-normal per message).
         duration_s: seconds per run.
         seeds: runs per scheduler (seed 0, 1, ...).
+        wait_ms: every scheduler's dispatch timing (``--scheduler.wait_ms``; 0: work-conserving).
         policy_path: policy to serve (default: the analytic armory_planner, built if missing).
         groups: robot processes (robots are spread over them).
         image_size: camera size of the simulated robots.
@@ -84,6 +85,7 @@ class BenchConfig:
     net_sigma: float = 0.0
     duration_s: float = 20.0
     seeds: int = 1
+    wait_ms: float = 0.0
     policy_path: str | None = None
     groups: int = 2
     image_size: int = 64
@@ -162,7 +164,7 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
     cap = cfg.max_batch_size or preset.default_batch_cap(cfg.mix)
     specs = fleet_specs(preset, cfg.mix, cfg.robots, cfg.fast_weight)
     policy = ensure_policy(cfg, preset.chunk_size)
-    run_dir = work / f"{cfg.preset}-{cfg.mix}-N{cfg.robots}-{scheduler}-w{cfg.fast_weight:g}-seed{seed}"
+    run_dir = work / f"{cfg.preset}-{cfg.mix}-N{cfg.robots}-{scheduler}-w{cfg.fast_weight:g}-wait{cfg.wait_ms:g}-seed{seed}"
     (run_dir / "stats").mkdir(parents=True, exist_ok=True)
     batch_log = run_dir / "batches.jsonl"
     args = [
@@ -177,6 +179,8 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
     measured = run_dir / "profile.json"  # real timing: profiled at start-up, saved, replayed by the simulator
     if scheduler == "lookahead":
         args.append(f"--scheduler.depth={cfg.depth}")
+    if cfg.wait_ms > 0:
+        args.append(f"--scheduler.wait_ms={cfg.wait_ms:g}")
     if cfg.emulate_profile:
         args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
     else:
@@ -267,7 +271,8 @@ def _record(
     return {
         "live": True,
         "scheduler": scheduler,
-        "label": run_label(scheduler, cfg.fast_weight, cfg.depth),
+        "label": run_label(scheduler, cfg.fast_weight, cfg.depth) + (f" +wait {cfg.wait_ms:g} ms" if cfg.wait_ms > 0 else ""),
+        "wait_ms": cfg.wait_ms,
         "preset": cfg.preset,
         "mix": cfg.mix,
         "robots": cfg.robots,
@@ -320,7 +325,7 @@ def simulate_same(
     preset = get_preset(cfg.preset)
     cap = cfg.max_batch_size or preset.default_batch_cap(cfg.mix)
     profile = profile or load_profile(cfg.emulate_profile or preset.latency_profile)
-    sched_cfg = make_scheduler_config(scheduler)
+    sched_cfg = make_scheduler_config(scheduler, wait_ms=cfg.wait_ms)
     if scheduler == "lookahead":
         sched_cfg = replace(sched_cfg, depth=cfg.depth)
     specs = fleet_specs(preset, cfg.mix, cfg.robots, cfg.fast_weight)

@@ -139,8 +139,9 @@ class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"scheduler.{name}", str(exc)) from None
         scheduler = self.build(profile, max_batch_size)
-        scheduler.max_wait_s = self.wait_ms / 1000.0
-        scheduler.wait_margin_s = self.wait_margin_ms / 1000.0
+        if self.wait_ms > 0:  # 0 leaves the scheduler's own timing (work-conserving by default)
+            scheduler.max_wait_s = self.wait_ms / 1000.0
+            scheduler.wait_margin_s = self.wait_margin_ms / 1000.0
         return scheduler
 
     def label(self) -> str:

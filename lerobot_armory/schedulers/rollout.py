@@ -69,6 +69,7 @@ from lerobot_armory.mirror import (
     tick_reaching,
 )
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
+from lerobot_armory.schedulers.timing import next_observation_at
 
 # First batches rolled out per decision (at most): the due batch, Lookahead's choice, its best
 # single robot and pair; more did not change the study's results and cost a rollout each.
@@ -171,7 +172,37 @@ class RolloutScheduler(Scheduler):
             if score > best_score + 1e-9:
                 best, best_score = first, score
         assert best is not None
+        self._decided = (now, pool, best, best_score, tail)
         return [r.mirror for r in best]
+
+    # ---- dispatch timing -------------------------------------------------------------------
+
+    def hold(self, robots: Sequence[RobotMirror], batch: Sequence[RobotMirror], now: float) -> float | None:
+        """Rollout decides *when* with the same rollouts as *whom* (``--scheduler.wait_ms``).
+
+        The chosen batch is rolled out again as if dispatched at each instant a member's next
+        observation is predicted to land (within ``max_wait_s``), plus the margin (so the wait
+        pays even if the dispatch happens that much later): the rollout then serves the fresher
+        observations, idles the device until then and plays the same base policy after. The
+        device waits for the best such instant only if its window score beats dispatching now.
+        Unlike the generic rule (:func:`.timing.hold_until`), this sees what the wait costs the
+        batches after it.
+        """
+        decided = getattr(self, "_decided", None)
+        if self.max_wait_s <= 0 or decided is None or decided[0] != now:
+            return None
+        _, pool, best, best_score, tail = decided
+        if [r.mirror for r in best] != list(batch):
+            return None
+        end = now + self.window_s
+        candidates = sorted({c for r in best if now < (c := next_observation_at(r.mirror)) <= now + self.max_wait_s})
+        chosen, chosen_score = None, best_score
+        for c in candidates:
+            t = c + self.wait_margin_s
+            score = self._rollout(pool, best, t, tail, end)
+            if score > chosen_score + 1e-9:
+                chosen, chosen_score = t, score
+        return chosen
 
     def _tail(self, ranked: list[_Robot], now: float, b: int) -> str:
         """The base policy for this decision's rollouts: ``same`` when more robots are due than
@@ -238,11 +269,12 @@ class RolloutScheduler(Scheduler):
 
     # ---- one rollout -----------------------------------------------------------------------
 
-    def _rollout(self, pool: list[_Robot], first: list[_Robot], now: float, tail: str) -> float:
-        """Weighted executed time the window gains by dispatching ``first``, then following the
-        base policy ``tail`` (``due`` or ``same``) until the end of the window."""
+    def _rollout(self, pool: list[_Robot], first: list[_Robot], now: float, tail: str, end: float | None = None) -> float:
+        """Weighted executed time the window gains by dispatching ``first`` at ``now``, then
+        following the base policy ``tail`` (``due`` or ``same``) until ``end`` (default: the
+        window after ``now``; a timed dispatch passes the decision's window)."""
         d = self.d_infer
-        end = now + self.window_s
+        end = now + self.window_s if end is None else end
         cap = self.max_batch_size
         queues: dict[int, Queue] = {}  # served robots' queues, by pool position
         ready = self._ready0[:]  # time from which each robot is useful (again), by pool position

@@ -69,6 +69,10 @@ from lerobot_armory.sim.presets import fleet_specs, get_preset
 # a decision has reached the server.
 _EPS = 1e-9
 
+# A wait "until the next observation lands" asks the driver to wake at this much later at the
+# latest; every driver wakes at the next observation arrival first.
+_FAR_S = 3600.0
+
 # ``since`` value of a robot whose latest observation may be served (never served, or at least
 # max(1, h_min) steps executed since its last served observation).
 FREE = -1
@@ -316,6 +320,10 @@ def _ColdEdf(ep: Episode) -> Scheduler:  # noqa: N802 - reads like the class it 
 class ReplayScheduler(Scheduler):
     """Dispatches a fixed list of batches (robot indices), one per call: replays a plan.
 
+    An empty batch ``()`` is the idle action (a plan of :func:`solve` with ``idle=True``): the
+    device waits until the next observation lands (through the dispatch-timing hook, so
+    :func:`play` drives it like any scheduler that waits).
+
     A plan from :func:`solve` stops at the last decision whose chunks can still arrive before
     the horizon; later decisions cannot change the episode's value, so past the plan's end the
     replay serves the first useful robot (work conservation still asks for a batch).
@@ -325,13 +333,25 @@ class ReplayScheduler(Scheduler):
         super().__init__(LatencyProfile("replay", (1.0,)), max_batch_size)
         self.plan = [tuple(b) for b in plan]
         self._next = 0
+        self._idle = False
+        if any(not b for b in self.plan):
+            self.max_wait_s = math.inf  # the plan's own waits end at the next observation
 
     def select(self, robots: Sequence[RobotMirror], now: float) -> list[RobotMirror]:
         if self._next >= len(self.plan):
             return [next(r for r in robots if r.is_useful())]
         batch = self.plan[self._next]
         self._next += 1
+        if not batch:
+            self._idle = True
+            return [next(r for r in robots if r.is_useful())]  # not dispatched: hold() says wait
         return [robots[j] for j in batch]
+
+    def hold(self, robots: Sequence[RobotMirror], batch: Sequence[RobotMirror], now: float) -> float | None:
+        if not self._idle:
+            return None
+        self._idle = False
+        return now + _FAR_S  # the driver plans again when the next observation lands
 
 
 # --------------------------------------------------------------------------------------------
@@ -469,8 +489,9 @@ class OptimumResult:
 class _Search:
     """Depth-first branch-and-bound with a memo of exact values and fail-low upper bounds."""
 
-    def __init__(self, ep: Episode, node_limit: int, time_limit_s: float) -> None:
+    def __init__(self, ep: Episode, node_limit: int, time_limit_s: float, idle: bool = False) -> None:
         self.ep = ep
+        self.idle = idle  # the device may also wait for the next observation (the idle action)
         self.n = len(ep.specs)
         self.hm = [max(1, s.h_min) for s in ep.specs]
         self.h = [s.h_max for s in ep.specs]
@@ -640,6 +661,12 @@ class _Search:
                         d = delta[(size, j)] = self.robot_bound(j, served, ks2[j], first2[j]) - bounds[j]
                     ub += d
             kids.append((ub, size, batch))
+        if self.idle:
+            # The idle action: dispatch nothing, wait for the next observation arrival.
+            idle = self.wait(states, ks, t)
+            t2, ks2, moved, g, first2, terminal2 = idle
+            ub = g + (self.final(moved, ks2) if terminal2 else sum(self.robot_bound(j, st, ks2[j], first2[j]) for j, st in enumerate(moved)))
+            kids.append((ub, 0, ()))
         kids.sort(key=lambda c: -c[0])
         best_exact, best_batch, top = -math.inf, None, -math.inf
         for ub, size, batch in kids:
@@ -647,10 +674,13 @@ class _Search:
             if ub <= floor:
                 top = max(top, ub)  # cannot matter: its bound is all we claim about it
                 continue
-            t2, ks2, _, _, moved, dones, g, arrivals, _ = shared[size]
-            st2 = list(moved)
-            for j in batch:
-                st2[j] = self.served_state(j, moved, dones, arrivals)
+            if size == 0:
+                t2, ks2, st2, g, _, _ = idle
+            else:
+                t2, ks2, _, _, moved, dones, g, arrivals, _ = shared[size]
+                st2 = list(moved)
+                for j in batch:
+                    st2[j] = self.served_state(j, moved, dones, arrivals)
             v, exact = self.value(t2, st2, ks2, floor - g, acc + g)
             total = g + v
             top = max(top, total)
@@ -658,9 +688,17 @@ class _Search:
                 best_exact, best_batch = total, batch
         exact = best_exact >= top - 1e-9  # totals are (floor - g) + g: allow float rounding
         value = best_exact if exact else top
-        action = tuple(sorted((self.cls[j], states[j]) for j in best_batch)) if exact and best_batch else None
+        action = tuple(sorted((self.cls[j], states[j]) for j in best_batch)) if exact and best_batch is not None else None
         self.memo[key] = (value, exact, action)
         return value, exact
+
+    def wait(self, states: list[RobotState], ks: list[int], t: float):
+        """The idle action at ``t``: (next observation time, its ticks, every robot moved there,
+        the reward on the way, the first ticks reachable from there, whether it is terminal)."""
+        t2 = self.ep.next_observation(t)
+        ks2, first2, terminal2 = self.timing(t2)
+        moved, _, g = self.move(states, ks, ks2)
+        return t2, ks2, moved, g, first2, terminal2
 
     def start(self, warmup: Sequence[tuple[int, ...]]) -> tuple[float, list[RobotState], list[int], float]:
         """Replay the warm-up's batches from the cold start (t = 0, no observation yet): the time,
@@ -695,6 +733,10 @@ class _Search:
             entry = self.memo.get(self.key(t, states))
             if entry is None or entry[2] is None:
                 raise RuntimeError("the optimal path left the memo (plan requested from an inexact search)")
+            if entry[2] == ():  # the idle action
+                out.append(())
+                t, ks, states, _, _, _ = self.wait(states, ks, t)
+                continue
             wanted = list(entry[2])
             batch = []
             for j in useful:
@@ -712,8 +754,11 @@ def solve(
     incumbent_plan: Sequence[Sequence[int]] | None = None,
     node_limit: int = 2_000_000,
     time_limit_s: float = 120.0,
+    idle: bool = False,
 ) -> OptimumResult:
-    """Best work-conserving schedule of ``episode`` (see the module docstring).
+    """Best schedule of ``episode`` (see the module docstring): the best work-conserving one, or
+    with ``idle=True`` the best of all, the device may also wait for the next observation at
+    any decision (the *true* optimum; its plan holds ``()`` for each wait).
 
     Args:
         incumbent: a value some schedule is known to reach on this episode (e.g. the best online
@@ -724,7 +769,7 @@ def solve(
             upper bound instead of the exact optimum.
     """
     start = time.perf_counter()
-    search = _Search(episode, node_limit, time_limit_s)
+    search = _Search(episode, node_limit, time_limit_s, idle)
     # The warm-up is EDF's and the same for every schedule: replay it, then search. The search
     # counts reward from t = 0; ``before`` (the reward of the ticks before the scored window)
     # converts between the two.
