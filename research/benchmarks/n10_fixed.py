@@ -41,12 +41,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _study import Targets  # noqa: E402  (also puts research/ on sys.path)
-from n10_paired import FLEETS, interval  # noqa: E402
+import armory_research.variants  # noqa: F401  (registers rollout_same)
+from _study import Targets
+from n10_paired import FLEETS, interval
 
-import armory_research.variants  # noqa: E402,F401  (registers rollout_same)
-from lerobot_armory.schedulers import make_scheduler_config  # noqa: E402
-from lerobot_armory.sim.run import SimConfig, simulate  # noqa: E402
+from lerobot_armory.schedulers import make_scheduler_config
+from lerobot_armory.sim.run import SimConfig, simulate
 
 WEIGHTS: tuple[float, ...] = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 WAIT_MS = 10.0
@@ -106,9 +106,15 @@ def verdict(df: float, hf: float, ds: float, hs: float) -> str:
 def git_commit() -> str:
     try:
         root = Path(__file__).resolve().parents[2]
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        return head + (" (with uncommitted changes)" if dirty else "")
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "lerobot_armory", "research", "benchmarks"],
+            cwd=root, capture_output=True, text=True, check=True,
+        ).stdout.split("\n")  # fmt: skip
+        dirty = [line[3:] for line in dirty if line.strip()]
+        return head + (f" (uncommitted changes to {', '.join(sorted(dirty))})" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -122,7 +128,9 @@ class Phases:
         self.queue: list[tuple[str, list[tuple[tuple, list[Future]]]]] = []
 
     def submit(self, title: str, groups: dict[tuple, list[Job]]) -> None:
-        self.queue.append((title, [(key, [self.pool.submit(run_one, j) for j in jobs]) for key, jobs in groups.items()]))
+        self.queue.append(
+            (title, [(key, [self.pool.submit(run_one, j) for j in jobs]) for key, jobs in groups.items()])
+        )
 
     def collect(self) -> dict[tuple, np.ndarray]:
         out: dict[tuple, np.ndarray] = {}
@@ -147,7 +155,9 @@ def main() -> None:
     ap.add_argument("--duration_s", type=float, default=None, help="simulated seconds per run (default 120)")
     ap.add_argument("--warmup_s", type=float, default=None, help="first seconds not scored (default 20)")
     ap.add_argument("--workers", type=int, default=2, help="worker processes")
-    ap.add_argument("--quick", action="store_true", help="smoke test: 2 training seeds, 4 evaluation seeds, 20 s, warm-up 5 s")
+    ap.add_argument(
+        "--quick", action="store_true", help="smoke test: 2 training seeds, 4 evaluation seeds, 20 s, warm-up 5 s"
+    )
     ap.add_argument("--out", help="also write the tables to this markdown file")
     args = ap.parse_args()
     defaults = (2, 4, 20.0, 5.0) if args.quick else (12, 48, 120.0, 20.0)
@@ -166,6 +176,7 @@ def main() -> None:
         return [(preset, mix, name, opts, w, s, D, W) for s in seeds]
 
     start = time.perf_counter()
+    commit = git_commit()  # the code the workers import now (recorded again at the end)
     n_train = len(FLEETS) * (1 + sum(len(ws) for *_, ws in SETTINGS)) * len(train)
     n_eval = len(FLEETS) * (1 + len(SETTINGS)) * len(evals)
     print(
@@ -187,15 +198,24 @@ def main() -> None:
         for preset, mix in FLEETS:
             edf = train_runs[(preset, mix, "EDF", 1.0)]
             for label, _, _, weights in SETTINGS:
-                chosen[(preset, mix, label)] = select_weight(edf, {w: train_runs[(preset, mix, label, w)] for w in weights})
+                chosen[(preset, mix, label)] = select_weight(
+                    edf, {w: train_runs[(preset, mix, label, w)] for w in weights}
+                )
         per_run = (time.perf_counter() - start) * args.workers / n_train
-        print(f"weights fixed; evaluation estimated at ~{per_run * n_eval / args.workers / 60:.1f} min", file=sys.stderr, flush=True)
+        print(
+            f"weights fixed; evaluation estimated at ~{per_run * n_eval / args.workers / 60:.1f} min",
+            file=sys.stderr,
+            flush=True,
+        )
         # Stage 2: evaluation seeds, only the chosen weight, paired with EDF.
         for preset, mix in FLEETS:
             phases.submit(f"eval {preset} {mix}: EDF", {(preset, mix, "EDF"): jobs(preset, mix, "edf", {}, 1.0, evals)})
             for label, name, opts, _ in SETTINGS:
                 w = chosen[(preset, mix, label)][0]
-                phases.submit(f"eval {preset} {mix}: {label} w={w:g}", {(preset, mix, label): jobs(preset, mix, name, opts, w, evals)})
+                phases.submit(
+                    f"eval {preset} {mix}: {label} w={w:g}",
+                    {(preset, mix, label): jobs(preset, mix, name, opts, w, evals)},
+                )
         eval_runs = phases.collect()
     wall = time.perf_counter() - start
 
@@ -223,7 +243,13 @@ def main() -> None:
         f"including warm-up), mean per run, as % of the {D:g} s duration.",
         f"- Settings: lookahead (depth 1), rollout, rollout same (`rollout_same`, `armory_research.variants`), "
         f"EDF +wait {WAIT_MS:g} ms (`edf`, `wait_ms={WAIT_MS:g}`), rollout +wait {WAIT_MS:g} ms (`rollout`, `wait_ms={WAIT_MS:g}`).",
-        f"- Code at commit {git_commit()}; wall time {wall / 60:.1f} min with {args.workers} worker processes.",
+        f"- Code at commit {commit}"
+        + (
+            ""
+            if git_commit() == commit
+            else f" at the start, {git_commit()} at the end (the tree changed during the run)"
+        )
+        + f"; wall time {wall / 60:.1f} min with {args.workers} worker processes.",
         f"\nReproduce: `{cmd}`\n",
     ]
     if args.quick:
