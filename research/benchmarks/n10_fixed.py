@@ -32,6 +32,7 @@ Run: ``.venv/bin/python research/benchmarks/n10_fixed.py [--train_seeds=12] [--e
 from __future__ import annotations
 
 import argparse
+import importlib
 import subprocess
 import sys
 import time
@@ -41,12 +42,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import armory_research.variants  # noqa: F401  (registers rollout_same)
 from _study import Targets
 from n10_paired import FLEETS, interval
 
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.run import SimConfig, simulate
+
+# research/ is on sys.path now (_study): register rollout_same (the package imports it too).
+importlib.import_module("armory_research.variants")
 
 WEIGHTS: tuple[float, ...] = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0)
 WAIT_MS = 10.0
@@ -227,22 +230,36 @@ def main() -> None:
     )
     md = [
         "Protocol:\n",
-        f"- Horizon-free steady state: N = 10, each run simulates {D:g} s and scores only the ticks after a "
-        f"{W:g} s warm-up (`SimConfig(robots=10, duration_s={D:g}, warmup_s={W:g})`); no scheduler is told any end.",
-        f"- Fast-robot weight grid, the same for every weighted setting: {', '.join(f'{w:g}' for w in WEIGHTS)}. "
-        "EDF ignores weights: EDF (the baseline, `wait_ms=0`) and EDF +wait run at weight 1 only.",
-        f"- Selection on training seeds {train[0]}..{train[-1]} ({len(train)} seeds): per (fleet, setting), the weight "
-        "maximising min(−Δfast, −Δslow), Δ = setting − EDF starvation (points), mean over the paired seeds; ties → smaller weight.",
-        f"- Evaluation on seeds {evals[0]}..{evals[-1]} ({len(evals)} seeds), never looked at during selection: only the "
-        "chosen weight runs, paired with EDF on the same seeds. Δ = mean of the per-seed differences ± 95 % half-width "
-        "(1.96 standard errors).",
-        "- Verdict: *beats EDF on both tiers* only when both tiers' intervals lie below zero (mean + half < 0); "
-        "*loses* when some tier's interval lies above zero (mean − half > 0); otherwise *tie/trade-off (not significant)*.",
-        f"- Decision time: p99 of the decision CPU time / p99 of its wall time, ms, the max over the evaluation seeds. "
-        f"Held: for the `wait_ms={WAIT_MS:g}` variants, the device time spent waiting on purpose (`held_s`, whole run "
-        f"including warm-up), mean per run, as % of the {D:g} s duration.",
-        f"- Settings: lookahead (depth 1), rollout, rollout same (`rollout_same`, `armory_research.variants`), "
-        f"EDF +wait {WAIT_MS:g} ms (`edf`, `wait_ms={WAIT_MS:g}`), rollout +wait {WAIT_MS:g} ms (`rollout`, `wait_ms={WAIT_MS:g}`).",
+        (
+            f"- Horizon-free steady state: N = 10, each run simulates {D:g} s and scores only the ticks after a "
+            f"{W:g} s warm-up (`SimConfig(robots=10, duration_s={D:g}, warmup_s={W:g})`); no scheduler is told any end."
+        ),
+        (
+            f"- Fast-robot weight grid, the same for every weighted setting: {', '.join(f'{w:g}' for w in WEIGHTS)}. "
+            "EDF ignores weights: EDF (the baseline, `wait_ms=0`) and EDF +wait run at weight 1 only."
+        ),
+        (
+            f"- Selection on training seeds {train[0]}..{train[-1]} ({len(train)} seeds): per (fleet, setting), the weight "
+            "maximising min(−Δfast, −Δslow), Δ = setting − EDF starvation (points), mean over the paired seeds; ties → smaller weight."
+        ),
+        (
+            f"- Evaluation on seeds {evals[0]}..{evals[-1]} ({len(evals)} seeds), never looked at during selection: only the "
+            "chosen weight runs, paired with EDF on the same seeds. Δ = mean of the per-seed differences ± 95 % half-width "
+            "(1.96 standard errors)."
+        ),
+        (
+            "- Verdict: *beats EDF on both tiers* only when both tiers' intervals lie below zero (mean + half < 0); "
+            "*loses* when some tier's interval lies above zero (mean − half > 0); otherwise *tie/trade-off (not significant)*."
+        ),
+        (
+            f"- Decision time: p99 of the decision CPU time / p99 of its wall time, ms, the max over the evaluation seeds. "
+            f"Held: for the `wait_ms={WAIT_MS:g}` variants, the device time spent waiting on purpose (`held_s`, whole run "
+            f"including warm-up), mean per run, as % of the {D:g} s duration."
+        ),
+        (
+            f"- Settings: lookahead (depth 1), rollout, rollout same (`rollout_same`, `armory_research.variants`), "
+            f"EDF +wait {WAIT_MS:g} ms (`edf`, `wait_ms={WAIT_MS:g}`), rollout +wait {WAIT_MS:g} ms (`rollout`, `wait_ms={WAIT_MS:g}`)."
+        ),
         f"- Code at commit {commit}"
         + (
             ""
@@ -261,8 +278,10 @@ def main() -> None:
             f"\n**{preset}, {mix}, N=10**\n",
             "| setting | weight | train Δfast | train Δslow | fast % | slow % | Δfast | Δslow | verdict | decision p99 cpu / wall ms | held % |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
-            f"| EDF (baseline) | – | – | – | {edf[:, 0].mean():.2f} | {edf[:, 1].mean():.2f} | – | – | – | "
-            f"{edf[:, 2].max():.3f} / {edf[:, 3].max():.3f} | – |",
+            (
+                f"| EDF (baseline) | – | – | – | {edf[:, 0].mean():.2f} | {edf[:, 1].mean():.2f} | – | – | – | "
+                f"{edf[:, 2].max():.3f} / {edf[:, 3].max():.3f} | – |"
+            ),
         ]
         for label, _, opts, _ in SETTINGS:
             w, tf, ts = chosen[(preset, mix, label)]
