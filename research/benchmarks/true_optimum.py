@@ -70,6 +70,13 @@ def play_all(preset: str, mix: str, n: int, horizon: float) -> dict[str, Episode
     return out
 
 
+def play_best(preset: str, mix: str, n: int, horizon: float) -> tuple[Any, dict[str, float], EpisodeResult]:
+    """The episode, every column's value on it, and the best column's result (the incumbent)."""
+    played = play_all(preset, mix, n, horizon)
+    values = {lab: score(r) for lab, r in played.items()}
+    return episode_for(preset, mix, n, horizon), values, played[max(values, key=values.get)]
+
+
 def job(row: dict[str, Any], budget_s: float, bracket_budget_s: float) -> dict[str, Any]:
     """One small fleet: the true optimum at the committed horizon, then the 5 s bracket."""
     preset, mix, n = row["preset"], row["mix"], row["robots"]
@@ -78,13 +85,9 @@ def job(row: dict[str, Any], budget_s: float, bracket_budget_s: float) -> dict[s
     problems: list[str] = []
     if "horizon_s" in row:
         horizon = row["horizon_s"]
-        ep = episode_for(preset, mix, n, horizon)
-        played = play_all(preset, mix, n, horizon)
-        values = {lab: score(r) for lab, r in played.items()}
-        best_label = max(values, key=values.get)
-        best = played[best_label]
+        ep, values, best = play_best(preset, mix, n, horizon)
         wc = row["optimum"]
-        incumbent, plan = (values[best_label], best.batches[best.warmup_decisions:])
+        incumbent, plan = score(best), best.batches[best.warmup_decisions :]
         if wc > incumbent + 1e-9:
             incumbent, plan = wc, None
         res = solve(ep, incumbent, plan, time_limit_s=budget_s, idle=True)
@@ -103,12 +106,8 @@ def job(row: dict[str, Any], budget_s: float, bracket_budget_s: float) -> dict[s
                 problems.append(f"replay {replayed:.3f} != optimum {res.value:.3f}")
     if "bracket_horizon_s" in row:
         horizon = row["bracket_horizon_s"]
-        ep = episode_for(preset, mix, n, horizon)
-        played = play_all(preset, mix, n, horizon)
-        values = {lab: score(r) for lab, r in played.items()}
-        best_label = max(values, key=values.get)
-        best = played[best_label]
-        lower = max(row["bracket_lower"], values[best_label])
+        ep, values, best = play_best(preset, mix, n, horizon)
+        lower = max(row["bracket_lower"], score(best))
         res = solve(ep, lower, best.batches[best.warmup_decisions:], time_limit_s=bracket_budget_s, idle=True)
         lower = max(lower, res.value)
         upper = min(row["bracket_upper"], res.upper_bound)
