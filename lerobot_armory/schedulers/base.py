@@ -135,7 +135,7 @@ class SchedulerConfig(draccus.ChoiceRegistry, abc.ABC):
         """The scheduler, with this config's dispatch timing (``wait_ms``, ``wait_margin_ms``)."""
         for name, value in (("wait_ms", self.wait_ms), ("wait_margin_ms", self.wait_margin_ms)):
             try:
-                check_timing(float(value) / 1000.0, 0.0)
+                check_timing(float(value) / 1000.0)
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"scheduler.{name}", str(exc)) from None
         scheduler = self.build(profile, max_batch_size)

@@ -146,6 +146,8 @@ class RolloutScheduler(Scheduler):
         if not window_s > 0:
             raise ConfigError("scheduler.window_s", f"must be > 0, got {window_s}")
         self.window_s = window_s
+        # The last select()'s (now, pool, batch, score, tail): hold() re-rolls that batch later.
+        self._decided: tuple | None = None
 
     # ---- the decision ----------------------------------------------------------------------
 
@@ -188,7 +190,7 @@ class RolloutScheduler(Scheduler):
         Unlike the generic rule (:func:`.timing.hold_until`), this sees what the wait costs the
         batches after it.
         """
-        decided = getattr(self, "_decided", None)
+        decided = self._decided
         if self.max_wait_s <= 0 or decided is None or decided[0] != now:
             return None
         _, pool, best, best_score, tail = decided

@@ -35,8 +35,7 @@ from collections.abc import Sequence
 
 from lerobot_armory.mirror import RobotMirror, tick_of
 
-# Robots with a useful request, or whose queue runs dry within this many seconds, are counted
-# as the next batch's candidates when checking that a wait costs nobody outside the batch.
+# An observation landing at ``now`` (to float rounding) is held already, not a reason to wait.
 _EPS = 1e-9
 
 
@@ -103,9 +102,7 @@ def hold_until(
     return best + margin_s
 
 
-def check_timing(max_wait_s: float, margin_s: float) -> None:
-    """Raise ValueError for knobs no rule can honour."""
-    if not (math.isfinite(max_wait_s) and max_wait_s >= 0):
-        raise ValueError(f"must be a finite number >= 0, got {max_wait_s * 1000:g} ms")
-    if not (math.isfinite(margin_s) and margin_s >= 0):
-        raise ValueError(f"margin must be a finite number >= 0, got {margin_s * 1000:g} ms")
+def check_timing(seconds: float) -> None:
+    """Raise ValueError for a wait or margin no rule can honour (negative, NaN, infinite)."""
+    if not (math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"must be a finite number >= 0, got {seconds * 1000:g} ms")
