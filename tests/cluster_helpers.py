@@ -14,7 +14,7 @@ from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ServerConfig
-from lerobot_armory.server.emulation import EngineOptions
+from lerobot_armory.server.engine import EngineOptions
 from lerobot_armory.server.engine import PolicyOptions
 
 IMAGE = 32

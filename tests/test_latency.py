@@ -16,7 +16,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile, validate_latencies
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ArmoryServer, ServerConfig, latency_learning
-from lerobot_armory.server.emulation import EngineOptions
+from lerobot_armory.server.engine import EngineOptions
 from lerobot_armory.server.service import PolicyInfo
 from tests.test_server import Pusher
 

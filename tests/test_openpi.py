@@ -20,7 +20,7 @@ import pytest
 
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ServerConfig, build_server
-from lerobot_armory.server.emulation import EngineOptions
+from lerobot_armory.server.engine import EngineOptions
 from lerobot_armory.server.engine import PolicyOptions
 from lerobot_armory.server.openpi.endpoint import OpenpiOptions
 from lerobot_armory.server.openpi.keymap import KeyMap

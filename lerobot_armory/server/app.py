@@ -30,8 +30,8 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
 from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.server.emulation import EmulatedLatencyEngine, EngineOptions
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+from lerobot_armory.server.emulation import EmulatedLatencyEngine
+from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
 from lerobot_armory.server.fleet import Fleet
 from lerobot_armory.server.fleet_policy import FleetPolicy
 from lerobot_armory.server.logs import configure_logging
@@ -66,7 +66,10 @@ class ServerConfig:
             ``--policy.cpu_threads``, and any field of the policy's own config
             (``--policy.dtype=bfloat16``, ``--policy.compile_model=true``,
             ``--policy.num_inference_steps=5``, ``--policy.n_action_steps=...``).
-        engine: ``--engine.emulate_profile=NAME|FILE`` replays a latency profile (see emulation.py).
+        engine: ``--engine.emulate_profile=NAME|FILE`` replays a latency profile (see emulation.py);
+            ``--engine.cuda_graphs=auto|on|off`` serves π0.5 through the static sampler recorded as
+            one CUDA graph per batch bucket (``--engine.graph_buckets``, ``--engine.attention``,
+            ``--engine.static_sampler``; see server/cuda_graphs.py).
         rtc: ``--rtc.enabled=true``: real-time chunking from the mirror (π0, π0.5, SmolVLA): each
             chunk is guided toward what its robot executes while it is computed and sent, with
             ``--rtc.execution_horizon``, ``--rtc.max_guidance_weight`` and
@@ -143,6 +146,7 @@ class ServerConfig:
             raise ConfigError("metrics_port", f"must be in 0..65535, got {self.metrics_port}")
         if self.max_obs_rate_hz < 0:
             raise ConfigError("max_obs_rate_hz", f"must be >= 0, got {self.max_obs_rate_hz}")
+        self.engine.validate()
         self.rtc.validate()
         self.openpi.validate()
 
@@ -357,7 +361,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     tune_process()
     configure_logging(cfg.log_level, cfg.log_format)
     log.info("loading policy %s ...", cfg.policy.path)
-    engine = PolicyEngine(cfg.policy, cfg.rtc)
+    engine = PolicyEngine(cfg.policy, cfg.rtc, cfg.engine)
     log.info("warming up b = 1..%d ...", cfg.max_batch_size)
     on_startup_device(f"warming up b = 1..{cfg.max_batch_size}", engine.warmup, cfg.max_batch_size)
     serving_engine: Engine = engine

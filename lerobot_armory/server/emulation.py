@@ -9,25 +9,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.server.loop import Engine
-
-
-@dataclass
-class EngineOptions:
-    """``--engine.*`` options.
-
-    Attributes:
-        emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
-            ``d_infer(b)`` per batch (the real model must be faster than that).
-    """
-
-    emulate_profile: str | None = None
 
 
 class EmulatedLatencyEngine:

@@ -91,6 +91,44 @@ class PolicyOptions:
     overrides: list[str] = field(default_factory=list)
 
 
+@dataclass
+class EngineOptions:
+    """``--engine.*`` options.
+
+    Attributes:
+        emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
+            ``d_infer(b)`` per batch (the real model must be faster than that).
+        cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5),
+            ``on`` (refuse to start without them) or ``off`` (LeRobot's own eager sampler). With
+            graphs, batches are padded to buckets and each bucket is one recorded CUDA graph
+            (``server/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
+            the start-up log says why.
+        graph_buckets: the bucket sizes, comma-separated (default: 1, 2, 4, 8, … up to
+            ``--max_batch_size``, and the cap itself).
+        static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,
+            fewer operations); unset: wherever graphs are on.
+        attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
+            (``torch.nn.functional.scaled_dot_product_attention``).
+    """
+
+    emulate_profile: str | None = None
+    cuda_graphs: str = "auto"
+    graph_buckets: str | None = None
+    static_sampler: bool | None = None
+    attention: str = "eager"
+
+    def validate(self) -> None:
+        from lerobot_armory.policies.pi05_static import ATTENTION
+        from lerobot_armory.server.cuda_graphs import MODES
+
+        if self.cuda_graphs not in MODES:
+            raise ConfigError("engine.cuda_graphs", f"must be one of {', '.join(MODES)}, got {self.cuda_graphs!r}")
+        if self.attention not in ATTENTION:
+            raise ConfigError("engine.attention", f"must be one of {', '.join(ATTENTION)}, got {self.attention!r}")
+        if self.cuda_graphs == "on" and self.static_sampler is False:
+            raise ConfigError("engine.static_sampler", "CUDA graphs record the static sampler: it cannot be off with --engine.cuda_graphs=on")
+
+
 def noise_seed(robot_id: str, chunk_id: int) -> int:
     """The noise seed of one request: fixed by the robot and its chunk number, not by the batch.
 
@@ -108,8 +146,13 @@ class PolicyEngine:
             or the policy does not predict chunks.
     """
 
-    def __init__(self, options: PolicyOptions, rtc: rtc_mod.RTCOptions | None = None) -> None:
+    def __init__(
+        self, options: PolicyOptions, rtc: rtc_mod.RTCOptions | None = None, engine: EngineOptions | None = None
+    ) -> None:
         import torch
+
+        self.engine_options = engine or EngineOptions()
+        self.engine_options.validate()
 
         if not options.path:
             raise ConfigError("policy.path", "no policy given; pass --policy.path=DIR or a hub id")
@@ -133,6 +176,9 @@ class PolicyEngine:
             param.requires_grad_(False)
         self.rtc_options = rtc if rtc is not None and rtc.enabled else None
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
+        # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
+        self.sampler: Any = None  # cuda_graphs.BucketedSampler
+        self.graphs_wanted, self.sampler_note = self._choose_sampler()
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
         if action is None:
@@ -149,14 +195,53 @@ class PolicyEngine:
         self.compiled_kept: bool | None = None  # after warmup(): compiled model kept (None: not compiled)
         # The chunk size is whatever predict_action_chunk really returns (checked by a dry run).
         self.chunk_size = self._dry_run()
-        if self.rtc is not None:
+        if self.rtc is not None and self.sampler is None:
             self._check_rtc_reached()
+
+    def _choose_sampler(self) -> tuple[bool, str | None]:
+        """Install the static sampler if the options and the policy allow it; returns (record CUDA
+        graphs at warm-up, why the policy's own sampler is used instead or None)."""
+        import torch
+
+        from lerobot_armory.policies import pi05_static
+        from lerobot_armory.server.cuda_graphs import BucketedSampler
+
+        o = self.engine_options
+        cuda = torch.device(self.device).type == "cuda"
+        why = pi05_static.unsupported_reason(self.policy)
+        if o.cuda_graphs == "on" and not cuda:
+            raise ConfigError("engine.cuda_graphs", f"on needs a CUDA device; this engine runs on {self.device}")
+        graphs = o.cuda_graphs == "on" or (o.cuda_graphs == "auto" and cuda and why is None)
+        static = graphs if o.static_sampler is None else o.static_sampler
+        if static and why is not None:
+            option = "cuda_graphs" if o.static_sampler is None else "static_sampler"
+            raise ConfigError(f"engine.{option}", why)
+        if not static:
+            note = why if o.cuda_graphs == "auto" and cuda else None
+            if note is not None:
+                log.info("CUDA graphs off, the policy's own sampler serves: %s", note)
+            return False, note
+        rtc = self.rtc_options
+        sampler = pi05_static.StaticPi05(
+            self.policy, guided=rtc is not None, max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0, attention=o.attention
+        )
+        self.sampler = BucketedSampler(sampler.sample)
+        return graphs, None
 
     @property
     def description(self) -> str:
         notes = [f"dtype={self.config.dtype}"] if isinstance(getattr(self.config, "dtype", None), str) else []
         if self.compiled_kept is not None:
             notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
+        if self.sampler is not None:
+            buckets = ",".join(map(str, self.sampler.buckets)) or "-"
+            if self.sampler.captured:
+                total = sum(self.sampler.capture_s.values())
+                notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
+            else:
+                notes.append(f"static sampler, buckets {buckets}, not recorded" + ("" if self.graphs_wanted else f" ({self.device})"))
+        elif self.sampler_note is not None:
+            notes.append("LeRobot's sampler (no CUDA graphs)")
         if self.rtc_options is not None:
             o = self.rtc_options
             notes.append(
@@ -278,6 +363,13 @@ class PolicyEngine:
                 assert self.rtc_options is not None
                 o = self.rtc_options
                 kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, o.execution_horizon, self.device, o.delay_margin))
+            if self.sampler is not None:
+                with torch.inference_mode():  # the static sampler's guidance is closed-form: no autograd
+                    processed = self.preprocessor(batch)
+                    model_actions = self.sampler(self._sampler_inputs(processed, kwargs))[:, :, : self.action_dim]
+                    actions = self.postprocessor(model_actions.clone() if guided else model_actions)
+                out = actions.detach().to("cpu", torch.float32).numpy()
+                return out, (model_actions.to("cpu", torch.float32).numpy() if guided else None)
             # RTC's guidance takes a gradient (of its own error, not of the weights), which
             # inference mode forbids: guided batches run under no_grad instead.
             with torch.no_grad() if guided else torch.inference_mode():
@@ -292,6 +384,30 @@ class PolicyEngine:
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
                     torch.cuda.synchronize(self.device)
             raise
+
+    def _sampler_inputs(self, processed: dict[str, Any], kwargs: dict[str, Any]) -> Any:
+        """The static sampler's inputs from a pre-processed batch and the keyword arguments the
+        policy's own ``predict_action_chunk`` would have been given (noise, RTC prefixes)."""
+        import torch
+        from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
+
+        from lerobot_armory.policies.pi05_static import SamplerInputs
+
+        noise = kwargs["noise"]
+        inputs = SamplerInputs(
+            tuple(processed[k] for k in self.config.image_features),
+            processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise,
+        )  # fmt: skip
+        if self.rtc is None:
+            return inputs
+        rows, length, dim = noise.shape
+        if "prev_chunk_left_over" in kwargs:  # LeRobot's own weights per row, the leftover padded as LeRobot pads it
+            inputs.rtc_weights = rtc_mod.row_weights(self.rtc, kwargs["inference_delay"], length).to(noise.device)
+            inputs.rtc_leftover = rtc_mod.pad_leftover(kwargs["prev_chunk_left_over"], length, dim)
+        else:  # no row has a prefix: zero weights leave every row unguided
+            inputs.rtc_weights = noise.new_zeros(rows, length, 1)
+            inputs.rtc_leftover = torch.zeros_like(noise)
+        return inputs
 
     def to_batch(self, observations: Sequence[dict[str, np.ndarray]]) -> dict[str, Any]:
         """Stack the robots' wire arrays into policy tensors: images on the device (uint8 HWC →
@@ -345,51 +461,89 @@ class PolicyEngine:
     def warmup(self, max_batch_size: int, reps: int = 2, log_progress: bool = True) -> None:
         """Run every batch size 1..max_batch_size before serving (allocator, kernels, and the
         compilation of a compiled model happen now, not under the first robots). With a compiled
-        model, time it against eager, both warm, and keep whichever is faster over all sizes."""
+        model, time it against eager, both warm, and keep whichever is faster over all sizes.
+        With the static sampler, the batch sizes are its buckets, and on a CUDA device each
+        bucket's graph is recorded first (largest first: the smaller ones reuse its memory)."""
+        if self.sampler is not None:
+            from lerobot_armory.server.cuda_graphs import parse_buckets
+
+            self.sampler.set_buckets(parse_buckets(self.engine_options.graph_buckets, max_batch_size))
+            if self.graphs_wanted and not self.sampler.captured:
+                for bucket in reversed(self.sampler.buckets):
+                    seconds = self.on_device(self._capture, bucket)
+                    if log_progress:
+                        log.info("CUDA graph of bucket %d recorded in %.1f s", bucket, seconds)
+        sizes = self._sizes(max_batch_size)
         compiled = _compiled_functions(self.policy)
         if compiled:
             _allow_recompiles(max_batch_size)
-        self._time_sizes(max_batch_size, 1, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
+        self._time_sizes(sizes, 1, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
         if not compiled:
             return
-        fast_ms = self._time_sizes(max_batch_size, reps, "compiled", log_progress)
+        fast_ms = self._time_sizes(sizes, reps, "compiled", log_progress)
         for owner, name, fn in compiled:
             setattr(owner, name, fn._torchdynamo_orig_callable)
-        self._time_sizes(max_batch_size, 1, "eager warm-up", False)  # eager's first passes are not its speed either
-        eager_ms = self._time_sizes(max_batch_size, reps, "eager", log_progress)
-        self.compiled_kept = sum(fast_ms) < sum(eager_ms)
+        self._time_sizes(sizes, 1, "eager warm-up", False)  # eager's first passes are not its speed either
+        eager_ms = self._time_sizes(sizes, reps, "eager", log_progress)
+        self.compiled_kept = sum(fast_ms.values()) < sum(eager_ms.values())
         if self.compiled_kept:
             for owner, name, fn in compiled:
                 setattr(owner, name, fn)
         log.info(
             "compiled %s ms vs eager %s ms (b=1..%d): keeping the %s model",
-            [round(x, 1) for x in fast_ms], [round(x, 1) for x in eager_ms], max_batch_size,
+            [round(x, 1) for x in fast_ms.values()], [round(x, 1) for x in eager_ms.values()], max_batch_size,
             "compiled" if self.compiled_kept else "eager",
         )  # fmt: skip
+
+    def _capture(self, bucket: int) -> float:
+        """Record the CUDA graph of one bucket (on the device thread) from an example batch."""
+        import torch
+
+        obs = [self.example_observation(seed=k) for k in range(bucket)]
+        batch = self.to_batch(obs)
+        batch["task"] = ["capture"] * bucket
+        kwargs: dict[str, Any] = {"noise": self._noise(range(bucket))}
+        if self.rtc_options is not None:
+            o = self.rtc_options
+            kwargs.update(rtc_mod.guidance_kwargs(self.example_prefixes(bucket), self.chunk_size, o.execution_horizon, self.device))
+        with torch.inference_mode():
+            return self.sampler.capture(self._sampler_inputs(self.preprocessor(batch), kwargs))
+
+    def _sizes(self, max_batch_size: int) -> list[int]:
+        """The batch sizes that cost differently: the static sampler's buckets, else 1..cap."""
+        if self.sampler is not None and self.sampler.buckets:
+            return [b for b in self.sampler.buckets if b <= max_batch_size]
+        return list(range(1, max_batch_size + 1))
 
     def profile(self, max_batch_size: int, warmup: int = 2, reps: int = 5, log_progress: bool = True) -> LatencyProfile:
         """Measure ``d_infer(b)`` for b = 1..max_batch_size (median of ``reps`` after ``warmup``
         untimed passes per size; 0 after :meth:`warmup`). With RTC every timed batch is a guided
-        one, so the scheduler plans with RTC's cost.
+        one, so the scheduler plans with RTC's cost. With the static sampler only the buckets
+        are measured, and every b gets its bucket's time (b = 3 costs what b = 4 costs).
 
         Measured medians are made non-decreasing (a larger batch is never cheaper to schedule
         for), as the schedulers require.
         """
+        from lerobot_armory.server.cuda_graphs import bucket_for
+
+        sizes = self._sizes(max_batch_size)
         for _ in range(warmup):
-            self._time_sizes(max_batch_size, 1, "", False)
+            self._time_sizes(sizes, 1, "", False)
+        measured = self._time_sizes(sizes, reps, "profiled", log_progress, statistics.median)
         values: list[float] = []
-        for ms in self._time_sizes(max_batch_size, reps, "profiled", log_progress, statistics.median):
+        for b in range(1, max_batch_size + 1):
+            ms = measured[bucket_for(b, tuple(sizes)) or b]
             values.append(max(ms, values[-1]) if values else ms)
         # A guided profile says so: RTC's guidance is part of every served batch's time.
         name = f"profiled:{self.config.type}" + ("+rtc" if self.rtc is not None else "")
         return LatencyProfile(name, tuple(values), self.device, "profiled")
 
     def _time_sizes(
-        self, max_batch_size: int, reps: int, what: str, log_progress: bool, stat: Callable[[list[float]], float] = min
-    ) -> list[float]:
-        """``stat`` of ``reps`` timed batches (ms) for each size 1..max_batch_size."""
-        out = []
-        for b in range(1, max_batch_size + 1):
+        self, sizes: Sequence[int], reps: int, what: str, log_progress: bool, stat: Callable[[list[float]], float] = min
+    ) -> dict[int, float]:
+        """``stat`` of ``reps`` timed batches (ms) for each batch size of ``sizes``."""
+        out: dict[int, float] = {}
+        for b in sizes:
             obs = [self.example_observation(seed=k) for k in range(b)]
             prefixes = self.example_prefixes(b) if self.rtc is not None else None  # RTC's cost is in the profile
             times = []
@@ -400,9 +554,9 @@ class PolicyEngine:
                 else:
                     self.infer_guided(obs, [what or "warm-up"] * b, None, prefixes)
                 times.append((time.perf_counter() - start) * 1000.0)
-            out.append(stat(times))
+            out[b] = stat(times)
             if log_progress:
-                log.info("%s b=%d: %.1f ms%s", what, b, out[-1], f" ({stat.__name__} of {len(times)})" if len(times) > 1 else "")
+                log.info("%s b=%d: %.1f ms%s", what, b, out[b], f" ({stat.__name__} of {len(times)})" if len(times) > 1 else "")
         return out
 
 

@@ -196,15 +196,8 @@ def processor_class() -> type:
             rows, length, dim = x_t.shape
             if len(inference_delay.delays) != rows or prev_chunk_left_over.shape[0] != rows:
                 raise ValueError(f"{len(inference_delay.delays)} prefixes for a batch of {rows}")
-            # LeRobot's own weights, one row per robot (a horizon of 0 gives an all-zero row).
-            weights = torch.stack(
-                [
-                    self.get_prefix_weights(d, h, length) if h > 0 else torch.zeros(length)
-                    for d, h in zip(inference_delay.delays, inference_delay.horizons, strict=True)
-                ]
-            ).to(x_t.device)[:, :, None]
-            leftover = torch.zeros(rows, length, dim, device=x_t.device)
-            leftover[:, : prev_chunk_left_over.shape[1], : prev_chunk_left_over.shape[2]] = prev_chunk_left_over
+            weights = row_weights(self, inference_delay, length).to(x_t.device)
+            leftover = pad_leftover(prev_chunk_left_over, length, dim)
             # From here on LeRobot's guidance, verbatim but for the (B, T, 1) weights.
             x_t = x_t.clone().detach()
             with torch.enable_grad():
@@ -213,14 +206,43 @@ def processor_class() -> type:
                 x1_t = x_t - time * v_t
                 err = (leftover - x1_t) * weights
                 correction = torch.autograd.grad(x1_t, x_t, err.clone().detach(), retain_graph=False)[0]
-            tau = torch.as_tensor(1 - time)
-            max_weight = torch.as_tensor(self.rtc_config.max_guidance_weight)
-            inv_r2 = ((1 - tau) ** 2 + tau**2) / ((1 - tau) ** 2)
-            c = torch.nan_to_num((1 - tau) / tau, posinf=max_weight)
-            guidance_weight = torch.minimum(torch.nan_to_num(c * inv_r2, posinf=max_weight), max_weight)
-            return v_t - guidance_weight * correction
+            return v_t - guidance_weight(time, self.rtc_config.max_guidance_weight) * correction
 
     return BatchedRTCProcessor
+
+
+def row_weights(processor: Any, prefixes: RowPrefixes, length: int) -> Any:
+    """``(B, length, 1)`` float32 guidance weights: row b is LeRobot's own
+    ``get_prefix_weights(delay_b, horizon_b, length)`` (a horizon of 0 gives an all-zero row)."""
+    import torch
+
+    return torch.stack(
+        [
+            processor.get_prefix_weights(d, h, length) if h > 0 else torch.zeros(length)
+            for d, h in zip(prefixes.delays, prefixes.horizons, strict=True)
+        ]
+    )[:, :, None]
+
+
+def pad_leftover(leftover: Any, length: int, dim: int) -> Any:
+    """``leftover`` ``(B, L, D')`` zero-padded to ``(B, length, dim)`` (LeRobot pads it so)."""
+    import torch
+
+    out = torch.zeros(leftover.shape[0], length, dim, device=leftover.device)
+    out[:, : leftover.shape[1], : leftover.shape[2]] = leftover
+    return out
+
+
+def guidance_weight(time: float, max_weight: float) -> Any:
+    """LeRobot's guidance weight at flow time ``time`` (1: noise, 0: actions), clamped to
+    ``max_weight``, as a 0-dim float32 tensor (computed exactly as ``RTCProcessor.denoise_step``)."""
+    import torch
+
+    tau = torch.as_tensor(1 - time)
+    max_w = torch.as_tensor(max_weight)
+    inv_r2 = ((1 - tau) ** 2 + tau**2) / ((1 - tau) ** 2)
+    c = torch.nan_to_num((1 - tau) / tau, posinf=max_w)
+    return torch.minimum(torch.nan_to_num(c * inv_r2, posinf=max_w), max_w)
 
 
 def guidance_kwargs(

@@ -1,0 +1,91 @@
+"""What a forward pass asks of the device, seen from a CPU: aten ops counted, host syncs found.
+
+On a GPU every aten op that computes something is (at least) one kernel launch, and an eager
+policy that launches thousands of small kernels per sample is bound by the launches, not the
+arithmetic. A CUDA graph removes the launch cost, but it can only record a region that never
+waits for the host: no ``.item()``, no tensor built from Python data (``torch.tensor(list,
+device=...)`` is a blocking host-to-device copy), no device-to-host copy, no op whose output
+shape depends on values (``nonzero``). :class:`OpTrace` records every aten op a region runs
+(under ``TorchDispatchMode``, so it works on the CPU, with no GPU), counts those that launch work,
+and names the ones that would synchronise with the host — the check that predicts whether a
+capture on a GPU can succeed (together with a ``torch.compile(fullgraph=True)`` trace).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+# Ops that only describe memory (no kernel): views, aliases and metadata.
+VIEW_OPS = frozenset(
+    {
+        "view", "_unsafe_view", "reshape", "t", "transpose", "permute", "unsqueeze", "squeeze", "expand",
+        "slice", "select", "as_strided", "alias", "detach", "split", "split_with_sizes", "chunk", "unbind",
+        "narrow", "view_as", "expand_as", "_reshape_alias", "unflatten", "flatten",
+        "empty", "empty_strided", "empty_like", "new_empty", "new_empty_strided", "_to_copy_noop",
+    }
+)  # fmt: skip
+# Ops that wait for the host or read a value back to it (illegal inside a CUDA graph capture).
+HOST_SYNC_OPS = frozenset(
+    {
+        "_local_scalar_dense", "item", "lift_fresh", "lift_fresh_copy", "nonzero", "masked_select", "unique", "_unique",
+        "_unique2", "unique_consecutive", "unique_dim", "equal", "is_nonzero", "_assert_async", "repeat_interleave",
+        "tolist", "argwhere",
+    }
+)  # fmt: skip
+
+
+def op_name(func: Any) -> str:
+    """``aten.add.Tensor`` -> ``add``."""
+    return str(func).split(".")[1] if str(func).count(".") >= 1 else str(func)
+
+
+class OpTrace(TorchDispatchMode):
+    """Counts the aten ops run inside ``with OpTrace() as trace:``.
+
+    Attributes:
+        ops: every op's full name with its count.
+        launches: ops that compute something (views, aliases and allocations excluded): an
+            estimate of the kernels a GPU would launch.
+        host_syncs: ``(op, count)`` of the ops that would synchronise with the host: reading a
+            value back, building a tensor from Python data, a data-dependent output shape, or a
+            copy between devices.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: Counter[str] = Counter()
+        self.host_syncs: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        kwargs = kwargs or {}
+        name = op_name(func)
+        self.ops[str(func)] += 1
+        if name in HOST_SYNC_OPS:
+            self.host_syncs[str(func)] += 1
+        out = func(*args, **kwargs)
+        if name in ("_to_copy", "copy_", "to") and _crosses_devices(args, out):
+            self.host_syncs[f"{func} (between devices)"] += 1
+        return out
+
+    @property
+    def total(self) -> int:
+        return sum(self.ops.values())
+
+    @property
+    def launches(self) -> int:
+        return sum(n for op, n in self.ops.items() if op_name(op) not in VIEW_OPS)
+
+    def top(self, n: int = 8) -> list[tuple[str, int]]:
+        """The ``n`` most frequent launching ops."""
+        return [(op, k) for op, k in self.ops.most_common() if op_name(op) not in VIEW_OPS][:n]
+
+
+def _crosses_devices(args: tuple, out: Any) -> bool:
+    devices = {a.device for a in args if isinstance(a, torch.Tensor)}
+    if isinstance(out, torch.Tensor):
+        devices.add(out.device)
+    return len(devices) > 1

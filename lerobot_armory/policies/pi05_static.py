@@ -1,0 +1,323 @@
+"""A static sampler for LeRobot's π0.5: the same computation as ``PI05Pytorch.sample_actions``,
+written so that one batch shape is one fixed sequence of kernels (what a CUDA graph records).
+
+Why: LeRobot 0.6.1's sampler is launch-bound on a GPU (≈ 250 ms a batch on an H100 where the
+arithmetic is a few tens of ms). It cannot be captured as it is, because every sample
+- builds attention masks and timesteps from Python lists (``torch.tensor(list, device=...)``: a
+  blocking host-to-device copy, forbidden while a graph is recorded);
+- clones the prefix KV cache at every denoising step (``clone_past_key_values``: 18 layers' K and
+  V copied 10 times), and HF's ``DynamicCache.update`` then concatenates the suffix onto it.
+
+:class:`StaticPi05` runs the policy's own modules (LeRobot's and HF's: the SigLIP tower, the
+embedding, every projection, norm, MLP and rotary table; no weight is copied and nothing of
+LeRobot is forked) in the order ``sample_actions`` runs them, with three changes:
+- the prefix writes its keys and values once into one buffer per layer that has room for the
+  suffix; each denoising step writes the suffix's keys and values in place behind them (no clone,
+  no concatenation);
+- masks and positions are computed on the device from the inputs' pad masks; the flow times and
+  RTC guidance weights are device tensors made once, indexed by step;
+- RTC's guidance is closed-form (see below), with one weight row and one leftover per batch row
+  as inputs, so a guided batch is the same graph as an unguided one.
+
+Row independence: no operation mixes batch rows, so a batch padded with extra rows gives its
+real rows exactly what the same rows give in a batch of the padded size. The engine pads a
+batch to a bucket size (``server/cuda_graphs.py``).
+
+RTC: LeRobot 0.6.1 evaluates the velocity before marking ``x_t`` as requiring a gradient, so its
+"vector-Jacobian product" is taken through ``x_t - t·v`` with ``v`` held fixed: the correction is
+the weighted error itself, ``(leftover - (x_t - t·v)) · w``. The step here computes that directly
+(``tests/test_pi05_static.py`` checks it against LeRobot's processor); ``server/rtc.py`` supplies
+the per-row weights from LeRobot's own ``get_prefix_weights``.
+
+Numerics: with ``attention="eager"`` every operation is the one LeRobot runs, in its dtype
+(``--policy.dtype=bfloat16`` keeps LeRobot's float32 islands: the vision tower, the projector,
+the norms, the time MLP, the action projections). The K/V layout for grouped-query attention
+(one K/V head for eight query heads) is broadcast instead of copied, which may change float
+rounding in the last bit. ``attention="sdpa"`` uses ``F.scaled_dot_product_attention`` with
+LeRobot's additive mask (same masking, a fused kernel on a GPU).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
+from lerobot.policies.pi_gemma import _gated_residual
+from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
+from torch import Tensor
+from transformers.models.gemma import modeling_gemma
+
+ATTENTION = ("eager", "sdpa")
+
+
+@dataclass
+class SamplerInputs:
+    """One batch, as the sampler takes it (every tensor on the model's device, batch rows first).
+
+    Attributes:
+        images: one ``(B, 3, H, W)`` float tensor per camera of the policy, as LeRobot's
+            pre-processor hands them to ``predict_action_chunk`` (in [0, 1]).
+        tokens / masks: the prompt's token ids ``(B, L)`` and attention mask ``(B, L)``.
+        noise: ``(B, chunk_size, max_action_dim)`` float32, the flow's starting point.
+        rtc_weights: ``(B, chunk_size, 1)`` float32 guidance weights (zeros: no guidance), or
+            None when the sampler was built without RTC.
+        rtc_leftover: ``(B, chunk_size, max_action_dim)`` float32 actions to guide toward.
+    """
+
+    images: tuple[Tensor, ...]
+    tokens: Tensor
+    masks: Tensor
+    noise: Tensor
+    rtc_weights: Tensor | None = None
+    rtc_leftover: Tensor | None = None
+
+    @property
+    def rows(self) -> int:
+        return int(self.noise.shape[0])
+
+    def tensors(self) -> list[Tensor]:
+        """Every tensor, in a fixed order (a CUDA graph's static inputs)."""
+        out = [*self.images, self.tokens, self.masks, self.noise]
+        if self.rtc_weights is not None:
+            assert self.rtc_leftover is not None
+            out += [self.rtc_weights, self.rtc_leftover]
+        return out
+
+    def with_tensors(self, tensors: Sequence[Tensor]) -> SamplerInputs:
+        """The same structure over other tensors (in :meth:`tensors` order)."""
+        n = len(self.images)
+        rtc = tuple(tensors[n + 3 :])
+        return SamplerInputs(tuple(tensors[:n]), tensors[n], tensors[n + 1], tensors[n + 2], *(rtc or (None, None)))
+
+    def padded(self, rows: int) -> SamplerInputs:
+        """The same batch grown to ``rows`` by repeating its last row (padding must be valid data:
+        rows never mix, but a row of garbage could hold NaN/inf and a profiler would see it)."""
+        extra = rows - self.rows
+        if extra < 0:
+            raise ValueError(f"cannot pad a batch of {self.rows} to {rows}")
+        if extra == 0:
+            return self
+
+        def grow(t: Tensor | None) -> Tensor | None:
+            return None if t is None else torch.cat([t, t[-1:].expand(extra, *t.shape[1:])])
+
+        return SamplerInputs(
+            tuple(grow(i) for i in self.images),  # type: ignore[misc]
+            grow(self.tokens), grow(self.masks), grow(self.noise),  # type: ignore[arg-type]
+            grow(self.rtc_weights), grow(self.rtc_leftover),
+        )  # fmt: skip
+
+
+def unsupported_reason(policy: Any) -> str | None:
+    """Why :class:`StaticPi05` cannot run this policy (None: it can)."""
+    config = getattr(policy, "config", None)
+    kind = getattr(config, "type", type(policy).__name__)
+    if kind != "pi05":
+        return f"{kind} has no static sampler yet (π0.5 only); it is served by LeRobot's own sampler"
+    model = getattr(policy, "model", None)
+    pwe = getattr(model, "paligemma_with_expert", None)
+    if pwe is None or not hasattr(model, "action_in_proj"):
+        return f"{type(model).__name__} is not LeRobot 0.6's PI05Pytorch"
+    if getattr(config, "gradient_checkpointing", False):
+        return "gradient checkpointing is a training option"
+    vlm, expert = _text_model(pwe), pwe.gemma_expert.model
+    if len(vlm.layers) != len(expert.layers):
+        return f"the VLM has {len(vlm.layers)} layers and the expert {len(expert.layers)}: π0.5 pairs them one to one"
+    for name, layers in (("VLM", vlm.layers), ("expert", expert.layers)):
+        attn = layers[0].self_attn
+        if attn.q_proj.out_features != attn.config.num_attention_heads * attn.head_dim:
+            return f"the {name}'s attention projections do not match its head count"
+    heads = {(lay.self_attn.config.num_key_value_heads, lay.self_attn.head_dim) for lay in (*vlm.layers, *expert.layers)}
+    if len(heads) != 1:
+        return f"the VLM's and the expert's K/V heads differ ({sorted(heads)}): they cannot share a cache"
+    return None
+
+
+def _text_model(pwe: Any) -> Any:
+    return pwe.paligemma.model.language_model
+
+
+class StaticPi05:
+    """``PI05Pytorch.sample_actions`` without host synchronisation or per-step copies.
+
+    Args:
+        policy: a loaded LeRobot ``PI05Policy`` (its weights are used in place).
+        guided: take RTC inputs (``SamplerInputs.rtc_*``) and apply LeRobot's guidance.
+        max_guidance_weight: RTC's clamp (LeRobot's ``RTCConfig.max_guidance_weight``).
+        attention: ``eager`` (LeRobot's own attention math) or ``sdpa``.
+
+    Raises:
+        ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
+    """
+
+    def __init__(self, policy: Any, guided: bool = False, max_guidance_weight: float = 10.0, attention: str = "eager") -> None:
+        why = unsupported_reason(policy)
+        if why is not None:
+            raise ValueError(why)
+        if attention not in ATTENTION:
+            raise ValueError(f"attention must be one of {', '.join(ATTENTION)}, got {attention!r}")
+        self.policy = policy
+        self.model = policy.model
+        self.config = policy.config
+        self.guided = guided
+        self.attention = attention
+        self.mask_value = float(OPENPI_ATTENTION_MASK_VALUE)
+        pwe = self.model.paligemma_with_expert
+        self.vlm = _text_model(pwe)
+        self.expert = pwe.gemma_expert.model
+        self.chunk_size = int(self.config.chunk_size)
+        self.action_dim = int(self.config.max_action_dim)
+        self.num_steps = int(self.config.num_inference_steps)
+        if self.num_steps < 1:
+            raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")
+        device = next(self.model.parameters()).device
+        # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
+        self.dt = -1.0 / self.num_steps
+        self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
+        self.time_table = torch.tensor(self.times, dtype=torch.float32, device=device)
+        self.guidance_table = None
+        if guided:
+            from lerobot_armory.server.rtc import guidance_weight
+
+            self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
+
+    # -- the sampler ---------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def sample(self, inputs: SamplerInputs) -> Tensor:
+        """Actions ``(B, chunk_size, max_action_dim)`` float32 for one batch (LeRobot's
+        ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``)."""
+        if self.guided != (inputs.rtc_weights is not None):
+            raise ValueError("RTC inputs must be given exactly when the sampler is guided")
+        images, img_masks = self.policy._preprocess_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
+        prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
+        keys, values = self._prefix_cache(prefix_embs, prefix_pad)
+        # What every denoising step shares: the suffix attends every valid prefix token and the
+        # whole suffix; its positions follow the prefix's valid tokens.
+        b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
+        valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, None, :].expand(b, 1, h, p + h)
+        mask = self._additive(valid)
+        positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
+        rope = self.expert.rotary_emb(self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
+        x_t = inputs.noise
+        for step, time in enumerate(self.times):
+            v_t = self._velocity(x_t, self.time_table[step].expand(b), keys, values, p, mask, rope)
+            if self.guided:
+                assert self.guidance_table is not None and inputs.rtc_leftover is not None
+                # LeRobot's correction, closed form (module docstring): the weighted error.
+                err = (inputs.rtc_leftover - (x_t - time * v_t)) * inputs.rtc_weights
+                v_t = v_t - self.guidance_table[step] * err
+            x_t = x_t + self.dt * v_t
+        return x_t
+
+    def _embed_prefix(self, images: Sequence[Tensor], img_masks: Sequence[Tensor], tokens: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
+        """LeRobot's ``embed_prefix`` without its host-built attention pattern (all zeros for π0.5:
+        the prefix attends itself fully, so only the pad mask matters)."""
+        pwe = self.model.paligemma_with_expert
+        embs, pads = [], []
+        for img, img_mask in zip(images, img_masks, strict=True):
+            emb = pwe.embed_image(img)
+            embs.append(emb)
+            pads.append(img_mask[:, None].expand(emb.shape[0], emb.shape[1]))
+        embs.append(pwe.embed_language_tokens(tokens))
+        pads.append(masks)
+        return torch.cat(embs, dim=1), torch.cat(pads, dim=1)
+
+    def _prefix_cache(self, embs: Tensor, pad: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+        """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``
+        positions with the prefix's (post-rotary) keys and values in the first ``P``."""
+        b, p = pad.shape
+        mask = self._additive((pad[:, None, :] & pad[:, :, None])[:, None])
+        positions = torch.cumsum(pad, dim=1) - 1
+        h = embs.to(torch.bfloat16) if self._bf16(self.vlm) else embs
+        rope = self.vlm.rotary_emb(h, positions)
+        keys, values = [], []
+        last = len(self.vlm.layers) - 1
+        for i, layer in enumerate(self.vlm.layers):
+            x, gate = layer.input_layernorm(h, cond=None)
+            q, k, v = self._qkv(layer.self_attn, x, rope)
+            k_buf = k.new_empty(b, k.shape[1], p + self.chunk_size, k.shape[3])
+            v_buf = v.new_empty(b, v.shape[1], p + self.chunk_size, v.shape[3])
+            k_buf[:, :, :p] = k
+            v_buf[:, :, :p] = v
+            keys.append(k_buf)
+            values.append(v_buf)
+            if i == last:
+                break  # the last layer's output is never read: only its keys and values are
+            h = self._finish_layer(layer, h, gate, self._attend(layer.self_attn, q, k, v, mask), None)
+        return keys, values
+
+    def _velocity(
+        self, x_t: Tensor, time: Tensor, keys: list[Tensor], values: list[Tensor], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
+    ) -> Tensor:
+        """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
+        suffix, cond = self._embed_suffix(x_t, time)
+        h = self._expert_input(suffix)
+        for i, layer in enumerate(self.expert.layers):
+            x, gate = layer.input_layernorm(h, cond=cond)
+            q, k, v = self._qkv(layer.self_attn, x, rope)
+            keys[i][:, :, p:] = k  # in place, behind the prefix (HF's cache concatenates a copy)
+            values[i][:, :, p:] = v
+            h = self._finish_layer(layer, h, gate, self._attend(layer.self_attn, q, keys[i], values[i], mask), cond)
+        h, _ = self.expert.norm(h, cond)
+        return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
+
+    def _embed_suffix(self, x_t: Tensor, time: Tensor) -> tuple[Tensor, Tensor]:
+        """LeRobot's ``embed_suffix`` (its attention pattern is constant: dropped)."""
+        m = self.model
+        time_emb = create_sinusoidal_pos_embedding(
+            time, m.action_in_proj.out_features, min_period=self.config.min_period, max_period=self.config.max_period, device=time.device
+        ).type(dtype=time.dtype)
+        action_emb = m.action_in_proj(x_t)
+        cond = torch.nn.functional.silu(m.time_mlp_out(torch.nn.functional.silu(m.time_mlp_in(time_emb))))
+        return action_emb, cond
+
+    # -- one transformer layer ------------------------------------------------------------------
+
+    def _qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        shape = (*x.shape[:-1], -1, attn.head_dim)
+        q = attn.q_proj(x).view(shape).transpose(1, 2)
+        k = attn.k_proj(x).view(shape).transpose(1, 2)
+        v = attn.v_proj(x).view(shape).transpose(1, 2)
+        q, k = modeling_gemma.apply_rotary_pos_emb(q, k, *rope)
+        return q, k, v
+
+    def _attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
+        """Attention of ``q`` (B, Hq, Lq, d) over ``k``/``v`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
+        b, heads, lq, d = q.shape
+        groups = heads // k.shape[1]
+        if self.attention == "sdpa":
+            out = torch.nn.functional.scaled_dot_product_attention(
+                q, k, v, attn_mask=mask.to(q.dtype), scale=attn.scaling, enable_gqa=groups > 1
+            )
+        else:
+            # HF's eager_attention_forward, with the query heads of one K/V head folded into the
+            # query length instead of the K/V head copied ``groups`` times (repeat_kv).
+            qg = q.reshape(b, k.shape[1], groups * lq, d)
+            scores = torch.matmul(qg, k.transpose(2, 3)) * attn.scaling
+            scores = scores.view(b, heads, lq, -1) + mask
+            probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
+            out = torch.matmul(probs.view(b, k.shape[1], groups * lq, -1), v).view(b, heads, lq, d)
+        return out.transpose(1, 2).reshape(b, lq, heads * d)
+
+    @staticmethod
+    def _finish_layer(layer: Any, h: Tensor, gate: Tensor | None, attn_out: Tensor, cond: Tensor | None) -> Tensor:
+        """The rest of a PiGemma decoder layer: output projection, gated residual, MLP."""
+        h = _gated_residual(h, layer.self_attn.o_proj(attn_out), gate)
+        x, gate = layer.post_attention_layernorm(h, cond=cond)
+        return _gated_residual(h, layer.mlp(x), gate)
+
+    def _additive(self, valid: Tensor) -> Tensor:
+        """LeRobot's 4-D additive mask: 0 where attended, its large negative constant elsewhere."""
+        return torch.where(valid, 0.0, self.mask_value)
+
+    def _expert_input(self, x: Tensor) -> Tensor:
+        return x.to(torch.bfloat16) if self._bf16(self.expert) else x
+
+    @staticmethod
+    def _bf16(text_model: Any) -> bool:
+        # PiGemmaModel.forward casts its input to bfloat16 when its layers are bfloat16.
+        return len(text_model.layers) > 0 and text_model.layers[0].self_attn.q_proj.weight.dtype == torch.bfloat16

@@ -1,0 +1,159 @@
+"""Batch buckets and one CUDA graph per bucket for a static sampler.
+
+A CUDA graph replays a recorded sequence of kernels with the tensor addresses and shapes it was
+recorded with, for the cost of one launch. The static sampler (``policies/pi05_static.py``) is
+such a sequence for each batch size, so the engine records one graph per *bucket* (default
+1, 2, 4, 8, …, up to the batch cap, and the cap itself) and serves a batch of b robots with the
+graph of the smallest bucket ≥ b: the real rows are copied into the graph's input buffers, the
+rows behind them repeat the last real row (rows never mix, so padding cannot change a real
+row's chunk), the graph is replayed, and the real rows of its output are returned.
+
+The scheduler plans with ``d_infer(b)`` = the measured time of b's bucket (``PolicyEngine.profile``
+measures the buckets), so it knows that b = 3 costs what b = 4 costs.
+
+Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
+a side stream before it is recorded (lazy initialisations and cuBLAS workspaces happen there, not
+in the recording); all buckets share one memory pool, recorded from the largest down so the
+smaller ones reuse its blocks; everything — capture and every replay — runs on the engine's one
+device thread; inputs are copied into the recorded buffers and the output is copied out before
+the next replay can overwrite it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.policies.pi05_static import SamplerInputs
+
+log = logging.getLogger(__name__)
+
+MODES = ("auto", "on", "off")
+
+
+def parse_buckets(text: str | None, max_batch_size: int) -> tuple[int, ...]:
+    """The bucket sizes for a batch cap: ``text`` (``"1,2,4,8"``) or powers of two, always ending
+    at the cap (sizes above it are dropped: no batch is ever that large).
+
+    Raises:
+        ConfigError: a size that is not a positive integer.
+    """
+    if max_batch_size < 1:
+        raise ConfigError("max_batch_size", f"must be >= 1, got {max_batch_size}")
+    if text is None or not text.strip():
+        sizes = {1 << k for k in range(max_batch_size.bit_length()) if 1 << k <= max_batch_size}
+    else:
+        try:
+            sizes = {int(s) for s in text.split(",") if s.strip()}
+        except ValueError:
+            raise ConfigError("engine.graph_buckets", f"must be comma-separated batch sizes like 1,2,4,8, got {text!r}") from None
+        if not sizes or min(sizes) < 1:
+            raise ConfigError("engine.graph_buckets", f"sizes must be >= 1, got {text!r}")
+    return tuple(sorted({s for s in sizes if s <= max_batch_size} | {max_batch_size}))
+
+
+def bucket_for(rows: int, buckets: tuple[int, ...]) -> int | None:
+    """The smallest bucket that holds ``rows`` (None: larger than every bucket)."""
+    return next((b for b in buckets if b >= rows), None)
+
+
+@dataclass
+class _Graph:
+    graph: Any  # torch.cuda.CUDAGraph
+    inputs: list[Tensor]  # the recorded input buffers, in SamplerInputs.tensors() order
+    output: Tensor
+
+
+class BucketedSampler:
+    """Runs ``sample`` (a static sampler's ``sample(SamplerInputs) -> Tensor``) on batches padded to
+    buckets; with :meth:`capture`, as one CUDA graph per bucket.
+
+    Before :meth:`set_buckets` every batch runs at its own size (the engine's dry run). A batch
+    larger than every bucket, or one whose tensors do not have the recorded shapes, runs eagerly
+    at its own size, logged once: correct, only slower.
+    """
+
+    def __init__(self, sample: Callable[[SamplerInputs], Tensor]) -> None:
+        self.sample = sample
+        self.buckets: tuple[int, ...] = ()
+        self.graphs: dict[int, _Graph] = {}
+        self.capture_s: dict[int, float] = {}
+        self._pool: Any = None
+        self._warned: set[str] = set()
+
+    @property
+    def captured(self) -> bool:
+        return bool(self.graphs)
+
+    def set_buckets(self, buckets: tuple[int, ...]) -> None:
+        if self.graphs and tuple(buckets) != self.buckets:
+            raise RuntimeError("buckets cannot change after capture")
+        self.buckets = tuple(buckets)
+
+    def __call__(self, inputs: SamplerInputs) -> Tensor:
+        """Actions for the batch's real rows (a new tensor, safe to keep across calls)."""
+        rows = inputs.rows
+        bucket = bucket_for(rows, self.buckets) if self.buckets else rows
+        if bucket is None:
+            self._warn_once("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
+            bucket = rows
+        graph = self.graphs.get(bucket)
+        if graph is None:
+            return self.sample(inputs.padded(bucket))[:rows]
+        tensors = inputs.tensors()
+        if not _fits(tensors, graph.inputs):
+            self._warn_once("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
+            return self.sample(inputs.padded(bucket))[:rows]
+        for buf, src in zip(graph.inputs, tensors, strict=True):
+            buf[:rows].copy_(src)
+            if rows < bucket:  # padding rows repeat the last real row (valid data, never NaN)
+                buf[rows:].copy_(src[-1:].expand(bucket - rows, *src.shape[1:]))
+        graph.graph.replay()
+        return graph.output[:rows].clone()
+
+    def capture(self, example: SamplerInputs, warmup: int = 3) -> float:
+        """Record the graph of the bucket ``example.rows`` (a CUDA device; call from the thread that
+        will replay it); returns the seconds it took. ``example``'s values are the first contents
+        of the input buffers."""
+        bucket = example.rows
+        if bucket not in self.buckets:
+            raise ValueError(f"{bucket} is not a bucket ({self.buckets})")
+        start = time.perf_counter()
+        device = example.noise.device
+        inputs = [t.clone() for t in example.tensors()]
+        static = example.with_tensors(inputs)
+        if self._pool is None:
+            self._pool = torch.cuda.graph_pool_handle()
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                self.sample(static)
+        torch.cuda.current_stream(device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=self._pool):
+            output = self.sample(static)
+        graph.replay()
+        torch.cuda.synchronize(device)
+        self.graphs[bucket] = _Graph(graph, inputs, output)
+        self.capture_s[bucket] = time.perf_counter() - start
+        return self.capture_s[bucket]
+
+    def _warn_once(self, key: str, message: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning("%s", message)
+
+
+def _fits(tensors: list[Tensor], recorded: list[Tensor]) -> bool:
+    return len(tensors) == len(recorded) and all(
+        t.shape[1:] == r.shape[1:] and t.dtype == r.dtype and t.device == r.device for t, r in zip(tensors, recorded, strict=True)
+    )
+
