@@ -12,6 +12,7 @@ from lerobot_armory.latency import LatencyProfile
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.server.app import ArmoryServer
+from lerobot_armory.server.emulation import EmulatedLatencyEngine
 from lerobot_armory.server.engine import PolicyEngine, noise_seed
 from lerobot_armory.server.service import PolicyInfo
 from tests.test_server import wait_for
@@ -59,10 +60,16 @@ class PromptRobot:
 
 def serve_prompt_robots(engine: PolicyEngine, tasks: list[str], max_batch_size: int = 3) -> tuple[ArmoryServer, list[PromptRobot]]:
     """A real server and one :class:`PromptRobot` per task, run until at least 3 batches held
-    several robots; returns the stopped server (with its batch log) and the robots."""
+    several robots; returns the stopped server (with its batch log) and the robots.
+
+    Every batch is held to at least 60 ms (emulated latency, longer than a robot's 35 ms between
+    observations), so every robot has a new observation waiting when the device frees: batches
+    are shared however fast the model runs on this machine (the tiny π0.5 takes ~5 ms, and robots
+    served one by one never share a batch)."""
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
-    profile = LatencyProfile("test", tuple(20.0 + 5.0 * b for b in range(max_batch_size)))
-    server = ArmoryServer(engine, info, profile, EarliestDeadlineConfig(), max_batch_size, port=0).start()
+    profile = LatencyProfile("test", tuple(60.0 + 5.0 * b for b in range(max_batch_size)))
+    slow = EmulatedLatencyEngine(engine, profile)
+    server = ArmoryServer(slow, info, profile, EarliestDeadlineConfig(), max_batch_size, port=0).start()
     robots = [PromptRobot(server.address, engine, k, task) for k, task in enumerate(tasks)]
     try:
         assert wait_for(lambda: sum(len(b.robots) >= 2 for b in server.batch_log) >= 3, timeout=60), "batches were not shared"

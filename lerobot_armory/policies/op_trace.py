@@ -48,8 +48,9 @@ class OpTrace(TorchDispatchMode):
 
     Attributes:
         ops: every op's full name with its count.
-        launches: ops that compute something (views, aliases and allocations excluded): an
-            estimate of the kernels a GPU would launch.
+        launches: ops that compute something: an estimate of the kernels a GPU would launch.
+            Views, allocations and ops that hand back their input unchanged (``x.to(x.dtype)``,
+            ``x.contiguous()`` of a contiguous x) are not counted; in-place ops are.
         host_syncs: ``(op, count)`` of the ops that would synchronise with the host: reading a
             value back, building a tensor from Python data, a data-dependent output shape, or a
             copy between devices.
@@ -58,6 +59,7 @@ class OpTrace(TorchDispatchMode):
     def __init__(self) -> None:
         super().__init__()
         self.ops: Counter[str] = Counter()
+        self.launched: Counter[str] = Counter()
         self.host_syncs: Counter[str] = Counter()
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
@@ -69,6 +71,8 @@ class OpTrace(TorchDispatchMode):
         out = func(*args, **kwargs)
         if name in ("_to_copy", "copy_", "to") and _crosses_devices(args, out):
             self.host_syncs[f"{func} (between devices)"] += 1
+        if name not in VIEW_OPS and (name.endswith("_") or not _returns_an_input(out, args)):
+            self.launched[str(func)] += 1
         return out
 
     @property
@@ -77,11 +81,19 @@ class OpTrace(TorchDispatchMode):
 
     @property
     def launches(self) -> int:
-        return sum(n for op, n in self.ops.items() if op_name(op) not in VIEW_OPS)
+        return sum(self.launched.values())
 
     def top(self, n: int = 8) -> list[tuple[str, int]]:
         """The ``n`` most frequent launching ops."""
-        return [(op, k) for op, k in self.ops.most_common() if op_name(op) not in VIEW_OPS][:n]
+        return self.launched.most_common(n)
+
+
+def _returns_an_input(out: Any, args: tuple) -> bool:
+    """True if ``out`` is one of the input tensors (or a view of one): no new data was computed."""
+    if not isinstance(out, torch.Tensor):
+        return False
+    ptr = out.untyped_storage().data_ptr()
+    return any(isinstance(a, torch.Tensor) and a.untyped_storage().data_ptr() == ptr for a in args)
 
 
 def _crosses_devices(args: tuple, out: Any) -> bool:

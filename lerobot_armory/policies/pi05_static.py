@@ -16,6 +16,10 @@ LeRobot is forked) in the order ``sample_actions`` runs them, with three changes
   no concatenation);
 - masks and positions are computed on the device from the inputs' pad masks; the flow times and
   RTC guidance weights are device tensors made once, indexed by step;
+- everything that depends on the flow time alone — the time embedding, the time MLP and every
+  adaptive norm's scale, shift and gate (two per expert layer and the final norm) — is computed
+  once per batch size by the same modules (:meth:`StaticPi05.prepare`), not at every step of every
+  sample: constants of the recorded graph;
 - RTC's guidance is closed-form (see below), with one weight row and one leftover per batch row
   as inputs, so a guided batch is the same graph as an unguided one.
 
@@ -51,6 +55,25 @@ from torch import Tensor
 from transformers.models.gemma import modeling_gemma
 
 ATTENTION = ("eager", "sdpa")
+
+
+@dataclass(frozen=True)
+class Modulation:
+    """One adaptive RMSNorm's time conditioning at one flow step (LeRobot's ``PiGemmaRMSNorm``
+    given ``cond``): ``normed · scale1 + shift``, gate for the residual after it."""
+
+    scale1: Tensor  # 1 + scale, float32 (B, 1, W)
+    shift: Tensor  # float32 (B, 1, W)
+    gate: Tensor  # in the expert's dtype (B, 1, W)
+
+
+@dataclass(frozen=True)
+class StepConditioning:
+    """The expert's time conditioning at one flow step: per layer (input norm, post-attention norm),
+    and the final norm."""
+
+    layers: tuple[tuple[Modulation, Modulation], ...]
+    final: Modulation
 
 
 @dataclass
@@ -178,6 +201,7 @@ class StaticPi05:
         self.dt = -1.0 / self.num_steps
         self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
         self.time_table = torch.tensor(self.times, dtype=torch.float32, device=device)
+        self.conditioning: dict[int, tuple[StepConditioning, ...]] = {}  # by batch size (prepare)
         self.guidance_table = None
         if guided:
             from lerobot_armory.server.rtc import guidance_weight
@@ -185,6 +209,40 @@ class StaticPi05:
             self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
 
     # -- the sampler ---------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def prepare(self, batch_size: int) -> tuple[StepConditioning, ...]:
+        """The time conditioning of every flow step for batches of ``batch_size`` rows, computed
+        once (by LeRobot's modules, at that many rows, so each value is the one LeRobot computes)
+        and kept: call it outside a traced or recorded region (``sample`` calls it if needed)."""
+        table = self.conditioning.get(batch_size)
+        if table is not None:
+            return table
+        dtype = torch.bfloat16 if self._bf16(self.expert) else torch.float32
+        steps = []
+        for step in range(self.num_steps):
+            cond = self._time_condition(self.time_table[step].expand(batch_size))
+            layers = tuple(
+                (self._modulation(lay.input_layernorm, cond, dtype), self._modulation(lay.post_attention_layernorm, cond, dtype))
+                for lay in self.expert.layers
+            )
+            steps.append(StepConditioning(layers, self._modulation(self.expert.norm, cond, dtype)))
+        self.conditioning[batch_size] = tuple(steps)
+        return self.conditioning[batch_size]
+
+    def _time_condition(self, time: Tensor) -> Tensor:
+        """LeRobot's ``embed_suffix`` time path: sinusoidal embedding, then the time MLP."""
+        m = self.model
+        time_emb = create_sinusoidal_pos_embedding(
+            time, m.action_in_proj.out_features, min_period=self.config.min_period, max_period=self.config.max_period, device=time.device
+        ).type(dtype=time.dtype)
+        return torch.nn.functional.silu(m.time_mlp_out(torch.nn.functional.silu(m.time_mlp_in(time_emb))))
+
+    @staticmethod
+    def _modulation(norm: Any, cond: Tensor, dtype: torch.dtype) -> Modulation:
+        """``PiGemmaRMSNorm.forward``'s conditioning half, for inputs of ``dtype`` (B, L, W)."""
+        scale, shift, gate = norm.dense(cond).unsqueeze(1).chunk(3, dim=-1)
+        return Modulation(1 + scale.float(), shift.float(), gate.to(dtype))
 
     @torch.no_grad()
     def sample(self, inputs: SamplerInputs) -> Tensor:
@@ -202,9 +260,10 @@ class StaticPi05:
         mask = self._additive(valid)
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
         rope = self.expert.rotary_emb(self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
+        conditioning = self.prepare(b)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, self.time_table[step].expand(b), keys, values, p, mask, rope)
+            v_t = self._velocity(x_t, conditioning[step], keys, values, p, mask, rope)
             if self.guided:
                 assert self.guidance_table is not None and inputs.rtc_leftover is not None
                 # LeRobot's correction, closed form (module docstring): the weighted error.
@@ -247,33 +306,30 @@ class StaticPi05:
             values.append(v_buf)
             if i == last:
                 break  # the last layer's output is never read: only its keys and values are
-            h = self._finish_layer(layer, h, gate, self._attend(layer.self_attn, q, k, v, mask), None)
+            h = self._finish_prefix_layer(layer, h, gate, self._attend(layer.self_attn, q, k, v, mask))
         return keys, values
 
     def _velocity(
-        self, x_t: Tensor, time: Tensor, keys: list[Tensor], values: list[Tensor], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
+        self, x_t: Tensor, cond: StepConditioning, keys: list[Tensor], values: list[Tensor], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
     ) -> Tensor:
         """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
-        suffix, cond = self._embed_suffix(x_t, time)
-        h = self._expert_input(suffix)
+        h = self._expert_input(self.model.action_in_proj(x_t))
         for i, layer in enumerate(self.expert.layers):
-            x, gate = layer.input_layernorm(h, cond=cond)
+            mod_in, mod_post = cond.layers[i]
+            x, gate = self._ada_norm(layer.input_layernorm, h, mod_in)
             q, k, v = self._qkv(layer.self_attn, x, rope)
             keys[i][:, :, p:] = k  # in place, behind the prefix (HF's cache concatenates a copy)
             values[i][:, :, p:] = v
-            h = self._finish_layer(layer, h, gate, self._attend(layer.self_attn, q, keys[i], values[i], mask), cond)
-        h, _ = self.expert.norm(h, cond)
+            h = _gated_residual(h, layer.self_attn.o_proj(self._attend(layer.self_attn, q, keys[i], values[i], mask)), gate)
+            x, gate = self._ada_norm(layer.post_attention_layernorm, h, mod_post)
+            h = _gated_residual(h, layer.mlp(x), gate)
+        h, _ = self._ada_norm(self.expert.norm, h, cond.final)
         return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
 
-    def _embed_suffix(self, x_t: Tensor, time: Tensor) -> tuple[Tensor, Tensor]:
-        """LeRobot's ``embed_suffix`` (its attention pattern is constant: dropped)."""
-        m = self.model
-        time_emb = create_sinusoidal_pos_embedding(
-            time, m.action_in_proj.out_features, min_period=self.config.min_period, max_period=self.config.max_period, device=time.device
-        ).type(dtype=time.dtype)
-        action_emb = m.action_in_proj(x_t)
-        cond = torch.nn.functional.silu(m.time_mlp_out(torch.nn.functional.silu(m.time_mlp_in(time_emb))))
-        return action_emb, cond
+    @staticmethod
+    def _ada_norm(norm: Any, x: Tensor, mod: Modulation) -> tuple[Tensor, Tensor]:
+        """``PiGemmaRMSNorm.forward(x, cond)`` with its conditioning precomputed."""
+        return (norm._norm(x) * mod.scale1 + mod.shift).to(x.dtype), mod.gate
 
     # -- one transformer layer ------------------------------------------------------------------
 
@@ -304,10 +360,10 @@ class StaticPi05:
         return out.transpose(1, 2).reshape(b, lq, heads * d)
 
     @staticmethod
-    def _finish_layer(layer: Any, h: Tensor, gate: Tensor | None, attn_out: Tensor, cond: Tensor | None) -> Tensor:
-        """The rest of a PiGemma decoder layer: output projection, gated residual, MLP."""
+    def _finish_prefix_layer(layer: Any, h: Tensor, gate: Tensor | None, attn_out: Tensor) -> Tensor:
+        """The rest of a PiGemma decoder layer of the VLM: output projection, residual, MLP."""
         h = _gated_residual(h, layer.self_attn.o_proj(attn_out), gate)
-        x, gate = layer.post_attention_layernorm(h, cond=cond)
+        x, gate = layer.post_attention_layernorm(h, cond=None)
         return _gated_residual(h, layer.mlp(x), gate)
 
     def _additive(self, valid: Tensor) -> Tensor:

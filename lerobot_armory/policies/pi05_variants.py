@@ -31,6 +31,10 @@ from dataclasses import dataclass
 from typing import Any
 
 TINY = "armory_tiny"
+# LeRobot's real layer counts (18 Gemma layers in the VLM and in the expert, 27 SigLIP layers,
+# 8 query heads on 1 K/V head, 256 image tokens per 224² camera) at tiny widths: a model whose
+# forward pass launches as many kernels as the real π0.5's, which a CPU runs in a second.
+NARROW = "armory_narrow"
 # Vocabulary of the tiny variant: the stand-in tokenizer (``server/standin_tokenizer.py``) has
 # fewer pieces, so every id it emits is inside the model's embedding table.
 TINY_VOCAB = 1024
@@ -65,6 +69,11 @@ VARIANTS: dict[str, Variant] = {
     TINY: Variant(
         width=64, depth=2, mlp_dim=128, num_heads=2, num_kv_heads=1, head_dim=32,
         vision=VisionSize(hidden_size=32, num_hidden_layers=1, num_attention_heads=2, intermediate_size=64, patch_size=8),
+        vocab_size=TINY_VOCAB,
+    ),
+    NARROW: Variant(
+        width=64, depth=18, mlp_dim=128, num_heads=8, num_kv_heads=1, head_dim=16,
+        vision=VisionSize(hidden_size=32, num_hidden_layers=27, num_attention_heads=2, intermediate_size=64, patch_size=14),
         vocab_size=TINY_VOCAB,
     ),
 }  # fmt: skip

@@ -8,7 +8,9 @@ weights, LeRobot's own π0.5 pre/post-processors, and a stand-in tokenizer store
 ``gemma_300m``: 4.1 B parameters; 9.4 GB on disk with ``--dtype=bfloat16``, whose vision tower
 LeRobot keeps in float32; building it peaks at 19 GB of RAM);
 ``size=tiny`` is the same classes and code path at the registered ``armory_tiny`` Gemma size
-(``policies/pi05_variants.py``; 0.4 M parameters, a batch of 8 in well under a second on a CPU).
+(``policies/pi05_variants.py``; 0.4 M parameters, a batch of 8 in well under a second on a CPU);
+``size=narrow`` has the real π0.5's depths, heads, image size and prompt length at tiny widths
+(``armory_narrow``: as many kernels per forward pass as the real model, for counting them).
 
 The input features are ``observation.state`` and one ``observation.images.<camera>`` per camera,
 as ``armory_sim`` sends them, so simulated robots can be served by it. The directory loads with
@@ -26,7 +28,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.server.demo_policy import policy_features
 from lerobot_armory.server.engine import TOKENIZER_DIR  # where the loader looks for it
 
-SIZES = ("tiny", "full")
+SIZES = ("tiny", "narrow", "full")
 
 
 def make_pi05_policy(
@@ -44,7 +46,8 @@ def make_pi05_policy(
 
     Args:
         output: directory to write (created).
-        size: ``tiny`` (registered ``armory_tiny`` variant) or ``full`` (gemma_2b + gemma_300m).
+        size: ``tiny`` (registered ``armory_tiny`` variant), ``narrow`` (``armory_narrow``: full
+            depth, tiny width) or ``full`` (gemma_2b + gemma_300m).
         chunk_size: H, actions per chunk (π0.5's default is 50).
         state_dim / action_dim: vector sizes (padded internally to π0.5's 32).
         cameras: camera names; each becomes ``observation.images.<name>`` of ``image_size``².
@@ -59,7 +62,7 @@ def make_pi05_policy(
     from lerobot_armory.server.standin_tokenizer import build_standin_tokenizer
 
     if size not in SIZES:
-        raise ConfigError("size", f"must be tiny or full, got {size!r}")
+        raise ConfigError("size", f"must be one of {', '.join(SIZES)}, got {size!r}")
     if dtype not in ("float32", "bfloat16"):
         raise ConfigError("dtype", f"must be float32 or bfloat16, got {dtype!r}")
     inputs, outputs = policy_features("π0.5", chunk_size, state_dim, action_dim, cameras, image_size, max_dim=32)
@@ -70,13 +73,14 @@ def make_pi05_policy(
     except ImportError as exc:
         raise ConfigError("kind", f"π0.5 needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
     tiny = size == "tiny"
+    variant = {"tiny": pi05_variants.TINY, "narrow": pi05_variants.NARROW}.get(size)
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
-    vocab = pi05_variants.TINY_VOCAB if tiny else 257152
+    vocab = pi05_variants.TINY_VOCAB if variant else 257152
     tokenizer = build_standin_tokenizer(out / TOKENIZER_DIR, max_id=vocab)
     config = PI05Config(
-        paligemma_variant=pi05_variants.TINY if tiny else "gemma_2b",
-        action_expert_variant=pi05_variants.TINY if tiny else "gemma_300m",
+        paligemma_variant=variant or "gemma_2b",
+        action_expert_variant=variant or "gemma_300m",
         image_resolution=(32, 32) if tiny else (224, 224),
         tokenizer_max_length=64 if tiny else 200,
         chunk_size=chunk_size,

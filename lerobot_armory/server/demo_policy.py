@@ -37,7 +37,8 @@ class DemoPolicyConfig:
             ``smolvla`` (LeRobot's SmolVLA, tiny, random weights) or ``planner`` (the analytic
             ``armory_planner`` that solves the ``armory_sim`` tasks when served on time; one
             camera, 2-D state).
-        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU) or
+        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU), ``narrow``
+            (the real depths at tiny widths: ``armory_narrow``) or
             ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
         dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
         chunk_size: H, actions per chunk.

@@ -363,18 +363,12 @@ class PolicyEngine:
                 assert self.rtc_options is not None
                 o = self.rtc_options
                 kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, o.execution_horizon, self.device, o.delay_margin))
-            if self.sampler is not None:
-                with torch.inference_mode():  # the static sampler's guidance is closed-form: no autograd
-                    processed = self.preprocessor(batch)
-                    model_actions = self.sampler(self._sampler_inputs(processed, kwargs))[:, :, : self.action_dim]
-                    actions = self.postprocessor(model_actions.clone() if guided else model_actions)
-                out = actions.detach().to("cpu", torch.float32).numpy()
-                return out, (model_actions.to("cpu", torch.float32).numpy() if guided else None)
-            # RTC's guidance takes a gradient (of its own error, not of the weights), which
-            # inference mode forbids: guided batches run under no_grad instead.
-            with torch.no_grad() if guided else torch.inference_mode():
+            # RTC's guidance through LeRobot's sampler takes a gradient (of its own error, not of
+            # the weights), which inference mode forbids: such batches run under no_grad instead.
+            # The static sampler's guidance is closed-form.
+            with torch.no_grad() if guided and self.sampler is None else torch.inference_mode():
                 processed = self.preprocessor(batch)
-                model_actions = self.policy.predict_action_chunk(processed, **kwargs)
+                model_actions = self.forward(processed, kwargs)
                 actions = self.postprocessor(model_actions.clone() if guided else model_actions)
             # The one synchronisation of the batch (a no-op copy on the CPU).
             out = actions.detach().to("cpu", torch.float32).numpy()
@@ -384,6 +378,14 @@ class PolicyEngine:
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
                     torch.cuda.synchronize(self.device)
             raise
+
+    def forward(self, processed: dict[str, Any], kwargs: dict[str, Any]) -> Any:
+        """The model alone on a pre-processed batch: ``(B, H, action_dim)`` in the policy's action
+        space. ``kwargs`` are what LeRobot's ``predict_action_chunk`` takes (noise, RTC); the
+        static sampler, where installed, runs instead of it (on the device thread, like every pass)."""
+        if self.sampler is not None:
+            return self.sampler(self._sampler_inputs(processed, kwargs))[:, :, : self.action_dim]
+        return self.policy.predict_action_chunk(processed, **kwargs)
 
     def _sampler_inputs(self, processed: dict[str, Any], kwargs: dict[str, Any]) -> Any:
         """The static sampler's inputs from a pre-processed batch and the keyword arguments the

@@ -1,0 +1,128 @@
+"""Kernels per π0.5 batch, counted on a CPU: LeRobot's eager sampler against our static sampler.
+
+On a GPU, LeRobot 0.6.1's π0.5 is bound by kernel launches, and a CUDA graph can only record a
+region that never waits for the host. Neither needs a GPU to be seen: this script builds the
+*narrow* π0.5 (``lerobot-armory-make-demo-policy --kind=pi05 --size=narrow``: LeRobot's real depths
+— 18 + 18 Gemma layers, 27 SigLIP layers, 8 query heads on one K/V head, two 224² cameras, a
+200-token prompt, chunk 50 — at tiny widths), loads it through ``--policy.path`` twice (LeRobot's
+sampler; ``--engine.static_sampler=true``) and, for each batch size, counts the aten ops of one
+forward pass (``PolicyEngine.forward`` on a pre-processed batch, i.e. the region a graph records):
+
+- *launches*: ops that compute (views and allocations excluded) ≈ kernels a GPU would launch;
+- *host syncs*: ops that wait for the host (``torch.tensor(list, device=…)``, ``.item()``, …), each
+  of which makes a CUDA graph capture fail;
+- a ``torch._dynamo.explain`` trace of the static sampler: graphs and graph breaks;
+- CPU ms per forward pass (median of 5): CPU figures, printed for the record, not GPU ones.
+
+Targets: the static sampler has no host sync and traces as one graph with no break at every
+size; it launches at most 0.75× LeRobot's ops. Exits 1 on a miss.
+
+    .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import Targets  # noqa: E402
+
+LAUNCH_RATIO = 0.75
+
+
+def forward_inputs(engine: Any, b: int) -> tuple[dict, dict]:
+    """A pre-processed batch of b example observations and the forward pass's keyword arguments."""
+    import torch
+
+    batch = engine.to_batch([engine.example_observation(seed=k) for k in range(b)])
+    batch["task"] = [f"pick up block {k}" for k in range(b)]
+    with torch.inference_mode():
+        return engine.preprocessor(batch), {"noise": engine._noise(range(b))}
+
+
+def count(engine: Any, b: int) -> tuple[Any, float]:
+    """(OpTrace of one forward pass, median CPU ms of 5)."""
+    import torch
+
+    from lerobot_armory.policies.op_trace import OpTrace
+
+    processed, kwargs = forward_inputs(engine, b)
+    with torch.inference_mode():
+        engine.forward(processed, kwargs)  # first pass: lazy initialisations
+        with OpTrace() as trace:
+            engine.forward(processed, kwargs)
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            engine.forward(processed, kwargs)
+            times.append((time.perf_counter() - t0) * 1000.0)
+    return trace, statistics.median(times)
+
+
+def trace_graphs(engine: Any, b: int) -> tuple[int, int, list[str]]:
+    """(graphs, graph breaks, reasons) of the static sampler at batch size b under dynamo."""
+    import torch
+    import torch._dynamo
+
+    processed, kwargs = forward_inputs(engine, b)
+    inputs = engine._sampler_inputs(processed, kwargs)
+    torch._dynamo.reset()
+    sample = engine.sampler.sample
+    with torch.inference_mode():
+        explained = torch._dynamo.explain(sample)(inputs)
+    return explained.graph_count, explained.graph_break_count, [str(r.reason).splitlines()[0] for r in explained.break_reasons]
+
+
+def main() -> None:
+    import torch
+
+    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", default="1,8", help="batch sizes to count")
+    args = p.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",")]
+    torch.set_num_threads(1)
+    work = Path(tempfile.mkdtemp(prefix="armory-pi05-ops-"))
+    path = str(work / "pi05-narrow")
+    t0 = time.perf_counter()
+    make_demo_policy(
+        DemoPolicyConfig(output=path, kind="pi05", size="narrow", chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224)
+    )
+    eager = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
+    static = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1), engine=EngineOptions(static_sampler=True))
+    static.warmup(max(sizes), log_progress=False)
+    params = sum(p.numel() for p in eager.policy.parameters()) / 1e6
+    print(f"π0.5 narrow ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
+    print(f"{'b':>2} | {'sampler':<8} | {'aten ops':>8} | {'launches':>8} | {'host syncs':>10} | {'CPU ms':>7} | most launched")
+    targets = Targets()
+    for b in sizes:
+        rows = {}
+        for name, engine in (("LeRobot", eager), ("static", static)):
+            trace, ms = count(engine, b)
+            rows[name] = trace
+            syncs = sum(trace.host_syncs.values())
+            top = ", ".join(f"{op.split('.')[1]} {n}" for op, n in trace.top(4))
+            print(f"{b:>2} | {name:<8} | {trace.total:>8} | {trace.launches:>8} | {syncs:>10} | {ms:>7.1f} | {top}")
+        ratio = rows["static"].launches / rows["LeRobot"].launches
+        print(f"   launches static / LeRobot: {ratio:.3f}; LeRobot's host syncs: {dict(rows['LeRobot'].host_syncs)}")
+        targets.check(f"b={b}: static sampler host syncs", sum(rows["static"].host_syncs.values()), 0, "ops")
+        targets.check(f"b={b}: launches static / LeRobot", ratio, LAUNCH_RATIO, "")
+    for b in static.sampler.buckets:
+        t0 = time.perf_counter()
+        graphs, breaks, reasons = trace_graphs(static, b)
+        print(f"   dynamo trace of the static sampler at bucket {b}: {graphs} graph(s), {breaks} break(s) ({time.perf_counter() - t0:.0f} s){' ' + '; '.join(reasons) if reasons else ''}")
+        targets.check(f"bucket {b}: graph breaks", breaks, 0, "")
+        targets.check(f"bucket {b}: graphs", graphs, 1, "")
+    targets.finish()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,245 @@
+"""The static π0.5 sampler (the region a CUDA graph records) against LeRobot's own sampler: equal
+chunks at every batch size with bucket padding, with and without RTC; one traced graph and no
+host synchronisation per bucket; the bucket and engine plumbing around it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.server import rtc
+from lerobot_armory.server.cuda_graphs import BucketedSampler, bucket_for, parse_buckets
+from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions, noise_seed
+from tests.vla_helpers import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
+
+BUCKETS = (1, 2, 4, 8)
+RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
+
+
+@pytest.fixture(scope="module")
+def engines(pi05_dir):
+    """LeRobot's sampler and the static sampler over the same policy directory, with RTC (a guided
+    engine serves unguided batches too), the static one warmed up to buckets 1, 2, 4, 8."""
+    import torch
+
+    torch.set_num_threads(1)
+    lerobot = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC)
+    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC, EngineOptions(static_sampler=True))
+    static.warmup(8, log_progress=False)
+    assert lerobot.sampler is None and static.sampler is not None and static.sampler.buckets == BUCKETS
+    return lerobot, static
+
+
+def batch(b: int, seed: int = 0) -> tuple[list, list[str], list[int], list[rtc.Prefix | None]]:
+    """b robots' observations, prompts (of different lengths), noise seeds and RTC prefixes (every
+    third robot without one; leftovers of every length, delays 0..4)."""
+    rng = np.random.default_rng(seed + b)
+    obs = [observation(k + seed, k) for k in range(b)]
+    tasks = [TASKS[k % 3] + " now" * k for k in range(b)]
+    seeds = [noise_seed(f"robot{k}", seed) for k in range(b)]
+    prefixes = [
+        None if k % 3 == 0 else rtc.Prefix(rng.uniform(-1, 1, (int(rng.integers(1, 11)), 2)).astype(np.float32), int(rng.integers(0, 5)))
+        for k in range(b)
+    ]
+    return obs, tasks, seeds, prefixes
+
+
+@pytest.mark.parametrize("b", range(1, 9))
+def test_static_chunks_equal_lerobots_at_every_batch_size_padded_to_its_bucket(engines, b):
+    """b = 3 runs as a padded batch of 4, b = 5..7 as 8: the real rows equal LeRobot's sampler on
+    the unpadded batch (fp32, 1e-5), unguided and guided (per-row RTC, rows without a prefix)."""
+    lerobot, static = engines
+    obs, tasks, seeds, prefixes = batch(b)
+    np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+    actions, model_actions = static.infer_guided(obs, tasks, seeds, prefixes)
+    want_actions, want_model = lerobot.infer_guided(obs, tasks, seeds, prefixes)
+    np.testing.assert_allclose(model_actions, want_model, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(actions, want_actions, atol=1e-5, rtol=0)
+    if any(p is not None for p in prefixes):  # the guidance did something
+        assert np.abs(static.infer(obs, tasks, seeds) - actions).max() > 1e-3
+
+
+def test_a_guided_row_equals_lerobots_stock_rtc_for_that_robot_alone(engines, pi05_dir):
+    """The chain closed: a static guided batch row equals LeRobot's own RTCProcessor, one robot."""
+    import torch
+
+    from lerobot_armory.server.engine import _load
+
+    _, static = engines
+    obs, tasks, seeds, prefixes = batch(3, seed=4)
+    _, model_actions = static.infer_guided(obs, tasks, seeds, prefixes)
+    config, policy, pre, _ = _load(str(pi05_dir), "cpu")
+    config.rtc_config = RTC.lerobot_config()
+    policy.init_rtc_processor()
+    assert type(policy.model.rtc_processor).__name__ == "RTCProcessor"
+    k = 1
+    one = static.to_batch([obs[k]])
+    one["task"] = [tasks[k]]
+    kwargs = {"noise": static._noise([seeds[k]]), "inference_delay": prefixes[k].inference_delay,
+              "prev_chunk_left_over": torch.from_numpy(prefixes[k].leftover)}  # fmt: skip
+    with torch.no_grad():
+        alone = policy.predict_action_chunk(pre(one), **kwargs)
+    np.testing.assert_allclose(model_actions[k], alone[0].numpy(), atol=1e-5)
+
+
+def test_padding_rows_never_change_a_real_rows_chunk(engines):
+    """The same three real rows padded to 4 with their own last row, with another robot's row, or
+    with extreme values: the real rows' chunks are bit for bit the same."""
+    import torch
+
+    _, static = engines
+    obs, tasks, seeds, prefixes = batch(4, seed=9)
+    kwargs = {"noise": static._noise(seeds)}
+    kwargs.update(rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu"))
+    processed = static.preprocessor({**static.to_batch(obs), "task": tasks})
+    inputs = static._sampler_inputs(processed, kwargs)
+    sample = static.sampler.sample
+    with torch.inference_mode():
+        real = inputs.with_tensors([t[:3] for t in inputs.tensors()])
+        own = sample(real.padded(4))[:3]
+        other = sample(inputs)[:3]
+        wild = inputs.with_tensors([t.clone() for t in inputs.tensors()])
+        wild.noise[3] = 1e4
+        wild.images[0][3] = 1.0
+        assert wild.rtc_leftover is not None and wild.rtc_weights is not None
+        wild.rtc_leftover[3], wild.rtc_weights[3] = -1e4, 1.0
+        extreme = sample(wild)[:3]
+    assert torch.equal(own, other) and torch.equal(own, extreme)
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
+    """What predicts a successful CUDA graph capture on a GPU, checked on the CPU: for every bucket,
+    ``torch.compile(fullgraph=True)`` traces the whole sampler (vision tower, prefix, all ten
+    denoising steps, RTC) as one graph with no break, and no op in it waits for the host. LeRobot's
+    own sampler, traced by the same counter, does wait (the check can fail)."""
+    import torch
+    import torch._dynamo
+
+    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    lerobot, static = engines
+    sampler = StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight)
+    for b in BUCKETS:
+        obs, tasks, seeds, prefixes = batch(b)
+        kwargs = {"noise": static._noise(seeds)}
+        if guided:
+            kwargs.update(rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu"))
+        processed = static.preprocessor({**static.to_batch(obs), "task": tasks})
+        inputs = static._sampler_inputs(processed, kwargs)
+        if not guided:
+            inputs.rtc_weights = inputs.rtc_leftover = None
+        sampler.prepare(b)  # the per-size constants exist before the region is traced or recorded
+        torch._dynamo.reset()
+        with torch.inference_mode():
+            explained = torch._dynamo.explain(sampler.sample)(inputs)
+            assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
+            compiled = torch.compile(sampler.sample, fullgraph=True, backend="eager", dynamic=False)
+            torch.testing.assert_close(compiled(inputs), sampler.sample(inputs), atol=0, rtol=0)
+            with OpTrace() as trace:
+                sampler.sample(inputs)
+        assert not trace.host_syncs, dict(trace.host_syncs)
+        assert trace.launches > 100
+    with torch.inference_mode(), OpTrace() as theirs:
+        lerobot.forward(processed, {"noise": kwargs["noise"]})
+    assert theirs.host_syncs["aten.lift_fresh.default"] >= 3 * sampler.num_steps  # 3+ torch.tensor(list) per step
+
+
+def test_buckets_default_to_powers_of_two_and_end_at_the_cap():
+    assert parse_buckets(None, 8) == (1, 2, 4, 8)
+    assert parse_buckets(None, 5) == (1, 2, 4, 5)
+    assert parse_buckets(None, 1) == (1,)
+    assert parse_buckets("1, 3,16", 6) == (1, 3, 6)
+    assert [bucket_for(b, (1, 2, 4, 8)) for b in range(1, 10)] == [1, 2, 4, 4, 8, 8, 8, 8, None]
+    for bad in ("0,2", "two", ","):
+        with pytest.raises(ConfigError, match="engine.graph_buckets"):
+            parse_buckets(bad, 4)
+
+
+def test_profile_gives_every_batch_size_the_time_of_its_bucket(engines):
+    _, static = engines
+    profile = static.profile(8, warmup=0, reps=1, log_progress=False)
+    ms = profile.latency_ms
+    assert len(ms) == 8 and ms[2] == ms[3] and ms[4] == ms[5] == ms[6] == ms[7]
+    assert profile.name == "profiled:pi05+rtc"
+
+
+class _ReplayOnCPU:
+    """Stands in for a recorded CUDA graph on the CPU: ``replay`` recomputes the output from the
+    recorded input buffers, as a replay does (the copy-in / padding / copy-out logic is tested)."""
+
+    def __init__(self, sample, inputs, output) -> None:
+        self.sample, self.inputs, self.output, self.replays = sample, inputs, output, 0
+
+    def replay(self) -> None:
+        self.replays += 1
+        self.output.copy_(self.sample(self.inputs))
+
+
+def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(engines):
+    """A batch of 3 replays bucket 4's graph: the real rows are copied into the recorded buffers,
+    the padding row repeats the last real row, the output returned is the real rows' and stays
+    valid after the next replay. Inputs that do not fit the buffers run eagerly."""
+    import torch
+
+    from lerobot_armory.server import cuda_graphs
+
+    _, static = engines
+    runner = BucketedSampler(static.sampler.sample)
+    runner.set_buckets((4,))
+    make = lambda b, s: static._sampler_inputs(  # noqa: E731
+        static.preprocessor({**static.to_batch(batch(b, s)[0]), "task": batch(b, s)[1]}),
+        {"noise": static._noise(batch(b, s)[2]), **rtc.guidance_kwargs(batch(b, s)[3], static.chunk_size, 8, "cpu")},
+    )
+    with torch.inference_mode():
+        first = make(4, 0)
+        buffers = [t.clone() for t in first.tensors()]
+        output = static.sampler.sample(first.with_tensors(buffers))
+        fake = _ReplayOnCPU(static.sampler.sample, first.with_tensors(buffers), output)
+        runner.graphs[4] = cuda_graphs._Graph(fake, buffers, output)
+        three = make(3, 5)
+        got = runner(three)
+        assert fake.replays == 1 and got.shape[0] == 3
+        assert all(torch.equal(buf[3], buf[2]) for buf in buffers)  # padding repeats the last real row
+        kept = got.clone()
+        runner(make(4, 7))
+        assert torch.equal(got, kept)  # a copy, not a view of the graph's output
+        assert torch.equal(kept, static.sampler.sample(three.padded(4))[:3])
+        # A prompt one token shorter than recorded (tokens and mask): served eagerly, not replayed.
+        odd = three.with_tensors([t[:, :-1] if t.dim() == 2 else t for t in three.tensors()])
+        assert torch.equal(runner(odd), static.sampler.sample(odd.padded(4))[:3])
+        assert fake.replays == 2
+
+
+def test_engine_options_are_checked_with_one_line_each(pi05_dir, demo_policy_dir):
+    with pytest.raises(ConfigError, match="engine.cuda_graphs.*CUDA device"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(cuda_graphs="on"))
+    with pytest.raises(ConfigError, match="engine.cuda_graphs.*one of"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(cuda_graphs="yes"))
+    with pytest.raises(ConfigError, match="engine.attention"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(attention="flash"))
+    with pytest.raises(ConfigError, match="engine.static_sampler.*act has no static sampler"):
+        PolicyEngine(PolicyOptions(str(demo_policy_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    auto = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))  # auto on a CPU: LeRobot's sampler
+    assert auto.sampler is None and "static" not in auto.description
+
+
+def test_sdpa_attention_gives_the_same_chunks(engines, pi05_dir):
+    lerobot, _ = engines
+    sdpa = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, attention="sdpa"))
+    obs, tasks, seeds, _ = batch(3)
+    np.testing.assert_allclose(sdpa.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5)
+
+
+def test_served_through_the_static_sampler_each_robots_chunks_equal_its_chunks_alone(pi05_dir):
+    """A real server on the static sampler (no RTC, so a chunk is a function of its observation,
+    prompt and noise alone; buckets 1 and 3, so a batch of two is padded) and prompt robots
+    sharing batches."""
+    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, graph_buckets="1,3,4"))
+    static.warmup(3, log_progress=False)
+    assert static.sampler.buckets == (1, 3)  # none above the cap
+    server, robots = serve_prompt_robots(static, [TASKS[0], TASKS[1], TASKS[2]], max_batch_size=3)
+    assert server.loop.stats.failed_batches == 0
+    assert assert_shared_chunks_equal_alone(static, server, robots) >= 1
