@@ -243,3 +243,17 @@ def test_served_through_the_static_sampler_each_robots_chunks_equal_its_chunks_a
     server, robots = serve_prompt_robots(static, [TASKS[0], TASKS[1], TASKS[2]], max_batch_size=3)
     assert server.loop.stats.failed_batches == 0
     assert assert_shared_chunks_equal_alone(static, server, robots) >= 1
+
+
+def test_a_compiled_static_sampler_gives_the_same_chunks(pi05_dir, engines):
+    """``--engine.compile_sampler=true``: inductor compiles the whole sampler (one bucket here:
+    compiling takes about a minute on a 2-core CPU); its chunks equal LeRobot's to 1e-5."""
+    lerobot, _ = engines
+    compiled = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, compile_sampler=True, graph_buckets="2"))
+    compiled.warmup(2, log_progress=False)
+    assert compiled.sampler.buckets == (2,) and "compiled" in compiled.description
+    obs, tasks, seeds, _ = batch(2, seed=3)
+    np.testing.assert_allclose(compiled.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5)
+    np.testing.assert_allclose(compiled.infer(obs[:1], tasks[:1], seeds[:1]), lerobot.infer(obs[:1], tasks[:1], seeds[:1]), atol=1e-5)
+    with pytest.raises(ConfigError, match="engine.compile_sampler"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(compile_sampler=True))

@@ -75,13 +75,21 @@ class BucketedSampler:
     """Runs ``sample`` (a static sampler's ``sample(SamplerInputs) -> Tensor``) on batches padded to
     buckets; with :meth:`capture`, as one CUDA graph per bucket.
 
-    Before :meth:`set_buckets` every batch runs at its own size (the engine's dry run). A batch
+    Before :meth:`set_buckets` every batch runs at its own size through ``uncompiled`` (the
+    engine's dry run: a compiled ``sample`` would compile a size no bucket has). A batch
     larger than every bucket, or one whose tensors do not have the recorded shapes, runs eagerly
     at its own size, logged once: correct, only slower.
     """
 
-    def __init__(self, sample: Callable[[SamplerInputs], Tensor]) -> None:
+    def __init__(
+        self,
+        sample: Callable[[SamplerInputs], Tensor],
+        prepare: Callable[[int], object] | None = None,
+        uncompiled: Callable[[SamplerInputs], Tensor] | None = None,
+    ) -> None:
         self.sample = sample
+        self.uncompiled = uncompiled or sample
+        self.prepare = prepare  # per-batch-size constants, made before a size is traced or recorded
         self.buckets: tuple[int, ...] = ()
         self.graphs: dict[int, _Graph] = {}
         self.capture_s: dict[int, float] = {}
@@ -100,23 +108,32 @@ class BucketedSampler:
     def __call__(self, inputs: SamplerInputs) -> Tensor:
         """Actions for the batch's real rows (a new tensor, safe to keep across calls)."""
         rows = inputs.rows
-        bucket = bucket_for(rows, self.buckets) if self.buckets else rows
+        if not self.buckets:
+            if self.prepare is not None:
+                self.prepare(rows)
+            return self.uncompiled(inputs)
+        bucket = bucket_for(rows, self.buckets)
         if bucket is None:
             self._warn_once("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
             bucket = rows
         graph = self.graphs.get(bucket)
         if graph is None:
-            return self.sample(inputs.padded(bucket))[:rows]
+            return self._eager(inputs, bucket)
         tensors = inputs.tensors()
         if not _fits(tensors, graph.inputs):
             self._warn_once("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
-            return self.sample(inputs.padded(bucket))[:rows]
+            return self._eager(inputs, bucket)
         for buf, src in zip(graph.inputs, tensors, strict=True):
             buf[:rows].copy_(src)
             if rows < bucket:  # padding rows repeat the last real row (valid data, never NaN)
                 buf[rows:].copy_(src[-1:].expand(bucket - rows, *src.shape[1:]))
         graph.graph.replay()
         return graph.output[:rows].clone()
+
+    def _eager(self, inputs: SamplerInputs, bucket: int) -> Tensor:
+        if self.prepare is not None:
+            self.prepare(bucket)
+        return self.sample(inputs.padded(bucket))[: inputs.rows]
 
     def capture(self, example: SamplerInputs, warmup: int = 3) -> float:
         """Record the graph of the bucket ``example.rows`` (a CUDA device; call from the thread that
@@ -126,6 +143,8 @@ class BucketedSampler:
         if bucket not in self.buckets:
             raise ValueError(f"{bucket} is not a bucket ({self.buckets})")
         start = time.perf_counter()
+        if self.prepare is not None:
+            self.prepare(bucket)
         device = example.noise.device
         inputs = [t.clone() for t in example.tensors()]
         static = example.with_tensors(inputs)

@@ -109,6 +109,9 @@ class EngineOptions:
             fewer operations); unset: wherever graphs are on.
         attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
             (``torch.nn.functional.scaled_dot_product_attention``).
+        compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph, one
+            compilation per bucket at warm-up) before its graphs are recorded: fused kernels,
+            fewer of them; compiling takes minutes.
     """
 
     emulate_profile: str | None = None
@@ -116,6 +119,7 @@ class EngineOptions:
     graph_buckets: str | None = None
     static_sampler: bool | None = None
     attention: str = "eager"
+    compile_sampler: bool = False
 
     def validate(self) -> None:
         from lerobot_armory.policies.pi05_static import ATTENTION
@@ -216,6 +220,11 @@ class PolicyEngine:
         if static and why is not None:
             option = "cuda_graphs" if o.static_sampler is None else "static_sampler"
             raise ConfigError(f"engine.{option}", why)
+        if not static and o.compile_sampler:
+            raise ConfigError(
+                "engine.compile_sampler", f"compiles the static sampler, which is off here ({why or 'no CUDA device'}); "
+                "--engine.static_sampler=true turns it on"
+            )
         if not static:
             note = why if o.cuda_graphs == "auto" and cuda else None
             if note is not None:
@@ -225,7 +234,11 @@ class PolicyEngine:
         sampler = pi05_static.StaticPi05(
             self.policy, guided=rtc is not None, max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0, attention=o.attention
         )
-        self.sampler = BucketedSampler(sampler.sample)
+        sample = sampler.sample
+        if o.compile_sampler:
+            _allow_recompiles(8)  # one compilation per bucket
+            sample = torch.compile(sample, fullgraph=True, dynamic=False)
+        self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
         return graphs, None
 
     @property
@@ -235,6 +248,8 @@ class PolicyEngine:
             notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
         if self.sampler is not None:
             buckets = ",".join(map(str, self.sampler.buckets)) or "-"
+            if self.engine_options.compile_sampler:
+                notes.append("static sampler compiled")
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
