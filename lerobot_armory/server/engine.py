@@ -202,6 +202,19 @@ class PolicyEngine:
         if self.rtc is not None and self.sampler is None:
             self._check_rtc_reached()
 
+    def use_sampler(self, options: EngineOptions) -> None:
+        """Serve through what ``options`` asks (LeRobot's sampler, the static one, CUDA graphs) from
+        now on; graphs are recorded by the next :meth:`warmup`. Lets a benchmark compare samplers on
+        one loaded policy (loading the full π0.5 takes minutes).
+
+        Raises:
+            ConfigError: as the constructor does for these options.
+        """
+        options.validate()
+        self.engine_options = options
+        self.sampler = None  # drops the recorded graphs (and their memory pool) with it
+        self.graphs_wanted, self.sampler_note = self._choose_sampler()
+
     def _choose_sampler(self) -> tuple[bool, str | None]:
         """Install the static sampler if the options and the policy allow it; returns (record CUDA
         graphs at warm-up, why the policy's own sampler is used instead or None)."""
