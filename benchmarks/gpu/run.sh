@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# One device call: install the wheels carried in .whl/ (benchmarks/gpu/prepare.sh made them), then
+# run the named steps in order, each under its own time limit so the call returns inside the device
+# tool's 10 minutes with whatever finished. Everything goes to $OUT: log.txt (all output) and the
+# results each step writes (JSON, figures). Steps and what each decides: docs/results/gpu/BACKLOG.md.
+#
+#   device run (carry .whl):  bash benchmarks/gpu/run.sh env graphs
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+OUT=${OUT:-out/gpu}
+mkdir -p "$OUT"
+LOG="$OUT/log.txt"
+if [ -d .whl ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  export PYTHONPATH=/tmp/site:$PWD
+else
+  export PYTHONPATH=$PWD
+fi
+export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
+
+step() {  # step NAME SECONDS COMMAND...
+  local name=$1 limit=$2
+  shift 2
+  echo "=== [$name] $(date +%T) (limit ${limit} s): $*" | tee -a "$LOG"
+  timeout "$limit" "$@" 2>&1 | grep -v -E "Vision embedding key|port of the OpenPI|OpenPI structure|Original implementation" | tee -a "$LOG"
+  echo "=== [$name] $(date +%T) rc=${PIPESTATUS[0]}" | tee -a "$LOG"
+}
+
+# The π0.5 the live bench serves: armory_sim's features (one 64² camera, 2-d state), chunk 10 (libero).
+sim_pi05() {
+  [ -f /tmp/pi05-sim/config.json ] || python3 -c "from lerobot_armory.server.demo_policy import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--output=/tmp/pi05-sim'])"
+}
+
+live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, real timing
+  sim_pi05 && python3 -m lerobot_armory.bench.live --preset=libero --mix=half-fast --robots="$1" \
+    --schedulers=edf,lookahead@3 --emulate_profile= --device=cuda --policy_path=/tmp/pi05-sim --groups=4 \
+    --policy_args="--policy.dtype=bfloat16 --engine.cuda_graphs=on --max_robots=64" --duration_s=30 \
+    --output="$OUT/live_N$1.json" --work_dir=/tmp/live
+}
+
+for s in "$@"; do
+  case $s in
+    env) step env 60 bash -c 'python3 --version; nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv,noheader; nproc; python3 -c "import torch, lerobot, transformers, grpc; print(torch.__version__, lerobot.__version__, transformers.__version__, grpc.__version__, torch.cuda.get_device_name())"' ;;
+    smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
+    graphs) step graphs 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa --work_dir=/tmp/gp ;;
+    compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-compiled --graph_buckets=1,8 --max_batch_size=8 --work_dir=/tmp/gp ;;
+    efficiency) step efficiency 400 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
+    live4) step live4 560 live 4 ;;
+    live10) step live10 560 live 10 ;;
+    live20) step live20 560 live 20 ;;
+    *) echo "unknown step $s (env smoke graphs compiled efficiency live4 live10 live20)" | tee -a "$LOG" ;;
+  esac
+done
+cp docs/results/gpu/*.json docs/results/gpu/*.png "$OUT/" 2>/dev/null || true
+ls -la "$OUT"
