@@ -257,3 +257,20 @@ def test_a_compiled_static_sampler_gives_the_same_chunks(pi05_dir, engines):
     np.testing.assert_allclose(compiled.infer(obs[:1], tasks[:1], seeds[:1]), lerobot.infer(obs[:1], tasks[:1], seeds[:1]), atol=1e-5)
     with pytest.raises(ConfigError, match="engine.compile_sampler"):
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(compile_sampler=True))
+
+
+def test_bf16_keeps_lerobots_dtypes(pi05_dir):
+    """``--policy.dtype=bfloat16``: the static sampler runs each part in the dtype LeRobot runs it
+    in (bf16 Gemma layers, float32 vision tower, norms and projections), so its chunks match
+    LeRobot's bf16 chunks (bit for bit on the development CPU; bf16 rounding allowed here)."""
+    import torch
+
+    bf16 = ["dtype=bfloat16"]
+    lerobot = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16))
+    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16), engine=EngineOptions(static_sampler=True))
+    static.warmup(4, log_progress=False)
+    layer = static.policy.model.paligemma_with_expert.gemma_expert.model.layers[0]
+    assert layer.self_attn.q_proj.weight.dtype == torch.bfloat16
+    for b in (1, 3):
+        obs, tasks, seeds, _ = batch(b)
+        np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-2)

@@ -42,7 +42,7 @@ for s in "$@"; do
   case $s in
     env) step env 60 bash -c 'python3 --version; nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv,noheader; nproc; python3 -c "import torch, lerobot, transformers, grpc; print(torch.__version__, lerobot.__version__, transformers.__version__, grpc.__version__, torch.cuda.get_device_name())"' ;;
     smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
-    graphs) step graphs 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa --work_dir=/tmp/gp ;;
+    graphs) step graphs 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
     compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-compiled --graph_buckets=1,8 --max_batch_size=8 --work_dir=/tmp/gp ;;
     efficiency) step efficiency 400 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
     live4) step live4 560 live 4 ;;

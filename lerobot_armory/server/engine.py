@@ -112,6 +112,10 @@ class EngineOptions:
         compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph, one
             compilation per bucket at warm-up) before its graphs are recorded: fused kernels,
             fewer of them; compiling takes minutes.
+        matmul_precision: float32 matrix products (``torch.set_float32_matmul_precision``, for the
+            whole process): ``highest`` (true float32, LeRobot's numerics) or ``high`` (TF32 on a
+            GPU that has it). With ``--policy.dtype=bfloat16`` LeRobot still runs the SigLIP
+            tower, the projector, the norms and the action/time projections in float32.
     """
 
     emulate_profile: str | None = None
@@ -120,6 +124,7 @@ class EngineOptions:
     static_sampler: bool | None = None
     attention: str = "eager"
     compile_sampler: bool = False
+    matmul_precision: str = "highest"
 
     def validate(self) -> None:
         from lerobot_armory.policies.pi05_static import ATTENTION
@@ -129,6 +134,8 @@ class EngineOptions:
             raise ConfigError("engine.cuda_graphs", f"must be one of {', '.join(MODES)}, got {self.cuda_graphs!r}")
         if self.attention not in ATTENTION:
             raise ConfigError("engine.attention", f"must be one of {', '.join(ATTENTION)}, got {self.attention!r}")
+        if self.matmul_precision not in ("highest", "high", "medium"):
+            raise ConfigError("engine.matmul_precision", f"must be highest, high or medium, got {self.matmul_precision!r}")
         if self.cuda_graphs == "on" and self.static_sampler is False:
             raise ConfigError("engine.static_sampler", "CUDA graphs record the static sampler: it cannot be off with --engine.cuda_graphs=on")
 
@@ -157,6 +164,7 @@ class PolicyEngine:
 
         self.engine_options = engine or EngineOptions()
         self.engine_options.validate()
+        torch.set_float32_matmul_precision(self.engine_options.matmul_precision)
 
         if not options.path:
             raise ConfigError("policy.path", "no policy given; pass --policy.path=DIR or a hub id")
@@ -210,8 +218,11 @@ class PolicyEngine:
         Raises:
             ConfigError: as the constructor does for these options.
         """
+        import torch
+
         options.validate()
         self.engine_options = options
+        torch.set_float32_matmul_precision(options.matmul_precision)
         self.sampler = None  # drops the recorded graphs (and their memory pool) with it
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
 
@@ -263,6 +274,8 @@ class PolicyEngine:
             buckets = ",".join(map(str, self.sampler.buckets)) or "-"
             if self.engine_options.compile_sampler:
                 notes.append("static sampler compiled")
+            if self.engine_options.matmul_precision != "highest":
+                notes.append(f"float32 matmul precision {self.engine_options.matmul_precision}")
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
