@@ -109,6 +109,13 @@ def test_the_mirror_and_the_schedulers_are_a_pure_layer():
     assert not found, "mirror.py, schedulers/ and placement.py must not depend on server, sim, bench or robot:\n" + "\n".join(found)
 
 
+def test_policies_are_model_code_below_the_server():
+    may_not = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.bench",
+               "lerobot_armory.cluster", "lerobot_armory.robot")  # fmt: skip
+    found = _violations(_py_files(PACKAGE / "policies"), may_not)
+    assert not found, "policies/ (model code: the static sampler, LeRobot variants) must not depend on the server:\n" + "\n".join(found)
+
+
 def test_the_product_package_imports_no_research_or_benchmark_code():
     found = _violations(_py_files(PACKAGE), NOBODY_MAY)
     assert not found, "lerobot_armory must not import research/ or benchmarks/:\n" + "\n".join(found)

@@ -274,3 +274,18 @@ def test_bf16_keeps_lerobots_dtypes(pi05_dir):
     for b in (1, 3):
         obs, tasks, seeds, _ = batch(b)
         np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-2)
+
+
+def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
+    """``--engine.cuda_graphs=on`` (which the YAML-based parser reads as a boolean) on a CPU: exit 2
+    with one line, before any robot could connect."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={pi05_dir}", "--policy.device=cpu",
+           "--engine.cuda_graphs=on", "--port=0"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines()[-1] == (
+        "lerobot-armory-server: error: engine.cuda_graphs: on needs a CUDA device; this engine runs on cpu"
+    )

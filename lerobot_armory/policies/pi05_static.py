@@ -53,6 +53,8 @@ from lerobot.policies.pi_gemma import _gated_residual
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
+from lerobot_armory.policies.rtc_guidance import guidance_weight
+
 ATTENTION = ("eager", "sdpa")
 
 
@@ -203,8 +205,6 @@ class StaticPi05:
         self.conditioning: dict[int, tuple[StepConditioning, ...]] = {}  # by batch size (prepare)
         self.guidance_table = None
         if guided:
-            from lerobot_armory.server.rtc import guidance_weight
-
             self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
 
     # -- the sampler ---------------------------------------------------------------------------

@@ -126,6 +126,11 @@ class EngineOptions:
     compile_sampler: bool = False
     matmul_precision: str = "highest"
 
+    def __post_init__(self) -> None:
+        # The command-line parser reads YAML, where on/off are booleans: take them back.
+        value = str(self.cuda_graphs).lower()
+        self.cuda_graphs = {"true": "on", "false": "off", "yes": "on", "no": "off"}.get(value, value)
+
     def validate(self) -> None:
         from lerobot_armory.policies.pi05_static import ATTENTION
         from lerobot_armory.server.cuda_graphs import MODES

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 SCHEDULES = ("ZEROS", "ONES", "LINEAR", "EXP")
 
@@ -231,18 +232,6 @@ def pad_leftover(leftover: Any, length: int, dim: int) -> Any:
     out = torch.zeros(leftover.shape[0], length, dim, device=leftover.device)
     out[:, : leftover.shape[1], : leftover.shape[2]] = leftover
     return out
-
-
-def guidance_weight(time: float, max_weight: float) -> Any:
-    """LeRobot's guidance weight at flow time ``time`` (1: noise, 0: actions), clamped to
-    ``max_weight``, as a 0-dim float32 tensor (computed exactly as ``RTCProcessor.denoise_step``)."""
-    import torch
-
-    tau = torch.as_tensor(1 - time)
-    max_w = torch.as_tensor(max_weight)
-    inv_r2 = ((1 - tau) ** 2 + tau**2) / ((1 - tau) ** 2)
-    c = torch.nan_to_num((1 - tau) / tau, posinf=max_w)
-    return torch.minimum(torch.nan_to_num(c * inv_r2, posinf=max_w), max_w)
 
 
 def guidance_kwargs(
