@@ -217,7 +217,7 @@ def test_engine_options_are_checked_with_one_line_each(pi05_dir, demo_policy_dir
     with pytest.raises(ConfigError, match="engine.cuda_graphs.*CUDA device"):
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(cuda_graphs="on"))
     with pytest.raises(ConfigError, match="engine.cuda_graphs.*one of"):
-        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(cuda_graphs="yes"))
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(cuda_graphs="sometimes"))
     with pytest.raises(ConfigError, match="engine.attention"):
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(attention="flash"))
     with pytest.raises(ConfigError, match="engine.static_sampler.*act has no static sampler"):

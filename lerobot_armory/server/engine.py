@@ -260,9 +260,14 @@ class PolicyEngine:
                 log.info("CUDA graphs off, the policy's own sampler serves: %s", note)
             return False, note
         rtc = self.rtc_options
-        sampler = pi05_static.StaticPi05(
-            self.policy, guided=rtc is not None, max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0, attention=o.attention
-        )
+        try:
+            sampler = pi05_static.StaticPi05(
+                self.policy, guided=rtc is not None, max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0, attention=o.attention
+            )
+        except ValueError as exc:  # e.g. --policy.num_inference_steps=0
+            raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None
+        if getattr(self.config, "compile_model", False):
+            log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         sample = sampler.sample
         if o.compile_sampler:
             _allow_recompiles(8)  # one compilation per bucket
@@ -522,7 +527,7 @@ class PolicyEngine:
                     if log_progress:
                         log.info("CUDA graph of bucket %d recorded in %.1f s", bucket, seconds)
         sizes = self._sizes(max_batch_size)
-        compiled = _compiled_functions(self.policy)
+        compiled = _compiled_functions(self.policy) if self.sampler is None else []
         if compiled:
             _allow_recompiles(max_batch_size)
         self._time_sizes(sizes, 1, "warm-up" + (" (compiling)" if compiled else ""), log_progress)
