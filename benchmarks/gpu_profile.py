@@ -22,7 +22,9 @@ pre-processor with the prompt's tokenizer, the forward pass, post-processor, the
 *bare* = ``PolicyEngine.forward`` alone on a batch already pre-processed on the device (the model's
 own time: LeRobot's ``predict_action_chunk``, or the static sampler / its graph); both median of
 ``--reps`` after the engine's warm-up, synchronised. With graphs, the seconds to record each
-bucket and the peak GPU memory are written too. Results merge into ``docs/results/gpu/<device>.json``;
+bucket, the peak GPU memory, and how far its chunks are from LeRobot's eager sampler's on the
+same inputs (b = 1, 3, 8; measured when the eager configuration of that dtype ran first in the
+call) are written too. Results merge into ``docs/results/gpu/<device>.json``;
 its top-level ``latency_ms`` is the fastest π0.5 bf16 configuration through the engine, so the
 file loads as ``--latency_profile=FILE``. A figure is drawn beside the JAX reference's H100 table
 (openpi in JAX, the π0.5 latencies reported in the real-time chunking paper).
@@ -123,8 +125,25 @@ def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, l
     return str(path), overrides
 
 
+def chunks(engine: Any, sizes: tuple[int, ...] = (1, 3, 8)) -> dict[int, Any]:
+    """The chunks of fixed batches (observations, prompts, noise seeds) per batch size: the same
+    inputs for every configuration of a call, so their chunks compare."""
+    out = {}
+    for b in sizes:
+        obs = [engine.example_observation(seed=100 + k) for k in range(b)]
+        out[b] = engine.infer(obs, [f"put the bowl on plate {k}" for k in range(b)], [7 + k for k in range(b)])
+    return out
+
+
+def agreement(reference: dict[int, Any], other: dict[int, Any]) -> dict[str, float]:
+    """Largest |difference| between two configurations' chunks, and the chunks' largest |value|."""
+    diff = max(float(abs(reference[b] - other[b]).max()) for b in reference)
+    scale = max(float(abs(reference[b]).max()) for b in reference)
+    return {"max_abs_diff": round(diff, 6), "max_abs_action": round(scale, 4)}
+
+
 def measure(engine: Any, max_b: int, reps: int) -> tuple[list[float], list[float]]:
-    """Median ms per batch size: through the engine, and bare ``predict_action_chunk``."""
+    """Median ms per batch size: through the engine, and bare (the forward pass alone)."""
     import torch
 
     def sync() -> None:
@@ -244,6 +263,7 @@ def main() -> None:
     work = Path(ARGS.work_dir or tempfile.mkdtemp(prefix="armory-gpu-profile-"))
     print(f"device: {name}; configs: {', '.join(configs)}; b = 1..{ARGS.max_batch_size}; π0.5 size {ARGS.size}", flush=True)
     runs: dict[str, dict[str, Any]] = {}
+    reference: dict[str, dict[int, Any]] = {}  # LeRobot's eager chunks, by dtype override
     engine, loaded = None, None
     for config in configs:
         path, overrides = build(config, ARGS.size, work, ARGS.compile_mode)
@@ -265,6 +285,9 @@ def main() -> None:
         capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
         print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
         engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
+        got = chunks(engine)
+        if "-graphs" not in config and "-compiled" not in config:
+            reference[overrides[0] if overrides else config] = got
         params = sum(p.numel() for p in engine.policy.parameters())
         runs[config] = {
             "policy": f"{engine.config.type} {ARGS.size if config != 'act' else ''}".strip(),
@@ -278,6 +301,11 @@ def main() -> None:
         }
         if capture:
             runs[config]["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
+        ref = reference.get(overrides[0] if overrides else config)
+        if ref is not None and ref is not got:
+            # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.
+            runs[config]["vs_lerobot_eager"] = agreement(ref, got)
+            print(f"  chunks vs LeRobot's eager sampler (b = 1, 3, 8): {runs[config]['vs_lerobot_eager']}", flush=True)
         if device == "cuda":
             runs[config]["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     engine = None
