@@ -289,3 +289,20 @@ def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
     assert done.stderr.strip().splitlines()[-1] == (
         "lerobot-armory-server: error: engine.cuda_graphs: on needs a CUDA device; this engine runs on cpu"
     )
+
+
+def test_two_cameras_pass_the_vision_tower_as_one_batch_with_the_same_chunks(tmp_path_factory):
+    """With two cameras the static sampler runs SigLIP once on both (LeRobot runs it per camera):
+    the chunks still equal LeRobot's, unpadded and padded."""
+    from lerobot_armory.server.demo_policy import main
+
+    path = tmp_path_factory.mktemp("pi05-2cam") / "pi05"
+    main(["--kind=pi05", "--size=tiny", f"--output={path}", "--chunk_size=10", "--cameras=front,wrist", "--state_dim=3"])
+    lerobot = PolicyEngine(PolicyOptions(str(path), "cpu"))
+    static = PolicyEngine(PolicyOptions(str(path), "cpu"), engine=EngineOptions(static_sampler=True))
+    static.warmup(4, log_progress=False)
+    assert len(static.config.image_features) == 2
+    for b in (1, 3):
+        obs = [static.example_observation(seed=10 + k) for k in range(b)]
+        tasks, seeds = [TASKS[k % 3] for k in range(b)], list(range(b))
+        np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5)

@@ -14,6 +14,7 @@ LeRobot is forked) in the order ``sample_actions`` runs them, with three changes
 - the prefix writes its keys and values once into one buffer per layer that has room for the
   suffix; each denoising step writes the suffix's keys and values in place behind them (no clone,
   no concatenation);
+- all cameras pass the vision tower as one batch (LeRobot runs it once per camera);
 - masks and positions are computed on the device from the inputs' pad masks; the flow times and
   RTC guidance weights are device tensors made once, indexed by step;
 - everything that depends on the flow time alone — the time embedding, the time MLP and every
@@ -273,11 +274,16 @@ class StaticPi05:
 
     def _embed_prefix(self, images: Sequence[Tensor], img_masks: Sequence[Tensor], tokens: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
         """LeRobot's ``embed_prefix`` without its host-built attention pattern (all zeros for π0.5:
-        the prefix attends itself fully, so only the pad mask matters)."""
+        the prefix attends itself fully, so only the pad mask matters). All cameras go through the
+        vision tower as one batch (LeRobot runs it once per camera): rows never mix, and one pass
+        of 2B images launches half the kernels of two passes of B."""
         pwe = self.model.paligemma_with_expert
+        if len(images) > 1 and len({tuple(i.shape) for i in images}) == 1:
+            per_camera = pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0])
+        else:
+            per_camera = tuple(pwe.embed_image(img) for img in images)
         embs, pads = [], []
-        for img, img_mask in zip(images, img_masks, strict=True):
-            emb = pwe.embed_image(img)
+        for emb, img_mask in zip(per_camera, img_masks, strict=True):
             embs.append(emb)
             pads.append(img_mask[:, None].expand(emb.shape[0], emb.shape[1]))
         embs.append(pwe.embed_language_tokens(tokens))
