@@ -306,3 +306,28 @@ def test_two_cameras_pass_the_vision_tower_as_one_batch_with_the_same_chunks(tmp
         obs = [static.example_observation(seed=10 + k) for k in range(b)]
         tasks, seeds = [TASKS[k % 3] for k in range(b)], list(range(b))
         np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5)
+
+
+def test_a_failed_graph_recording_serves_unrecorded_with_auto_and_is_refused_with_on(pi05_dir, monkeypatch, caplog):
+    """A recording that fails on the device (simulated: the CPU cannot record) does not take the
+    server down with ``auto``: the static sampler serves the same chunks unrecorded and says why;
+    with ``on`` start-up stops with one line."""
+    import logging
+
+    def broken(self, example, warmup=3):
+        raise RuntimeError("operation not permitted when stream is capturing\nmore lines")
+
+    monkeypatch.setattr(BucketedSampler, "capture", broken)
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    engine.graphs_wanted = True  # as on a CUDA device with --engine.cuda_graphs=auto
+    with caplog.at_level(logging.WARNING):
+        engine.warmup(2, log_progress=False)
+    assert not engine.sampler.captured and not engine.graphs_wanted
+    assert "recording the CUDA graph of bucket 2 failed: RuntimeError: operation not permitted" in engine.description
+    assert any("serving with the static sampler unrecorded" in r.message for r in caplog.records)
+    obs, tasks, seeds, _ = batch(2)
+    assert engine.infer(obs, tasks, seeds).shape == (2, 10, 2)
+    refused = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    refused.graphs_wanted, refused.engine_options.cuda_graphs = True, "on"
+    with pytest.raises(ConfigError, match="engine.cuda_graphs: recording the CUDA graph of bucket 2 failed"):
+        refused.warmup(2, log_progress=False)

@@ -290,7 +290,8 @@ class PolicyEngine:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
             else:
-                notes.append(f"static sampler, buckets {buckets}, not recorded" + ("" if self.graphs_wanted else f" ({self.device})"))
+                why = self.sampler_note or self.device
+                notes.append(f"static sampler, buckets {buckets}, not recorded" + ("" if self.graphs_wanted else f" ({why})"))
         elif self.sampler_note is not None:
             notes.append("LeRobot's sampler (no CUDA graphs)")
         if self.rtc_options is not None:
@@ -522,10 +523,7 @@ class PolicyEngine:
 
             self.sampler.set_buckets(parse_buckets(self.engine_options.graph_buckets, max_batch_size))
             if self.graphs_wanted and not self.sampler.captured:
-                for bucket in reversed(self.sampler.buckets):
-                    seconds = self.on_device(self._capture, bucket)
-                    if log_progress:
-                        log.info("CUDA graph of bucket %d recorded in %.1f s", bucket, seconds)
+                self._record_graphs(log_progress)
         sizes = self._sizes(max_batch_size)
         compiled = _compiled_functions(self.policy) if self.sampler is None else []
         if compiled:
@@ -547,6 +545,25 @@ class PolicyEngine:
             [round(x, 1) for x in fast_ms.values()], [round(x, 1) for x in eager_ms.values()], max_batch_size,
             "compiled" if self.compiled_kept else "eager",
         )  # fmt: skip
+
+    def _record_graphs(self, log_progress: bool) -> None:
+        """Record every bucket's graph. A recording that fails is refused with ``cuda_graphs=on``;
+        with ``auto`` the static sampler serves unrecorded (the same chunks, launched eagerly) and
+        the log and the description say why."""
+        assert self.sampler is not None
+        bucket = None
+        try:
+            for bucket in reversed(self.sampler.buckets):
+                seconds = self.on_device(self._capture, bucket)
+                if log_progress:
+                    log.info("CUDA graph of bucket %d recorded in %.1f s", bucket, seconds)
+        except Exception as exc:
+            why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
+            if self.engine_options.cuda_graphs == "on":
+                raise ConfigError("engine.cuda_graphs", why) from exc
+            self.sampler.graphs.clear()
+            self.graphs_wanted, self.sampler_note = False, why
+            log.warning("%s; serving with the static sampler unrecorded (--engine.cuda_graphs=on refuses instead)", why)
 
     def _capture(self, bucket: int) -> float:
         """Record the CUDA graph of one bucket (on the device thread) from an example batch."""
