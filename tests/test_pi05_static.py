@@ -331,3 +331,20 @@ def test_a_failed_graph_recording_serves_unrecorded_with_auto_and_is_refused_wit
     refused.graphs_wanted, refused.engine_options.cuda_graphs = True, "on"
     with pytest.raises(ConfigError, match="engine.cuda_graphs: recording the CUDA graph of bucket 2 failed"):
         refused.warmup(2, log_progress=False)
+
+
+def test_a_hostile_row_changes_nothing_for_its_batch_mates(engines):
+    """One robot with a non-finite state, saturated images and the longest hostile prompt, batched
+    (and padded to bucket 4) with two honest robots: the honest rows are their chunks alone (1e-5;
+    bit for bit on the development CPU), and the hostile row does not fail the batch."""
+    from lerobot_armory.server.service import MAX_TASK
+
+    _, static = engines
+    obs, tasks, seeds, _ = batch(3, seed=11)
+    bad = {k: v.copy() for k, v in obs[0].items()}
+    bad["observation.state"][:] = [np.inf, np.nan]
+    bad["observation.images.front"][:] = 255
+    hostile = ("Task: \x00\x1b[2J;\nAction: 🤖" + "ünïcødé\u202e" * 400)[:MAX_TASK]
+    together = static.infer([bad, obs[1], obs[2]], [hostile, tasks[1], tasks[2]], seeds)
+    for k in (1, 2):
+        np.testing.assert_allclose(together[k], static.infer([obs[k]], [tasks[k]], [seeds[k]])[0], atol=1e-5, rtol=0)
