@@ -67,6 +67,12 @@ def run_server(port: int, no_filter: bool, cpu_threads: int) -> None:
         torch.set_num_threads(cpu_threads)
     from lerobot.async_inference import policy_server
 
+    try:  # a π0.5 directory of ours may name a tiny size LeRobot does not ship (a no-op for its own)
+        from lerobot_armory.policies import pi05_variants
+
+        pi05_variants.register()
+    except ImportError:
+        pass
     if no_filter:
         policy_server.observations_similar = lambda *args, **kwargs: False  # type: ignore[assignment]
     sys.argv = [sys.argv[0], "--host=127.0.0.1", f"--port={port}"]
@@ -132,7 +138,7 @@ def client_args(spec: dict[str, Any]) -> list[str]:
         f"--robot.image_size={spec['image_size']}",
         f"--robot.seed={spec['seed']}",
         f"--server_address={spec['address']}",
-        "--policy_type=act",
+        f"--policy_type={spec['policy_type']}",
         f"--pretrained_name_or_path={spec['policy_path']}",
         f"--policy_device={spec['device']}",
         f"--actions_per_chunk={spec['actions_per_chunk']}",

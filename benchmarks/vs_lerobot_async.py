@@ -8,7 +8,8 @@ sides, same seeds) at fps 30, chunk 10, a new request after 5 executed steps, fo
   (``--fps=30 --h_min=5 --h_max=10``), optionally at several ``--policy.cpu_threads``;
 - ``stock``: N stock ``policy_server`` processes (a stock server serves one client: a second
   client's ``Ready`` resets it), each with one stock ``robot_client`` whose robot is armory_sim
-  (``actions_per_chunk=10``, ``chunk_size_threshold=0.5``, ``fps=30``, ``policy_type=act``),
+  (``actions_per_chunk=10``, ``chunk_size_threshold=0.5``, ``fps=30``, ``policy_type`` from the
+  policy's ``config.json``),
   with its default observation-similarity filter;
 - ``stock_nofilter``: the same with the filter patched off in the launcher.
 
@@ -219,13 +220,18 @@ def start_stock_servers(opts: Options, n: int, no_filter: bool, run_dir: Path) -
     return [(proc, f"127.0.0.1:{port}") for proc, port in started]
 
 
+def policy_type(policy: str) -> str:
+    """The policy's type as its ``config.json`` names it (the stock client must be told)."""
+    return str(json.loads((Path(policy) / "config.json").read_text())["type"])
+
+
 def robot_spec(opts: Options, k: int, address: str, run_dir: Path) -> dict[str, Any]:
     """What robot ``k`` needs (both sides read the keys they use)."""
     return {
         "robot_id": f"robot{k}", "scene": opts.scene, "image_size": IMAGE_SIZE, "seed": k, "fps": FPS,
         "h_min": H_MIN, "h_max": CHUNK, "actions_per_chunk": CHUNK, "chunk_size_threshold": THRESHOLD,
-        "address": address, "policy_path": opts.policy, "device": opts.device, "duration_s": opts.duration_s,
-        "ready_path": str(run_dir / f"ready{k}"), "go_path": str(run_dir / "go"), "stats_path": str(run_dir / f"robot{k}.json"),
+        "address": address, "policy_path": opts.policy, "policy_type": policy_type(opts.policy), "device": opts.device,
+        "duration_s": opts.duration_s, "ready_path": str(run_dir / f"ready{k}"), "go_path": str(run_dir / "go"), "stats_path": str(run_dir / f"robot{k}.json"),
     }  # fmt: skip
 
 

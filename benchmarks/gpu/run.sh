@@ -18,15 +18,23 @@ else
 fi
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 
-step() {  # step NAME SECONDS COMMAND...
+step() {  # step NAME SECONDS COMMAND... (COMMAND may be one of the functions below)
   local name=$1 limit=$2
   shift 2
   echo "=== [$name] $(date +%T) (limit ${limit} s): $*" | tee -a "$LOG"
-  timeout "$limit" "$@" 2>&1 | grep -v -E "Vision embedding key|port of the OpenPI|OpenPI structure|Original implementation" | tee -a "$LOG"
+  timeout "$limit" bash -c "$*" 2>&1 | grep -v -E "Vision embedding key|port of the OpenPI|OpenPI structure|Original implementation" | tee -a "$LOG"
   echo "=== [$name] $(date +%T) rc=${PIPESTATUS[0]}" | tee -a "$LOG"
 }
 
-# The π0.5 the live bench serves: armory_sim's features (one 64² camera, 2-d state), chunk 10 (libero).
+env_report() {
+  python3 --version
+  nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv,noheader
+  nproc
+  python3 -c "import torch, lerobot, transformers, grpc; print(torch.__version__, lerobot.__version__, transformers.__version__, grpc.__version__, torch.cuda.get_device_name())"
+}
+
+# The π0.5 that robots on armory_sim are served: its features (one 64² camera, 2-d state), chunk 10
+# (libero timing), full size, bf16 (built once per machine).
 sim_pi05() {
   [ -f /tmp/pi05-sim/config.json ] || python3 -c "from lerobot_armory.server.demo_policy import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--output=/tmp/pi05-sim'])"
 }
@@ -34,13 +42,21 @@ sim_pi05() {
 live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, real timing
   sim_pi05 && python3 -m lerobot_armory.bench.live --preset=libero --mix=half-fast --robots="$1" \
     --schedulers=edf,lookahead@3 --emulate_profile= --device=cuda --policy_path=/tmp/pi05-sim --groups=4 \
-    --policy_args="--policy.dtype=bfloat16 --engine.cuda_graphs=on --max_robots=64" --duration_s=30 \
+    --policy_args="--engine.cuda_graphs=on --max_robots=64" --duration_s=30 \
     --output="$OUT/live_N$1.json" --work_dir=/tmp/live
 }
 
+vs_async() {  # vs_async N,N,...: ours (graphed π0.5) against LeRobot's async server, one π0.5 per stock robot
+  sim_pi05 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim --robots="$1" \
+    --duration_s=30 --systems=ours,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
+    --out="$OUT/vs_async" --work_dir=/tmp/vs
+}
+export -f env_report sim_pi05 live vs_async
+export OUT
+
 for s in "$@"; do
   case $s in
-    env) step env 60 bash -c 'python3 --version; nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv,noheader; nproc; python3 -c "import torch, lerobot, transformers, grpc; print(torch.__version__, lerobot.__version__, transformers.__version__, grpc.__version__, torch.cuda.get_device_name())"' ;;
+    env) step env 60 env_report ;;
     smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
     graphs) step graphs 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
     compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-compiled --graph_buckets=1,8 --max_batch_size=8 --work_dir=/tmp/gp ;;
@@ -48,7 +64,9 @@ for s in "$@"; do
     live4) step live4 560 live 4 ;;
     live10) step live10 560 live 10 ;;
     live20) step live20 560 live 20 ;;
-    *) echo "unknown step $s (env smoke graphs compiled efficiency live4 live10 live20)" | tee -a "$LOG" ;;
+    vs_async) step vs_async 560 vs_async 1,4 ;;
+    vs_async8) step vs_async8 560 vs_async 8 ;;
+    *) echo "unknown step $s (env smoke graphs compiled efficiency live4 live10 live20 vs_async vs_async8)" | tee -a "$LOG" ;;
   esac
 done
 cp docs/results/gpu/*.json docs/results/gpu/*.png "$OUT/" 2>/dev/null || true
