@@ -1,6 +1,6 @@
 """Placement at scale: which GPU serves which robot, for the four placement policies.
 
-Every row is a fleet of the presets' mixes (SPEC §5) placed on K GPUs by ``random``,
+Every row is a fleet of the presets' mixes (docs/spec.md §5) placed on K GPUs by ``random``,
 ``round_robin``, ``least_loaded`` and ``mirror_aware`` (:mod:`lerobot_armory.placement`), each GPU
 then simulated with EDF (:func:`lerobot_armory.sim.cluster.simulate_cluster`, every replica with
 its own seed: ``distinct_only=False``). K is the placement load model's lower bound

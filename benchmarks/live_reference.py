@@ -1,4 +1,4 @@
-"""Reference experiments, live (SPEC §5 / issue "Live fleet benchmark"): the real server with the
+"""Reference experiments, live (docs/spec.md §5 / issue "Live fleet benchmark"): the real server with the
 ``l40s-pi05`` profile emulated, ``armory_sim`` fleets with ``libero`` timing, RR / EDF / LA w=1,3,5,
 per-tier starvation and successes per minute beside the simulator's prediction.
 

@@ -1,4 +1,4 @@
-"""Network delay model: each one-way delay is log-normal, ``ln d ~ N(ln m, σ²)`` (SPEC §5).
+"""Network delay model: each one-way delay is log-normal, ``ln d ~ N(ln m, σ²)`` (docs/spec.md §5).
 
 One model, two users: the simulator draws its network from it and the robot side's network
 emulator (:mod:`lerobot_armory.robot.netem`) delays real messages with it, so live and simulated

@@ -111,7 +111,7 @@ class Dispatcher:
 
     @staticmethod
     def has_work(mirrors: Sequence[RobotMirror]) -> bool:
-        """Whether some robot has a useful request (SPEC §3): the device should not idle."""
+        """Whether some robot has a useful request (docs/spec.md §3): the device should not idle."""
         return any(m.is_useful() for m in mirrors)
 
     def plan(self, mirrors: Sequence[RobotMirror], now: float) -> Plan | None:

@@ -1,6 +1,6 @@
 """Batched-inference latency profiles ``d_infer(b)``.
 
-A profile is a table of milliseconds by batch size ``1..n``. The published tables of SPEC §5 ship
+A profile is a table of milliseconds by batch size ``1..n``. The published tables of docs/spec.md §5 ship
 as named profiles; any other profile is a JSON file::
 
     {"name": "my-gpu", "device": "H100", "latency_ms": [42.3, 56.0, 66.1]}
@@ -28,7 +28,7 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 
-# SPEC §5: π0.5 / GR00T N1.7 inference latency measured by the reference system, ms by batch size.
+# docs/spec.md §5: π0.5 / GR00T N1.7 inference latency measured by the reference system, ms by batch size.
 BUILTIN_PROFILES: dict[str, dict[str, Any]] = {
     "l40s-pi05": {"device": "NVIDIA L40S", "policy": "pi0.5", "latency_ms": [73.0, 109.8, 142.4, 177.5, 211.1]},
     "h100-pi05": {"device": "NVIDIA H100", "policy": "pi0.5", "latency_ms": [42.3, 56.0, 66.1, 79.3, 87.2]},

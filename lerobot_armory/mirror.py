@@ -1,4 +1,4 @@
-"""The chunk mirror: robot specs, chunk queues, delay estimates and *the* transition (SPEC §2).
+"""The chunk mirror: robot specs, chunk queues, delay estimates and *the* transition (docs/spec.md §2).
 
 Everything here is pure and deterministic: no I/O, no threads, no clock reads. Time is always
 passed in, so the live server drives these objects with wall time and the simulator drives the
@@ -42,7 +42,7 @@ MIN_FPS = 0.01
 MAX_FPS = 1000.0
 MAX_WEIGHT = 1e6
 
-# What robot-supplied times may claim (SPEC §2, edge checks). A robot's one-way uplink is never
+# What robot-supplied times may claim (docs/spec.md §2, edge checks). A robot's one-way uplink is never
 # believed above MAX_UPLINK_S: an observation "captured" earlier than that before it reached the
 # server is treated as a clock fault, not as an old observation, so a lying clock can move its
 # robot's predicted deadline by at most that much (less once server-measured round trips exist).
@@ -157,7 +157,7 @@ class Chunk:
     when the robot will hold it (mirror), or the true arrival time (simulated ground truth).
     A chunk still in inference or on the network is simply one whose arrival is in the future.
 
-    A mirror's chunk also keeps the three server-side stamps of its delay exchange (SPEC §2):
+    A mirror's chunk also keeps the three server-side stamps of its delay exchange (docs/spec.md §2):
     when its observation was captured (robot clock) and received, and when the chunk was sent.
     They stay inside the mirror until the robot reports the chunk's arrival (NaN elsewhere).
     """
@@ -545,7 +545,7 @@ class RobotTimeline:
 @dataclass(frozen=True)
 class ExecutionPrefix:
     """What a robot executes from a booked chunk's first index on, as its mirror predicts it
-    (real-time chunking's two inputs, SPEC §2 applied to one request).
+    (real-time chunking's two inputs, docs/spec.md §2 applied to one request).
 
     Attributes:
         inference_delay: steps the robot executes (from older chunks) before the booked chunk
@@ -600,7 +600,7 @@ class WindowView:
 
 @dataclass
 class RobotMirror:
-    """The server's model of one robot (SPEC §2): ``i_j``, ``î_j``, ``Q_j`` and delay estimates.
+    """The server's model of one robot (docs/spec.md §2): ``i_j``, ``î_j``, ``Q_j`` and delay estimates.
 
     Fed by three events, each with the time it happened on the server clock:
 
@@ -636,7 +636,7 @@ class RobotMirror:
         latest one (out-of-order delivery). Raises ValueError if its index goes backwards in time
         or a time is not finite.
 
-        Nothing the robot claims is taken beyond what the server itself saw (SPEC §2, edge
+        Nothing the robot claims is taken beyond what the server itself saw (docs/spec.md §2, edge
         checks): the capture instant is placed at most ``uplink_window_s`` before its receipt
         (an implausible one counts as a clock fault, and ``CLOCK_FAULTS_FOR_STEP`` in a row
         restart the clock offset and raise ``needs_sync``), and the index is capped by the chunks
@@ -778,7 +778,7 @@ class RobotMirror:
     # ---- derived quantities ------------------------------------------------------------------
 
     def is_useful(self) -> bool:
-        """SPEC §3: serving the latest observation now is useful.
+        """docs/spec.md §3: serving the latest observation now is useful.
 
         Not useful when there is no observation, when it is the one served last, or when the
         robot executed fewer than ``h_min`` steps since the last served observation.
@@ -842,7 +842,7 @@ class RobotMirror:
 
 
 def request_is_useful(obs_index: int | None, last_served_index: int | None, h_min: int) -> bool:
-    """SPEC §3's usefulness rule, in one place: an observation exists, it is not the one served
+    """docs/spec.md §3's usefulness rule, in one place: an observation exists, it is not the one served
     last, and at least ``h_min`` steps were executed since the last served observation."""
     if obs_index is None:
         return False
@@ -853,5 +853,5 @@ def request_is_useful(obs_index: int | None, last_served_index: int | None, h_mi
 
 
 def reward(specs: Sequence[RobotSpec], executed_steps: Sequence[int]) -> float:
-    """SPEC §2: weighted executed robot time ``R = Σ_j w_j Δi_j / fps_j`` (seconds)."""
+    """docs/spec.md §2: weighted executed robot time ``R = Σ_j w_j Δi_j / fps_j`` (seconds)."""
     return sum(s.weight * n / s.fps for s, n in zip(specs, executed_steps, strict=True))

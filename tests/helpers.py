@@ -25,7 +25,7 @@ def mirror(robot_id: str = "r", **kwargs) -> RobotMirror:
 
 
 def naive_run(index: int, chunks: Sequence[TickChunk], n_ticks: int):
-    """Tick-by-tick reference of SPEC §2's transition with the naive-async switch rule.
+    """Tick-by-tick reference of docs/spec.md §2's transition with the naive-async switch rule.
 
     Returns (final index, executed ticks, starved ticks, {position: first executed offset}).
     At every tick the newest arrived chunk covering the index (highest position in the list,

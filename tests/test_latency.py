@@ -1,4 +1,4 @@
-"""Latency profiles d_infer(b): built-in tables (SPEC §5), extrapolation, JSON files, errors; the
+"""Latency profiles d_infer(b): built-in tables (docs/spec.md §5), extrapolation, JSON files, errors; the
 online model that learns d_infer from served batches, unit-tested on hand-made sample streams and
 end to end on a live server."""
 

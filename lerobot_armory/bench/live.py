@@ -46,7 +46,7 @@ class BenchConfig:
     """Options of ``lerobot-armory-bench``.
 
     Attributes:
-        preset: robot timing (``libero`` or ``piper``; SPEC §5).
+        preset: robot timing (``libero`` or ``piper``; docs/spec.md §5).
         mix: which robots are fast: all-fast, one-fast, half-fast.
         robots: fleet size N.
         schedulers: comma-separated schedulers to compare: ``rr``, ``edf``, ``lookahead`` (uses
@@ -305,7 +305,7 @@ def _mean_of(rows: list[dict], key: str) -> float | None:
 def batch_overhead_ms(batches: list[dict], profile: LatencyProfile) -> float:
     """Measured serving overhead per batch: time a batch took beyond the profile, plus the gap
     to the next batch when they ran back to back (a request was waiting). The simulator adds it
-    to model the live server (SPEC §5 mirror fidelity)."""
+    to model the live server (docs/spec.md §5 mirror fidelity)."""
     if not batches:
         return 0.0
     ordered = sorted(batches, key=lambda b: b["t_start"])

@@ -1,4 +1,4 @@
-"""The robot's action buffer: which action to execute at index ``i`` (SPEC §2, naive async).
+"""The robot's action buffer: which action to execute at index ``i`` (docs/spec.md §2, naive async).
 
 Pure bookkeeping, no I/O: chunks go in as they arrive; at each tick the robot asks for the
 action at its current index and gets the action from the *newest* arrived chunk covering it,

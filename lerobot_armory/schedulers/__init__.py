@@ -1,4 +1,4 @@
-"""Schedulers behind one registry: ``rr``, ``edf``, ``lookahead`` (SPEC §3).
+"""Schedulers behind one registry: ``rr``, ``edf``, ``lookahead`` (docs/spec.md §3).
 
 Importing this package registers the built-in schedulers with :class:`SchedulerConfig`; a new
 scheduler is one module plus an import line here. Other installed packages add schedulers through

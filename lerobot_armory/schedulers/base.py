@@ -1,4 +1,4 @@
-"""The scheduler interface and its registry (SPEC §3).
+"""The scheduler interface and its registry (docs/spec.md §3).
 
 A scheduler is a plain object that *decides*: given every robot's mirror and the time, it
 returns the robots whose latest observations form the next batch. It does no I/O and keeps no
@@ -72,7 +72,7 @@ class Scheduler(abc.ABC):
 
 
 def useful(robots: Sequence[RobotMirror]) -> list[RobotMirror]:
-    """The robots whose latest observation is worth serving now (SPEC §3)."""
+    """The robots whose latest observation is worth serving now (docs/spec.md §3)."""
     return [r for r in robots if r.is_useful()]
 
 

@@ -1,4 +1,4 @@
-"""Earliest Deadline First (SPEC §3): serve the ``b`` useful robots that run dry soonest."""
+"""Earliest Deadline First (docs/spec.md §3): serve the ``b`` useful robots that run dry soonest."""
 
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
-"""Lookahead (SPEC §3): roll the mirror forward for candidate schedules, dispatch the best.
+"""Lookahead (docs/spec.md §3): roll the mirror forward for candidate schedules, dispatch the best.
 
 A schedule is ``L`` batches (``L`` = depth). Its score is ``Σ_ℓ R_ℓ / d_infer(|B_ℓ|)`` with
 ``R_ℓ`` the weighted executed robot time the batch *adds* inside a window of ``window_s``
 seconds from the decision time (the window's executed time with its chunks minus without them):
-robot-seconds gained per GPU-second. (The literal reading of SPEC §3, the whole fleet's executed
+robot-seconds gained per GPU-second. (The literal reading of docs/spec.md §3, the whole fleet's executed
 time after the batch, favours tiny batches; the study measured it and it is not offered.)
 
 How the search stays cheap. Robots do not interact except through the batch they share, so the
@@ -64,7 +64,7 @@ class _Robot:
         return max(mirror.obs_index, advance(self.view.index, chunks, tick))
 
     def useful_at(self, obs_index: int | None, last_served: int | None) -> bool:
-        """SPEC §3 usefulness for a predicted observation (the mirror's rule)."""
+        """docs/spec.md §3 usefulness for a predicted observation (the mirror's rule)."""
         return request_is_useful(obs_index, last_served, self.h_min)
 
 

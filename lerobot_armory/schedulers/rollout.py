@@ -1,6 +1,6 @@
 """Rollout: score each candidate first batch by playing the mirror forward under a base policy.
 
-Lookahead (SPEC §3) scores a batch by what it adds inside a 1 s window, per GPU-second, one
+Lookahead (docs/spec.md §3) scores a batch by what it adds inside a 1 s window, per GPU-second, one
 epoch deep. That misses what the offline optimum (the study in ``research/armory_research/optimal.py``) exploits:
 a batch decides *when the device is next free* and so shapes every later batch (small staggered
 batches keep latency low while the fleet can be kept fed; full batches keep the throughput up
@@ -29,7 +29,7 @@ once it cannot), and it decides which robots are useful later. Rollout measures 
    alone where the device can nearly keep the fleet fed (piper half-fast N = 4..5: 100 / 99.7 %
    of the best schedule found against 96.4 / 96.5 %), and the load test picks the right one.
 
-3. **Score.** The fleet's weighted executed robot time in the window (SPEC §2 reward, each
+3. **Score.** The fleet's weighted executed robot time in the window (docs/spec.md §2 reward, each
    robot's own weight). The best candidate is dispatched; ties go to the smaller batch.
 The study also measured other orders inside the later batches (largest weighted coverage gain
 first), rolling out the previous decision's plan again, and more candidates; none moved the

@@ -1,4 +1,4 @@
-"""Round Robin (SPEC §3): a pointer cycles over the robots; each batch takes the next ``b``."""
+"""Round Robin (docs/spec.md §3): a pointer cycles over the robots; each batch takes the next ``b``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The live serving loop: scheduler decides, engine runs, chunks go out (SPEC §3-§4).
+"""The live serving loop: scheduler decides, engine runs, chunks go out (docs/spec.md §3-§4).
 
 One thread owns the device. Whenever the device is free and some robot has a useful request, it
 plans a batch through the dispatch step (:class:`~lerobot_armory.dispatch.Dispatcher`, under the

@@ -1,4 +1,4 @@
-"""Discrete-event fleet simulator (SPEC §5): the real mirror and schedulers on simulated time."""
+"""Discrete-event fleet simulator (docs/spec.md §5): the real mirror and schedulers on simulated time."""
 
 from lerobot_armory.delay_model import LogNormalDelay
 from lerobot_armory.sim.presets import MIXES, PRESETS, Preset, fleet_specs, get_preset

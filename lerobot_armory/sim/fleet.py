@@ -17,7 +17,7 @@ a bad value is one :class:`~lerobot_armory.errors.ConfigError` naming the field
 (``robots[1].h_max: ...``), which the command lines print as one line and exit 2.
 
 Instead of a file, ``preset:NAME:MIX:N[:FAST_WEIGHT]`` (e.g. ``preset:libero:half-fast:100``)
-takes a reference preset's robots (SPEC §5) with its default profile, batch cap and network, and
+takes a reference preset's robots (docs/spec.md §5) with its default profile, batch cap and network, and
 EDF.
 """
 

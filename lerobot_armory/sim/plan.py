@@ -11,7 +11,7 @@ device seconds per second summed; :mod:`lerobot_armory.placement`), gallops upwa
 more GPUs) until the target is met, or downward when the bound already meets it (EDF protects the
 fast tier at the slow tier's expense, so the fast tier alone can fit on fewer GPUs than the whole
 fleet's demand), then bisects. Starvation is not strictly monotone in K (placement granularity,
-one seed's draw), so the answer is *verified*: K - 1 misses and K + 1 meets the target too;
+one draw per seed), so the answer is *verified*: K - 1 misses and K + 1 meets the target too;
 if K + 1 misses, the search goes on above it. Every K tried is printed.
 
 Each K is a :func:`~lerobot_armory.sim.cluster.simulate_cluster` per seed, with each distinct
@@ -94,7 +94,7 @@ class PlanConfig:
 
 @dataclass
 class Point:
-    """One K evaluated with one placement: the mean over seeds, and each seed's cluster."""
+    """One K evaluated with one placement: the mean over seeds, and the cluster of each seed."""
 
     gpus: int
     placement: str

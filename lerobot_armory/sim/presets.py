@@ -1,4 +1,4 @@
-"""Reference setups of SPEC §5 as presets, and the fleet mixes.
+"""Reference setups of docs/spec.md §5 as presets, and the fleet mixes.
 
 A preset fixes the robots' timing (chunk size H, fps, h_min, fast/slow h_max), the default batch
 cap, the default network and the default latency profile. A mix says which robots are fast.
@@ -42,7 +42,7 @@ class Preset:
     latency_profile: str = "l40s-pi05"
 
     def default_batch_cap(self, mix: str) -> int:
-        """SPEC §5: ``b`` depends on whether the fleet is homogeneous."""
+        """docs/spec.md §5: ``b`` depends on whether the fleet is homogeneous."""
         return self.batch_cap_homogeneous if mix == "all-fast" else self.batch_cap_heterogeneous
 
 

@@ -24,7 +24,7 @@ class SimConfig:
     """One simulated experiment (``--seeds`` runs of it).
 
     Attributes:
-        preset: reference setup, ``libero`` or ``piper`` (SPEC §5).
+        preset: reference setup, ``libero`` or ``piper`` (docs/spec.md §5).
         mix: which robots are fast: ``all-fast``, ``one-fast``, ``half-fast``.
         robots: fleet size N.
         scheduler: ``--scheduler.type=rr|edf|lookahead`` and its knobs (``--scheduler.depth``...).

@@ -1,4 +1,4 @@
-"""``lerobot-armory-sweep``: the reference experiments of SPEC §5 in the simulator.
+"""``lerobot-armory-sweep``: the reference experiments of docs/spec.md §5 in the simulator.
 
 Three experiment groups, each a grid of :class:`~lerobot_armory.sim.run.SimConfig` runs:
 
@@ -34,7 +34,7 @@ from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, R
 from lerobot_armory.sim.presets import MIXES
 from lerobot_armory.sim.run import SimConfig, simulate, table
 
-# (scheduler config, fast weight) compared everywhere: RR, EDF, LA w = 1, 3, 5 (SPEC §5).
+# (scheduler config, fast weight) compared everywhere: RR, EDF, LA w = 1, 3, 5 (docs/spec.md §5).
 SCHEDULERS: list[tuple[SchedulerConfig, float]] = [
     (RoundRobinConfig(), 1.0),
     (EarliestDeadlineConfig(), 1.0),

@@ -1,16 +1,16 @@
 """Offline optimum for small fleets: the best work-conserving schedule of a deterministic episode.
 
 What is optimised. A deterministic :class:`Episode` fixes everything a schedule cannot change:
-the robots (SPEC §1 specs, weights included), the latency profile ``d_infer(b)``, a jitter-free
+the robots (docs/spec.md §1 specs, weights included), the latency profile ``d_infer(b)``, a jitter-free
 network (every one-way delay is exactly ``net_s``, so the mirror is exact), each robot's tick
 phase (all 0 by default: a synchronous cold start with empty queues), a horizon ``T`` and an
 optional warm-up (decisions before ``warmup_s`` are EDF's for everybody and only later ticks are
 scored, to start the scored window from a fleet in its running rhythm). A
 *schedule* is the sequence of batches dispatched at the instants the device becomes free, under
-the same rules every online scheduler obeys (SPEC §3): a batch is a non-empty set of at most
+the same rules every online scheduler obeys (docs/spec.md §3): a batch is a non-empty set of at most
 ``b`` distinct *useful* robots, and the device is **work-conserving**, i.e. it dispatches
 whenever some robot is useful and otherwise waits for the next observation. The optimum is the
-schedule that maximises the SPEC §2 reward summed over the episode, i.e. the weighted executed
+schedule that maximises the docs/spec.md §2 reward summed over the episode, i.e. the weighted executed
 robot time ``Σ_j w_j · (steps executed before T) / fps_j``. Schedules that idle on purpose while
 a robot is useful are *not* in the search space (no online scheduler may do that either), so
 "optimal" here means optimal among work-conserving schedules.
@@ -171,7 +171,7 @@ def episode_for(
     net_median_ms: float | None = None,
     warmup_s: float = 0.0,
 ) -> Episode:
-    """The deterministic episode of a preset fleet (SPEC §5 timing, σ = 0, synchronous start).
+    """The deterministic episode of a preset fleet (docs/spec.md §5 timing, σ = 0, synchronous start).
 
     The network delay is the preset's median without jitter; the batch cap and latency profile
     default to the preset's. ``horizon_s`` is the scored length: the episode ends at
@@ -202,7 +202,7 @@ class EpisodeResult:
 
     Attributes:
         executed_steps / ticks: per robot, steps executed and ticks in the scored window.
-        weighted_executed_s: SPEC §2 reward summed over the scored window.
+        weighted_executed_s: docs/spec.md §2 reward summed over the scored window.
         batches: robot indices of every dispatched batch, in order (warm-up included).
         warmup_decisions: how many of ``batches`` were the warm-up's (EDF's).
         warmup_weighted_s: weighted executed time before the scored window (the same for every
@@ -236,7 +236,7 @@ def play(episode: Episode, scheduler: Scheduler, tell_end: bool = False) -> Epis
     clipped at the episode's end before every decision, and its own window back afterwards. RR
     and EDF do not look ahead. Off by default, as live (the product has no episode end).
 
-    This is the simulator's event loop (SPEC §3 work conservation, latest observation per robot,
+    This is the simulator's event loop (docs/spec.md §3 work conservation, latest observation per robot,
     chunk ``(î_j, h_max, t_done + d_action)``) without randomness: delays are exact, so the
     mirror's delay estimate is exact from the start (one registration exchange) and needs no
     execution reports. ``FleetSimulator`` with ``net_sigma = 0`` and the same phases gives the
