@@ -12,9 +12,9 @@ The scheduler plans with ``d_infer(b)`` = the measured time of b's bucket (``Pol
 measures the buckets), so it knows that b = 3 costs what b = 4 costs.
 
 Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
-a side stream before it is recorded (lazy initialisations and cuBLAS workspaces happen there, not
-in the recording); all buckets share one memory pool, recorded from the largest down so the
-smaller ones reuse its blocks; everything — capture and every replay — runs on the engine's one
+a side stream before it is recorded, and recorded on that same stream (lazy initialisations and
+per-stream cuBLAS workspaces happen there, not in the recording); all buckets share one memory
+pool and that stream, recorded from the largest down so the smaller ones reuse its blocks; everything — capture and every replay — runs on the engine's one
 device thread; inputs are copied into the recorded buffers and the output is copied out before
 the next replay can overwrite it.
 """
@@ -94,6 +94,7 @@ class BucketedSampler:
         self.graphs: dict[int, _Graph] = {}
         self.capture_s: dict[int, float] = {}
         self._pool: Any = None
+        self._stream: Any = None
         self._warned: set[str] = set()
 
     @property
@@ -150,14 +151,18 @@ class BucketedSampler:
         static = example.with_tensors(inputs)
         if self._pool is None:
             self._pool = torch.cuda.graph_pool_handle()
-        side = torch.cuda.Stream(device)
+            # One side stream for every warm-up and every recording: handles and workspaces that
+            # libraries create per stream on first use then exist before a recording starts, and
+            # graphs sharing a pool should be recorded on the same stream (PyTorch's note).
+            self._stream = torch.cuda.Stream(device)
+        side = self._stream
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
             for _ in range(warmup):
                 self.sample(static)
         torch.cuda.current_stream(device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=self._pool):
+        with torch.cuda.graph(graph, pool=self._pool, stream=side):
             output = self.sample(static)
         graph.replay()
         torch.cuda.synchronize(device)
