@@ -126,7 +126,7 @@ class BucketedSampler:
             return self._eager(inputs, bucket)
         for buf, src in zip(graph.inputs, tensors, strict=True):
             buf[:rows].copy_(src)
-            if rows < bucket:  # padding rows repeat the last real row (valid data, never NaN)
+            if rows < bucket:  # padding repeats the last real row: rows never mix, so it cannot touch a real one
                 buf[rows:].copy_(src[-1:].expand(bucket - rows, *src.shape[1:]))
         graph.graph.replay()
         return graph.output[:rows].clone()
