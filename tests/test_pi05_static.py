@@ -348,3 +348,22 @@ def test_a_hostile_row_changes_nothing_for_its_batch_mates(engines):
     together = static.infer([bad, obs[1], obs[2]], [hostile, tasks[1], tasks[2]], seeds)
     for k in (1, 2):
         np.testing.assert_allclose(together[k], static.infer([obs[k]], [tasks[k]], [seeds[k]])[0], atol=1e-5, rtol=0)
+
+
+def test_creating_parameters_on_a_device_that_fails_falls_back_to_the_cpu(pi05_dir, caplog):
+    """π0.5's parameters are created on the CUDA device when the engine serves there (minutes of
+    CPU initialisation saved for the full size); where that fails — here: no CUDA at all — the
+    policy loads the usual way, with a warning, never a failed start."""
+    import logging
+
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.pi05.modeling_pi05 import PI05Policy
+
+    from lerobot_armory.server import engine as engine_mod
+
+    config = PreTrainedConfig.from_pretrained(str(pi05_dir))
+    config.device = "cpu"
+    with caplog.at_level(logging.WARNING):
+        policy = engine_mod._from_pretrained(PI05Policy, str(pi05_dir), config, "cuda")
+    assert next(policy.parameters()).device.type == "cpu"
+    assert any("creating pi05's parameters on cuda failed" in r.message for r in caplog.records)

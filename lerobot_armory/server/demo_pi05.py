@@ -41,6 +41,7 @@ def make_pi05_policy(
     image_size: int = 64,
     seed: int = 0,
     dtype: str = "float32",
+    device: str = "cpu",
 ) -> Path:
     """Build and save a random-weight π0.5; returns its directory.
 
@@ -54,6 +55,9 @@ def make_pi05_policy(
         image_size: side of the images robots send (the model resizes to its own resolution).
         seed: torch seed for the random weights.
         dtype: ``float32`` or ``bfloat16`` weights (LeRobot keeps the vision tower in float32).
+        device: where the random weights are created (``cuda`` builds the full size in seconds
+            where a CPU takes minutes); they are saved the same way, and the saved config names
+            the CPU as LeRobot's own builds do.
     """
     import torch
     from lerobot.policies.factory import make_pre_post_processors
@@ -91,7 +95,10 @@ def make_pi05_policy(
         device="cpu",
     )
     torch.manual_seed(seed)
-    policy = PI05Policy(config)
+    config.device = device
+    with torch.device(device):
+        policy = PI05Policy(config)
+    config.device = "cpu"  # what the saved config and processors name; the loader picks its own
     # π0.5 normalises state and action by quantiles; armory_sim's positions live in [-1, 1].
     stats = {
         "observation.state": _unit_stats(inputs["observation.state"].shape[0]),

@@ -49,6 +49,8 @@ class DemoPolicyConfig:
         dim_model: transformer width (small keeps CPU inference fast).
         n_encoder_layers: transformer encoder layers.
         seed: torch seed for the random weights.
+        device: π0.5 only: where the random weights are created (``cuda``: seconds instead of
+            minutes for the full size); the directory is the same either way.
     """
 
     output: str = "out/demo-policy"
@@ -63,6 +65,7 @@ class DemoPolicyConfig:
     dim_model: int = 128
     n_encoder_layers: int = 2
     seed: int = 0
+    device: str = "cpu"
 
 
 def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
@@ -84,7 +87,8 @@ def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
         from lerobot_armory.server.demo_pi05 import make_pi05_policy
 
         out = make_pi05_policy(
-            cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype
+            cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype,
+            cfg.device,
         )
         _write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "pi05", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
         return out

@@ -664,7 +664,7 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
             and not any(o.removeprefix("--").removeprefix("policy.").startswith("vlm_model_name=") for o in overrides)
         ):
             config.vlm_model_name = str((local / VLM_DIR).resolve())
-        policy = get_policy_class(config.type).from_pretrained(path, config=config)
+        policy = _from_pretrained(get_policy_class(config.type), path, config, device)
         policy.to(device)
         policy.eval()
         pre, post = make_pre_post_processors(
@@ -682,6 +682,27 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
     if overrides:
         _check_weights_fit(policy, path, overrides)
     return config, policy, pre, post
+
+
+# Policy types whose construction is known to work with a CUDA device as torch's default device
+# (checked on the CPU by constructing them on the meta device): their random initialisation then
+# runs on the GPU. π0.5's 4.1 B parameters take minutes to initialise on a CPU before the saved
+# weights overwrite them.
+INIT_ON_DEVICE = frozenset({"pi05"})
+
+
+def _from_pretrained(policy_class: Any, path: str, config: Any, device: str) -> Any:
+    """``policy_class.from_pretrained(path, config=config)``, with the parameters created on the
+    CUDA device for :data:`INIT_ON_DEVICE` types; if that fails, once more the usual way (logged)."""
+    import torch
+
+    if torch.device(device).type == "cuda" and config.type in INIT_ON_DEVICE:
+        try:
+            with torch.device(device):
+                return policy_class.from_pretrained(path, config=config)
+        except Exception as exc:  # a slower start, never a failed one
+            log.warning("creating %s's parameters on %s failed (%s): creating them on the CPU", config.type, device, _first_line(exc))
+    return policy_class.from_pretrained(path, config=config)
 
 
 def _check_weights_fit(policy: Any, path: str, overrides: Sequence[str]) -> None:
