@@ -106,7 +106,10 @@ def build_policy(kind: str, out: str) -> str:
     if kind == "act":
         make_demo_policy(DemoPolicyConfig(output=out))
     elif kind in ("pi05-tiny", "pi05-full"):
-        make_demo_policy(DemoPolicyConfig(output=out, kind="pi05", size=kind.split("-")[1], chunk_size=50, dtype="bfloat16"))
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"  # random weights created on the GPU: seconds
+        make_demo_policy(DemoPolicyConfig(output=out, kind="pi05", size=kind.split("-")[1], chunk_size=50, dtype="bfloat16", device=device))
     else:
         raise SystemExit(f"unknown --policy={kind}; use act, pi05-tiny or pi05-full")
     return out
