@@ -51,6 +51,7 @@ import platform
 import re
 import statistics
 import sys
+import traceback
 import tempfile
 import time
 from pathlib import Path
@@ -188,6 +189,44 @@ def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], rep
     return times
 
 
+def profile_config(engine: Any, config: str, overrides: list[str], device: str, reference: dict[str, dict[int, Any]]) -> dict[str, Any]:
+    """Warm up (record the graphs) and measure one configuration on a loaded engine; returns its run."""
+    import torch
+
+    engine.use_sampler(engine_options(config))
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    t0 = time.perf_counter()
+    engine.warmup(ARGS.max_batch_size, log_progress=False)
+    capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
+    print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
+    engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
+    got = chunks(engine)
+    if "-graphs" not in config and "-compiled" not in config:
+        reference[overrides[0] if overrides else config] = got
+    params = sum(p.numel() for p in engine.policy.parameters())
+    run = {
+        "policy": f"{engine.config.type} {ARGS.size if config != 'act' else ''}".strip(),
+        "overrides": overrides,
+        "engine_options": dataclasses.asdict(engine.engine_options),
+        "params_millions": round(params / 1e6, 1),
+        "compiled_kept": engine.compiled_kept,
+        "engine_ms": [round(x, 2) for x in engine_ms],
+        "bare_ms": [round(x, 2) for x in bare_ms],
+        "reps": ARGS.reps,
+    }
+    if capture:
+        run["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
+    ref = reference.get(overrides[0] if overrides else config)
+    if ref is not None and ref is not got:
+        # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.
+        run["vs_lerobot_eager"] = agreement(ref, got)
+        print(f"  chunks vs LeRobot's eager sampler (b = 1, 3, 8): {run['vs_lerobot_eager']}", flush=True)
+    if device == "cuda":
+        run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
+    return run
+
+
 def device_name(device: str) -> str:
     import torch
 
@@ -202,6 +241,8 @@ def write(out: Path, device: str, runs: dict[str, dict[str, Any]]) -> dict[str, 
     if data.get("device") not in (None, device):
         raise SystemExit(f"{out} holds {data['device']} figures; this is {device}: pass another --out")
     data.update({"device": device, "runs": {**data.get("runs", {}), **runs}})
+    if not data["runs"]:
+        return data  # nothing measured yet: nothing to write
     bf16 = [run for name, run in data["runs"].items() if name.startswith("pi05-bf16")]
     # The fastest π0.5 bf16 configuration is what a server would use (any run if none yet).
     served = min(bf16, key=lambda r: sum(r["engine_ms"])) if bf16 else next(iter(data["runs"].values()))
@@ -265,6 +306,7 @@ def main() -> None:
     print(f"device: {name}; configs: {', '.join(configs)}; b = 1..{ARGS.max_batch_size}; π0.5 size {ARGS.size}", flush=True)
     runs: dict[str, dict[str, Any]] = {}
     reference: dict[str, dict[int, Any]] = {}  # LeRobot's eager chunks, by dtype override
+    failed: list[str] = []
     engine, loaded = None, None
     for config in configs:
         path, overrides = build(config, ARGS.size, work, ARGS.compile_mode)
@@ -278,39 +320,16 @@ def main() -> None:
             loaded = (path, overrides)
             print(f"  loaded in {time.perf_counter() - t0:.0f} s", flush=True)
         assert engine is not None
-        engine.use_sampler(engine_options(config))
-        if device == "cuda":
-            torch.cuda.reset_peak_memory_stats()
-        t0 = time.perf_counter()
-        engine.warmup(ARGS.max_batch_size, log_progress=False)
-        capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
-        print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
-        engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
-        got = chunks(engine)
-        if "-graphs" not in config and "-compiled" not in config:
-            reference[overrides[0] if overrides else config] = got
-        params = sum(p.numel() for p in engine.policy.parameters())
-        runs[config] = {
-            "policy": f"{engine.config.type} {ARGS.size if config != 'act' else ''}".strip(),
-            "overrides": overrides,
-            "engine_options": dataclasses.asdict(engine.engine_options),
-            "params_millions": round(params / 1e6, 1),
-            "compiled_kept": engine.compiled_kept,
-            "engine_ms": [round(x, 2) for x in engine_ms],
-            "bare_ms": [round(x, 2) for x in bare_ms],
-            "reps": ARGS.reps,
-        }
-        if capture:
-            runs[config]["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
-        ref = reference.get(overrides[0] if overrides else config)
-        if ref is not None and ref is not got:
-            # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.
-            runs[config]["vs_lerobot_eager"] = agreement(ref, got)
-            print(f"  chunks vs LeRobot's eager sampler (b = 1, 3, 8): {runs[config]['vs_lerobot_eager']}", flush=True)
-        if device == "cuda":
-            runs[config]["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
+        try:
+            runs[config] = profile_config(engine, config, overrides, device, reference)
+        except Exception as exc:  # one configuration failing (a capture, say) must not lose the others
+            failed.append(config)
+            print(f"[{config}] FAILED: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}", flush=True)
+            traceback.print_exc()
+            continue
+        write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
     engine = None
-    data = write(out, name, runs)
+    data = write(out, name, {})
     print(f"wrote {out} and {out.with_suffix('.png')} (load it with --latency_profile={out})")
     targets = Targets()
     if "H100" in name and ARGS.size == "full":
@@ -326,6 +345,8 @@ def main() -> None:
             print(f"  {config}: engine / JAX at b=1..5: {', '.join(ratios)}")
     else:
         print("  (the latency targets apply to π0.5 full bf16 with graphs on an H100; none checked here)")
+    for config in failed:
+        targets.misses.append(f"{config} (failed, see above)")
     targets.finish()
 
 
