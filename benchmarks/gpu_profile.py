@@ -329,7 +329,7 @@ def main() -> None:
             continue
         write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
     engine = None
-    data = write(out, name, {})
+    write(out, name, {})  # redraw the figure from everything written so far
     print(f"wrote {out} and {out.with_suffix('.png')} (load it with --latency_profile={out})")
     targets = Targets()
     if "H100" in name and ARGS.size == "full":
