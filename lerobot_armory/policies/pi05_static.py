@@ -194,7 +194,6 @@ class StaticPi05:
         self.vlm = _text_model(pwe)
         self.expert = pwe.gemma_expert.model
         self.chunk_size = int(self.config.chunk_size)
-        self.action_dim = int(self.config.max_action_dim)
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")

@@ -14,9 +14,9 @@ measures the buckets), so it knows that b = 3 costs what b = 4 costs.
 Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
 a side stream before it is recorded, and recorded on that same stream (lazy initialisations and
 per-stream cuBLAS workspaces happen there, not in the recording); all buckets share one memory
-pool and that stream, recorded from the largest down so the smaller ones reuse its blocks; everything — capture and every replay — runs on the engine's one
-device thread; inputs are copied into the recorded buffers and the output is copied out before
-the next replay can overwrite it.
+pool and that stream, recorded from the largest down so the smaller ones reuse its blocks;
+everything — capture and every replay — runs on the engine's one device thread; inputs are copied
+into the recorded buffers and the output is copied out before the next replay can overwrite it.
 """
 
 from __future__ import annotations
@@ -110,9 +110,7 @@ class BucketedSampler:
         """Actions for the batch's real rows (a new tensor, safe to keep across calls)."""
         rows = inputs.rows
         if not self.buckets:
-            if self.prepare is not None:
-                self.prepare(rows)
-            return self.uncompiled(inputs)
+            return self.uncompiled(inputs)  # the uncompiled sampler prepares its own constants
         bucket = bucket_for(rows, self.buckets)
         if bucket is None:
             self._warn_once("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
