@@ -217,16 +217,19 @@ def test_with_tls_and_tokens_the_endpoint_is_wss_and_checks_the_api_key(tmp_path
     try:
         assert "wss://" in summary
         trust = ssl.create_default_context(cafile=str(cert))
-        url = f"wss://localhost:{server.openpi.port}"
-        with connect(url, ssl=trust, additional_headers={"Authorization": "Api-Key wrong"}) as ws:
+        # 127.0.0.1 (in the certificate's names), not "localhost": the endpoint binds IPv4 only,
+        # and a name that resolves to ::1 first can reach another process's port. The generous
+        # open timeout is for a loaded 2-core CI machine (the handshake takes ms when idle).
+        url = f"wss://127.0.0.1:{server.openpi.port}"
+        with connect(url, ssl=trust, additional_headers={"Authorization": "Api-Key wrong"}, open_timeout=60) as ws:
             assert "api key" in ws.recv()
         good = {"Authorization": "Api-Key fleet-token-0123456789abcdef"}
-        with connect(url, ssl=trust, additional_headers=good, compression=None, max_size=None) as ws:
+        with connect(url, ssl=trust, additional_headers=good, compression=None, max_size=None, open_timeout=60) as ws:
             unpack(ws.recv(), 1 << 20)
             ws.send(pack({"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}))
             assert unpack(ws.recv(timeout=10), 1 << 20)["actions"].shape == (10, 2)
         with pytest.raises(Exception):  # noqa: B017 - plaintext against a TLS port fails in the handshake
-            with connect(f"ws://localhost:{server.openpi.port}", open_timeout=3) as ws:
+            with connect(f"ws://127.0.0.1:{server.openpi.port}", open_timeout=3) as ws:
                 ws.recv(timeout=3)
     finally:
         server.stop()
