@@ -1142,7 +1142,7 @@ def run_ticks(client: Any, duration_s: float, timeline: Timeline | None = None, 
 def run_honest_robot(spec: dict[str, Any], group: dict[str, Any], address: str, t0: float) -> dict[str, Any]:
     """One ``armory_sim`` robot as ``lerobot_armory.bench.robots.run_robot`` builds it, with an
     optional auth token and stepped clock, ticking from now for the group's duration."""
-    from lerobot_armory.delay_model import LogNormalDelay
+    from lerobot_armory.network_delay import LogNormalDelay
     from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
     from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
     from lerobot_armory.robot.features import FeatureMap

@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
 
 FEATURES = {"observation.state": ("float32", (4,))}

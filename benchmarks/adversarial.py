@@ -135,7 +135,7 @@ class ServerProcess:
     its logging, and so the server) and kept: the last lines, exceptions and crash lines."""
 
     def __init__(self, args: list[str], nofile: int = 0) -> None:
-        command = [sys.executable, "-m", "lerobot_armory.server.app", *args]
+        command = [sys.executable, "-m", "lerobot_armory.entrypoints.server", *args]
         if nofile:  # the soft fd limit most services start with (systemd, shells): 1024; exec keeps the pid
             soft = min(nofile, resource.getrlimit(resource.RLIMIT_NOFILE)[1])
             command = ["/bin/sh", "-c", f'ulimit -S -n {soft} && exec "$0" "$@"', *command]
@@ -251,7 +251,7 @@ def ensure_policy(cfg: Config) -> str:
         return str(Path(cfg.policy_path).resolve())
     path = Path("out") / f"planner-H10-S{cfg.image_size}"
     if not (path / "config.json").is_file():
-        from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+        from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
         make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=cfg.image_size))
     return str(path.resolve())

@@ -40,8 +40,8 @@ def main() -> int:
 
     import ray
 
-    from lerobot_armory.cluster.cli import ClusterConfig, RayOptions, ReplicaOptions, start_replicas
-    from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
+    from lerobot_armory.entrypoints.cluster.cli import ClusterConfig, RayOptions, ReplicaOptions, start_replicas
+    from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
 
     work = Path(tempfile.mkdtemp(prefix="armory-failover-"))
     planner = make_planner(work / "planner")

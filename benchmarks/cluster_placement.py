@@ -42,7 +42,7 @@ from _common import Targets  # noqa: E402
 
 from lerobot_armory.placement import PLACEMENTS  # noqa: E402
 from lerobot_armory.sim.cluster import simulate_cluster  # noqa: E402
-from lerobot_armory.sim.fleet import Fleet, load_fleet, with_overrides  # noqa: E402
+from lerobot_armory.sim.fleet_file import Fleet, load_fleet, with_overrides  # noqa: E402
 
 OUT = Path("docs/results/cluster")
 SEEDS = (100, 101, 102)

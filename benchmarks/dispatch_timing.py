@@ -42,8 +42,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets  # noqa: E402
 
-from lerobot_armory.delay_model import LogNormalDelay  # noqa: E402
-from lerobot_armory.latency import LatencyProfile, load_profile  # noqa: E402
+from lerobot_armory.network_delay import LogNormalDelay  # noqa: E402
+from lerobot_armory.inference_latency import LatencyProfile, load_profile  # noqa: E402
 from lerobot_armory.schedulers import make_scheduler_config  # noqa: E402
 from lerobot_armory.sim.presets import fleet_specs, get_preset  # noqa: E402
 from lerobot_armory.sim.simulator import FleetSimulator  # noqa: E402

@@ -101,7 +101,7 @@ def bare_loop(engine, batch: dict, noise: dict, seconds: float) -> float:
 
 def build_policy(kind: str, out: str) -> str:
     """The policy directory to serve (random weights, built offline)."""
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     if kind == "act":
         make_demo_policy(DemoPolicyConfig(output=out))
@@ -120,11 +120,11 @@ def main() -> None:
 
     import torch
 
-    from lerobot_armory.latency import LatencyProfile
+    from lerobot_armory.inference_latency import LatencyProfile
     from lerobot_armory.schedulers import EarliestDeadlineConfig
-    from lerobot_armory.server.app import ArmoryServer, tune_process
-    from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
-    from lerobot_armory.server.service import PolicyInfo
+    from lerobot_armory.entrypoints.server import ArmoryServer, tune_process
+    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 
     parser = argparse.ArgumentParser(description="served chunks/s vs a bare batched loop")
     parser.add_argument("--policy", default="act", help="act, pi05-tiny or pi05-full")

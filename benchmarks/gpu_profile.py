@@ -73,7 +73,7 @@ CAPTURE_TARGET_S = 60.0
 
 def engine_options(config: str) -> Any:
     """The ``--engine.*`` options of a configuration."""
-    from lerobot_armory.server.engine import EngineOptions
+    from lerobot_armory.engine.policy_engine import EngineOptions
 
     if "-graphs" not in config:
         return EngineOptions(cuda_graphs="off")
@@ -95,7 +95,7 @@ def _cuda() -> bool:
 
 def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, list[str]]:
     """The policy directory of a configuration (built once per run) and its ``--policy.*`` overrides."""
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     if config == "act":
         path = work / "act"
@@ -289,7 +289,7 @@ def _plot(path: Path, data: dict[str, Any]) -> None:
 def main() -> None:
     import torch
 
-    from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cpu" and not ARGS.allow_cpu:

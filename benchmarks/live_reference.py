@@ -72,7 +72,7 @@ def main() -> None:
                 row[f"{tier}_sim_ideal_starvation_pct"] = "" if ideal is None else round(ideal, 2)
             row["mean_batch_size"] = round(sum(k * v for k, v in sizes.items()) / max(1, sum(sizes.values())), 3)
             w.writerow(row)
-    from lerobot_armory.bench.plots import plot_live
+    from lerobot_armory.bench.live_plots import plot_live
 
     figures = plot_live(runs, out)
     text = "\n\n".join(

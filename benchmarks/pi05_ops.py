@@ -86,8 +86,8 @@ def trace_graphs(engine: Any, b: int) -> tuple[int, int, list[str]]:
 def main() -> None:
     import torch
 
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,8", help="batch sizes to count")

@@ -95,10 +95,10 @@ def main() -> None:
     import torch
 
     from lerobot_armory.schedulers import EarliestDeadlineConfig
-    from lerobot_armory.server.app import ArmoryServer, tune_process
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
-    from lerobot_armory.server.service import PolicyInfo
+    from lerobot_armory.entrypoints.server import ArmoryServer, tune_process
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 
     tune_process()
     tmp = tempfile.mkdtemp()

@@ -197,7 +197,7 @@ def start_ours_server(opts: Options, threads: int | None, run_dir: Path) -> tupl
         args.append(f"--policy.cpu_threads={threads}")
     args += shlex.split(opts.ours_server_args)
     proc = start(
-        "ours server", [sys.executable, "-m", "lerobot_armory.server.app", *args], run_dir / "server.log", run_dir
+        "ours server", [sys.executable, "-m", "lerobot_armory.entrypoints.server", *args], run_dir / "server.log", run_dir
     )
     return proc, wait_ours_address(proc)
 

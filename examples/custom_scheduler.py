@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import RobotMirror
 from lerobot_armory.schedulers import Scheduler, SchedulerConfig, make_scheduler_config, useful
 from lerobot_armory.sim.run import SimConfig, simulate, table

@@ -16,7 +16,7 @@ of the mirrors (the live loop in ``server/loop.py`` on wall time, the simulator 
   no longer counts on their chunks.
 
 A plan may also say *wait* (:attr:`Plan.wait_until`, nothing booked): the scheduler's dispatch
-timing (:mod:`lerobot_armory.schedulers.timing`) predicts that an observation about to land makes
+timing (:mod:`lerobot_armory.schedulers.dispatch_timing`) predicts that an observation about to land makes
 the batch better at no cost. The driver then plans again at ``wait_until`` or as soon as any
 observation lands, whichever is first; the dispatcher caps the total wait of one free device at
 the scheduler's ``max_wait_s``, so a wait can never become a stall.

@@ -1,7 +1,7 @@
 """Which GPU serves which robot: the predicted load of a replica, and the placement policies.
 
 Pure and deterministic like the mirror and the schedulers: no I/O, no clock. The cluster's front
-(:mod:`lerobot_armory.cluster.front`) places live robots with it; the multi-replica simulator
+(:mod:`lerobot_armory.entrypoints.cluster.front`) places live robots with it; the multi-replica simulator
 (:mod:`lerobot_armory.sim.cluster`) places simulated ones with the same objects.
 
 The load model is the mirror's timing, summed. A robot executes at most ``h_max`` actions of a

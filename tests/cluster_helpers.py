@@ -13,16 +13,16 @@ from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ServerConfig
-from lerobot_armory.server.engine import EngineOptions
-from lerobot_armory.server.engine import PolicyOptions
+from lerobot_armory.entrypoints.server import ServerConfig
+from lerobot_armory.engine.policy_engine import EngineOptions
+from lerobot_armory.engine.policy_engine import PolicyOptions
 
 IMAGE = 32
 
 
 def make_planner(out) -> str:
     """The analytic armory_planner (deterministic, cheap) saved as a LeRobot policy dir."""
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     make_demo_policy(DemoPolicyConfig(output=str(out), kind="planner", chunk_size=10, image_size=IMAGE))
     return str(out)

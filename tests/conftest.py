@@ -10,7 +10,7 @@ TINY = dict(chunk_size=10, state_dim=2, cameras="front", image_size=32, dim_mode
 @pytest.fixture(scope="session")
 def demo_policy_dir(tmp_path_factory):
     """A small random-weight ACT built offline and saved like any LeRobot policy."""
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     out = tmp_path_factory.mktemp("policy") / "tiny-act"
     make_demo_policy(DemoPolicyConfig(output=str(out), **TINY))
@@ -22,7 +22,7 @@ def engine(demo_policy_dir):
     """The tiny ACT loaded through the --policy.path code path, on the CPU."""
     import torch
 
-    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
 
     torch.set_num_threads(1)  # tests share 2 cores with the server's threads
     return PolicyEngine(PolicyOptions(str(demo_policy_dir), "cpu"))
@@ -31,7 +31,7 @@ def engine(demo_policy_dir):
 @pytest.fixture(scope="session")
 def pi05_dir(tmp_path_factory):
     """``lerobot-armory-make-demo-policy --kind=pi05 --size=tiny`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.server.demo_policy import main
+    from lerobot_armory.policies.demo.build import main
 
     out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
     main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])

@@ -25,13 +25,13 @@ import numpy as np
 import pytest
 
 from benchmarks._load import EchoEngine
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.schedulers import make_scheduler_config
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.security import AuthTokens
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.serving.security import AuthTokens
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))

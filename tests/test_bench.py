@@ -8,11 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from lerobot_armory.delay_model import LogNormalDelay
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.network_delay import LogNormalDelay
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.armory_sim import ArmorySimEnv, WorldParams
 from lerobot_armory.robot.netem import DelayLine, NetworkEmulator
-from lerobot_armory.server.emulation import EmulatedLatencyEngine
+from lerobot_armory.engine.emulation import EmulatedLatencyEngine
 
 
 class FakeEngine:
@@ -65,8 +65,8 @@ def test_network_emulator_delays_exactly_with_zero_jitter():
 
 @pytest.fixture(scope="module")
 def planner(tmp_path_factory):
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
 
     path = tmp_path_factory.mktemp("planner") / "p"
     make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=64))

@@ -15,8 +15,8 @@ import pytest
 
 from benchmarks._load import FEATURES as ECHO_FEATURES
 from benchmarks._load import echo_server
-from lerobot_armory.delay_model import LogNormalDelay
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.network_delay import LogNormalDelay
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.actions import ActionBuffer
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
@@ -25,8 +25,8 @@ from lerobot_armory.robot.connection import Connection, Registration
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.robot.netem import NetworkEmulator
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
 
 SIM_FEATURES = [FeatureSpec("observation.state", "float32", (2,)), FeatureSpec("observation.images.front", "uint8", (32, 32, 3))]

@@ -13,8 +13,8 @@ import grpc
 import numpy as np
 import pytest
 
-from lerobot_armory.cluster.front import ClusterFront, FrontOptions, FrontServer
-from lerobot_armory.cluster.replica import ArmoryReplica, LocalReplicas
+from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
+from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, LocalReplicas
 from lerobot_armory.robot.connection import Connection
 from tests.cluster_helpers import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
 

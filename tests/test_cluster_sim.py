@@ -11,7 +11,7 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.sim.cluster import place_fleet, simulate_cluster
-from lerobot_armory.sim.fleet import Fleet, RobotGroup, fleet_from_dict, load_fleet
+from lerobot_armory.sim.fleet_file import Fleet, RobotGroup, fleet_from_dict, load_fleet
 from lerobot_armory.sim.plan import main as plan_main
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "fleets"

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from lerobot_armory.dispatch import Dispatcher
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import Chunk
 from lerobot_armory.schedulers import EarliestDeadlineScheduler, RoundRobinScheduler
 from lerobot_armory.schedulers.base import Scheduler
@@ -108,5 +108,5 @@ def test_only_the_dispatch_step_books_chunks_on_mirrors():
             if re.search(r"\.on_(dispatch|complete|cancel)\(|\.t_arrival\s*=(?!=)", line):
                 offenders.append(f"{rel}:{n}: {line.strip()}")
     assert offenders == []
-    for driver in ("lerobot_armory/server/loop.py", "lerobot_armory/sim/simulator.py", "research/armory_research/optimal.py"):
+    for driver in ("lerobot_armory/serving/loop.py", "lerobot_armory/sim/simulator.py", "research/armory_research/optimal.py"):
         assert "Dispatcher(" in (ROOT / driver).read_text(), driver

@@ -21,10 +21,10 @@ from lerobot_armory.mirror import (
 )
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig
-from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.server.fleet import OUTBOX_NOTICES, Fleet, FleetError, Outbox
-from lerobot_armory.server.fleet_policy import FleetPolicy, Request
-from lerobot_armory.server.security import AuthTokens
+from lerobot_armory.inference_latency import LatencyProfile
+from lerobot_armory.serving.fleet import OUTBOX_NOTICES, Fleet, FleetError, Outbox
+from lerobot_armory.serving.fleet_policy import FleetPolicy, Request
+from lerobot_armory.serving.security import AuthTokens
 
 SPEC = RobotSpec("r", fps=20.0, chunk_size=10, h_min=0, h_max=10)
 

@@ -13,11 +13,11 @@ import pytest
 from prometheus_client import generate_latest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile, validate_latencies
+from lerobot_armory.inference_latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile, validate_latencies
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ArmoryServer, ServerConfig, latency_learning
-from lerobot_armory.server.engine import EngineOptions
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer, ServerConfig, latency_learning
+from lerobot_armory.engine.policy_engine import EngineOptions
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from tests.test_server import Pusher
 
 SPEC_TABLES = {
@@ -414,7 +414,7 @@ def serve_for(engine, profile: LatencyProfile, learn: bool, seconds: float = 3.0
 
 def test_server_learns_the_measured_latency_from_a_wrong_profile(engine, caplog):
     wrong = LatencyProfile("wrong", (200.0, 300.0, 400.0))
-    with caplog.at_level("WARNING", logger="lerobot_armory.server.loop"):
+    with caplog.at_level("WARNING", logger="lerobot_armory.serving.loop"):
         server = serve_for(engine, wrong, learn=True)
     assert server.loop.error is None
     table = server.scheduler.d_infer

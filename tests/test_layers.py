@@ -25,8 +25,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "lerobot_armory"
 
-ROBOT_MAY_NOT = ("lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.server", "lerobot_armory.bench", "lerobot_armory.cluster", "ray")
-PURE_MAY_NOT = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.bench", "lerobot_armory.robot", "lerobot_armory.cluster")
+ROBOT_MAY_NOT = ("lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.server", "lerobot_armory.bench", "lerobot_armory.entrypoints.cluster", "ray")
+PURE_MAY_NOT = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.bench", "lerobot_armory.robot", "lerobot_armory.entrypoints.cluster")
 # research/ holds the ``armory_research`` package (offline optimum, bounds); benchmarks/ the scripts.
 NOBODY_MAY = ("research", "armory_research", "benchmarks")
 
@@ -95,7 +95,7 @@ def test_the_static_check_sees_imports_inside_functions_and_relative_ones(tmp_pa
         "lerobot_armory/robot/m.py:4: imports lerobot_armory.sim.run",
         "lerobot_armory/robot/m.py:4: imports lerobot_armory.sim.run.simulate",
         "lerobot_armory/robot/m.py:6: imports lerobot_armory.server",
-        "lerobot_armory/robot/m.py:6: imports lerobot_armory.server.app",
+        "lerobot_armory/robot/m.py:6: imports lerobot_armory.entrypoints.server",
     ]
 
 
@@ -111,7 +111,7 @@ def test_the_mirror_and_the_schedulers_are_a_pure_layer():
 
 def test_policies_are_model_code_below_the_server():
     may_not = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.bench",
-               "lerobot_armory.cluster", "lerobot_armory.robot")  # fmt: skip
+               "lerobot_armory.entrypoints.cluster", "lerobot_armory.robot")  # fmt: skip
     found = _violations(_py_files(PACKAGE / "policies"), may_not)
     assert not found, "policies/ (model code: the static sampler, LeRobot variants) must not depend on the server:\n" + "\n".join(found)
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.mirror import (
     MAX_AWAITING_REPORTS,
     Chunk,

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ServerConfig, build_server
-from lerobot_armory.server.engine import EngineOptions
-from lerobot_armory.server.engine import PolicyOptions
-from lerobot_armory.server.openpi.endpoint import OpenpiOptions
-from lerobot_armory.server.openpi.keymap import KeyMap
-from lerobot_armory.server.openpi.wire import pack, unpack
+from lerobot_armory.entrypoints.server import ServerConfig, build_server
+from lerobot_armory.engine.policy_engine import EngineOptions
+from lerobot_armory.engine.policy_engine import PolicyOptions
+from lerobot_armory.entrypoints.openpi.endpoint import OpenpiOptions
+from lerobot_armory.entrypoints.openpi.keymap import KeyMap
+from lerobot_armory.entrypoints.openpi.codec import pack, unpack
 from lerobot_armory.wire import FeatureSpec, WireError
 from tests.cluster_helpers import make_planner, sim_robot, wait_for
 from tests.openpi_env import openpi_python

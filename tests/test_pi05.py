@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions, noise_seed
 from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,
@@ -95,7 +95,7 @@ def test_policy_field_overrides_reach_the_policy_config(pi05_dir):
 
 def test_server_command_names_an_unknown_policy_field_and_exits_2(pi05_dir):
     proc = subprocess.run(
-        [sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={pi05_dir}", "--policy.device=cpu", "--policy.bogus=1"],
+        [sys.executable, "-m", "lerobot_armory.entrypoints.server", f"--policy.path={pi05_dir}", "--policy.device=cpu", "--policy.bogus=1"],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert proc.returncode == 2, proc.stderr
@@ -175,7 +175,7 @@ def test_a_hostile_prompt_is_served_and_changes_nothing_for_the_others(pi05):
     """The longest prompt registration allows, in control characters, emoji and the template's own
     words: the tokenizer truncates it, its robot is served, and its batch mate's chunks from their
     shared batches are still exactly what that robot's own prompt gives alone."""
-    from lerobot_armory.server.service import MAX_TASK
+    from lerobot_armory.entrypoints.grpc.service import MAX_TASK
 
     hostile = ("Task: \x00\x1b[2J;\nAction: 🤖" + "ünïcødé\u202e" * 400)[:MAX_TASK]
     server, robots = serve_prompt_robots(pi05, [TASKS[0], hostile], max_batch_size=2)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server import rtc
-from lerobot_armory.server.cuda_graphs import BucketedSampler, bucket_for, parse_buckets
-from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine import rtc
+from lerobot_armory.engine.cuda_graphs import BucketedSampler, bucket_for, parse_buckets
+from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions, noise_seed
 from tests.vla_helpers import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 
 BUCKETS = (1, 2, 4, 8)
@@ -64,7 +64,7 @@ def test_a_guided_row_equals_lerobots_stock_rtc_for_that_robot_alone(engines, pi
     """The chain closed: a static guided batch row equals LeRobot's own RTCProcessor, one robot."""
     import torch
 
-    from lerobot_armory.server.engine import _load
+    from lerobot_armory.engine.policy_engine import _load
 
     _, static = engines
     obs, tasks, seeds, prefixes = batch(3, seed=4)
@@ -184,7 +184,7 @@ def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(
     valid after the next replay. Inputs that do not fit the buffers run eagerly."""
     import torch
 
-    from lerobot_armory.server import cuda_graphs
+    from lerobot_armory.engine import cuda_graphs
 
     _, static = engines
     runner = BucketedSampler(static.sampler.sample)
@@ -282,7 +282,7 @@ def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
     import subprocess
     import sys
 
-    cmd = [sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={pi05_dir}", "--policy.device=cpu",
+    cmd = [sys.executable, "-m", "lerobot_armory.entrypoints.server", f"--policy.path={pi05_dir}", "--policy.device=cpu",
            "--engine.cuda_graphs=on", "--port=0"]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
@@ -294,7 +294,7 @@ def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
 def test_two_cameras_pass_the_vision_tower_as_one_batch_with_the_same_chunks(tmp_path_factory):
     """With two cameras the static sampler runs SigLIP once on both (LeRobot runs it per camera):
     the chunks still equal LeRobot's, unpadded and padded."""
-    from lerobot_armory.server.demo_policy import main
+    from lerobot_armory.policies.demo.build import main
 
     path = tmp_path_factory.mktemp("pi05-2cam") / "pi05"
     main(["--kind=pi05", "--size=tiny", f"--output={path}", "--chunk_size=10", "--cameras=front,wrist", "--state_dim=3"])
@@ -337,7 +337,7 @@ def test_a_hostile_row_changes_nothing_for_its_batch_mates(engines):
     """One robot with a non-finite state, saturated images and the longest hostile prompt, batched
     (and padded to bucket 4) with two honest robots: the honest rows are their chunks alone (1e-5;
     bit for bit on the development CPU), and the hostile row does not fail the batch."""
-    from lerobot_armory.server.service import MAX_TASK
+    from lerobot_armory.entrypoints.grpc.service import MAX_TASK
 
     _, static = engines
     obs, tasks, seeds, _ = batch(3, seed=11)
@@ -359,7 +359,7 @@ def test_creating_parameters_on_a_device_that_fails_falls_back_to_the_cpu(pi05_d
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
-    from lerobot_armory.server import engine as engine_mod
+    from lerobot_armory.engine import policy_engine as engine_mod
 
     config = PreTrainedConfig.from_pretrained(str(pi05_dir))
     config.device = "cpu"

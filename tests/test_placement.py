@@ -8,7 +8,7 @@ import random
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.placement import (
     PLACEMENTS,

@@ -24,9 +24,9 @@ from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.security import AuthTokens
-from lerobot_armory.server.status import render
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.serving.security import AuthTokens
+from lerobot_armory.entrypoints.status import render
 from lerobot_armory.wire import FeatureSpec
 
 STATE_ONLY = [FeatureSpec("observation.state", "float32", (4,))]
@@ -301,7 +301,7 @@ def test_sigterm_during_a_batch_delivers_it_and_exits(demo_policy_dir, tmp_path)
     import signal
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={demo_policy_dir}", "--policy.device=cpu",
+        [sys.executable, "-m", "lerobot_armory.entrypoints.server", f"--policy.path={demo_policy_dir}", "--policy.device=cpu",
          "--port=0", "--max_batch_size=1", "--engine.emulate_profile=" + str(tmp_path / "slow.json")],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
         preexec_fn=lambda: (tmp_path / "slow.json").write_text('{"name": "slow", "latency_ms": [1500]}'),

@@ -31,7 +31,7 @@ from lerobot.robots.utils import make_robot_from_config
 from lerobot.utils.errors import DeviceNotConnectedError
 
 from lerobot_armory.cli_util import parse_or_exit
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.actions import ActionBuffer
 from lerobot_armory.robot.cli import ClientConfig, main
 from lerobot_armory.robot.connection import Connection
@@ -39,8 +39,8 @@ from lerobot_armory.robot.features import IMAGES, STATE, FeatureMap
 from lerobot_armory.robot.hardware import explain_robot_error
 from lerobot_armory.robot.robot_types import lerobot_robot_types, register_robot_types, robot_types
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
 
 register_robot_types()  # at import: the parametrised test below needs the types at collection
@@ -299,8 +299,8 @@ def so101_engine(tmp_path_factory):
     """A tiny random ACT whose state and actions are so101's 6 motors, one 32² camera."""
     import torch
 
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
 
     out = tmp_path_factory.mktemp("policy") / "so101-act"
     make_demo_policy(

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config, scheduler_names
 from lerobot_armory.schedulers.rollout import RolloutConfig, RolloutScheduler
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset

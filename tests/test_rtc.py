@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server import rtc
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine import rtc
+from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions, noise_seed
 from tests.vla_helpers import observation
 
 
@@ -108,7 +108,7 @@ def test_a_guided_pi05_batch_equals_lerobots_rtc_for_each_robot_alone(pi05_dir, 
     LeRobot's stock π0.5 with its stock RTCProcessor, one robot per call."""
     import torch
 
-    from lerobot_armory.server.engine import _load
+    from lerobot_armory.engine.policy_engine import _load
 
     obs = [observation(k, k) for k in range(3)]
     tasks = ["touch the target", "hold still", "touch the target"]
@@ -239,10 +239,10 @@ class _Recording:
 
 
 def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
-    from lerobot_armory.latency import LatencyProfile
+    from lerobot_armory.inference_latency import LatencyProfile
     from lerobot_armory.schedulers import EarliestDeadlineConfig
-    from lerobot_armory.server.app import ArmoryServer
-    from lerobot_armory.server.service import PolicyInfo
+    from lerobot_armory.entrypoints.server import ArmoryServer
+    from lerobot_armory.entrypoints.grpc.service import PolicyInfo
     from tests.test_server import wait_for
     from tests.vla_helpers import PromptRobot
 
@@ -285,7 +285,7 @@ def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
 def test_the_planner_blends_the_leftover_into_its_plan_as_rtc_weighs_it(tmp_path):
     """armory_planner's RTC contract: the delayed steps are the leftover's, then a linear fade
     to the fresh (closed-loop) plan at the execution horizon, per row."""
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     path = tmp_path / "planner"
     make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=32))

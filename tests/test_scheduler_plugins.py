@@ -10,7 +10,7 @@ from pathlib import Path
 import draccus
 import pytest
 
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.schedulers import (
     ENTRY_POINT_GROUP,
     LookaheadConfig,

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import RobotMirror
 from lerobot_armory.schedulers import (
     EarliestDeadlineScheduler,

@@ -14,17 +14,17 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto import armory_pb2_grpc
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
-from lerobot_armory.proto.hardening import add_armory_to_server, rpc_names
+from lerobot_armory.entrypoints.grpc.hardening import add_armory_to_server, rpc_names
 from lerobot_armory.proto.limits import SERVICE_NAME
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 
 STATE = "observation.state"
 IMAGE = "observation.images.front"
@@ -341,7 +341,7 @@ def test_engine_failure_hits_one_batch_only(server, engine, monkeypatch):
 
 
 def test_engine_rejects_missing_and_non_chunking_policies(engine, tmp_path, monkeypatch):
-    from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
 
     with pytest.raises(ConfigError, match="policy.path"):
         PolicyEngine(PolicyOptions(str(tmp_path / "nothing-here"), "cpu"))
@@ -359,7 +359,7 @@ def test_engine_rejects_missing_and_non_chunking_policies(engine, tmp_path, monk
 
 
 def test_server_cli_fails_with_one_line_on_a_missing_policy(capsys, tmp_path):
-    from lerobot_armory.server.app import main
+    from lerobot_armory.entrypoints.server import main
 
     with pytest.raises(SystemExit) as info:
         main([f"--policy.path={tmp_path / 'missing'}", "--port=0"])
@@ -393,7 +393,7 @@ def test_server_command_profiles_serves_and_exits_0_on_sigterm(demo_policy_dir, 
     profile_path = tmp_path / "profile.json"
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "lerobot_armory.server.app", f"--policy.path={demo_policy_dir}", "--policy.device=cpu",
+            sys.executable, "-m", "lerobot_armory.entrypoints.server", f"--policy.path={demo_policy_dir}", "--policy.device=cpu",
             "--port=0", "--max_batch_size=2", f"--latency_profile={profile_path}", "--profile_reps=1", "--scheduler.type=edf",
         ],
         stdout=subprocess.PIPE,
@@ -432,7 +432,7 @@ def test_server_command_profiles_serves_and_exits_0_on_sigterm(demo_policy_dir, 
 def test_an_engine_that_always_fails_stops_the_loop_instead_of_failing_forever(server, engine, monkeypatch):
     """A broken device (a sticky CUDA error) fails every batch: after MAX_CONSECUTIVE_FAILURES in a
     row the loop stops with an error (the server process then exits 1), robots are told each time."""
-    from lerobot_armory.server.loop import MAX_CONSECUTIVE_FAILURES
+    from lerobot_armory.serving.loop import MAX_CONSECUTIVE_FAILURES
 
     def broken(obs, tasks, noise_seeds=None):
         raise RuntimeError("CUDA error: an illegal memory access was encountered")
@@ -451,7 +451,7 @@ def test_an_engine_that_always_fails_stops_the_loop_instead_of_failing_forever(s
 
 def test_an_engine_without_noise_seeds_is_still_served(server, engine, monkeypatch):
     """Engines written before per-request noise (``infer(observations, tasks)``) keep working."""
-    from lerobot_armory.server.loop import takes_noise_seeds
+    from lerobot_armory.serving.loop import takes_noise_seeds
 
     real = engine.infer
 

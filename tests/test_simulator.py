@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim import MIXES, PRESETS, FleetSimulator, LogNormalDelay, fleet_specs, get_preset
 from lerobot_armory.sim.presets import fast_count

@@ -11,7 +11,7 @@ import socket
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.engine import PolicyEngine, PolicyOptions
+from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
 from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,
@@ -40,7 +40,7 @@ def no_network(monkeypatch):
 @pytest.fixture(scope="session")
 def smolvla_dir(tmp_path_factory):
     """``lerobot-armory-make-demo-policy --kind=smolvla`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.server.demo_policy import main
+    from lerobot_armory.policies.demo.build import main
 
     out = tmp_path_factory.mktemp("smolvla") / "smolvla-tiny"
     with pytest.MonkeyPatch.context() as mp:
@@ -138,7 +138,7 @@ def test_a_batch_of_eight_runs_in_well_under_a_second(smolvla):
 
 
 def test_smolvla_has_one_size(tmp_path):
-    from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
     with pytest.raises(ConfigError, match="size=tiny"):
         make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "x"), kind="smolvla", size="full"))

@@ -6,13 +6,13 @@ import math
 
 import pytest
 
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import DelayEstimator, RobotMirror, RobotSpec
 from lerobot_armory.schedulers import EarliestDeadlineScheduler, make_scheduler_config
-from lerobot_armory.schedulers.timing import hold_until
+from lerobot_armory.schedulers.dispatch_timing import hold_until
 from lerobot_armory.sim import FleetSimulator, fleet_specs, get_preset
 
 # libero's timing: 20 fps, one-way 3.75 ms, d_infer 73 / 109.8 / 142.4 ms.
@@ -125,8 +125,8 @@ def test_simulator_honours_waits_and_stays_deterministic(name):
 def test_live_loop_waits_and_keeps_serving(engine):
     """The live loop honours a wait (capped, woken by observations) and every robot is still served."""
     from lerobot_armory.schedulers import EarliestDeadlineConfig
-    from lerobot_armory.server.app import ArmoryServer
-    from lerobot_armory.server.service import PolicyInfo
+    from lerobot_armory.entrypoints.server import ArmoryServer
+    from lerobot_armory.entrypoints.grpc.service import PolicyInfo
     from tests.test_server import Pusher, wait_for
 
     profile = LatencyProfile("test", (20.0, 24.0, 28.0, 32.0))

@@ -17,10 +17,10 @@ from PIL import Image
 from lerobot_armory import wire
 from benchmarks._load import echo_server
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.hardening import Malformed, add_armory_to_server, rpc_names, safe_deserializer
+from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server, rpc_names, safe_deserializer
 from lerobot_armory.robot.connection import Connection
-from lerobot_armory.server import service
-from lerobot_armory.server.peer_log import ThrottledLog
+from lerobot_armory.entrypoints.grpc import service
+from lerobot_armory.serving.peer_log import ThrottledLog
 from lerobot_armory.wire import MAX_JPEG_SCANS, WireError
 
 FEATURES = {"observation.state": ("float32", (4,))}

@@ -8,13 +8,13 @@ import time
 
 import numpy as np
 
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from lerobot_armory.server.app import ArmoryServer
-from lerobot_armory.server.emulation import EmulatedLatencyEngine
-from lerobot_armory.server.engine import PolicyEngine, noise_seed
-from lerobot_armory.server.service import PolicyInfo
+from lerobot_armory.entrypoints.server import ArmoryServer
+from lerobot_armory.engine.emulation import EmulatedLatencyEngine
+from lerobot_armory.engine.policy_engine import PolicyEngine, noise_seed
+from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from tests.test_server import wait_for
 
 STATE = "observation.state"

@@ -36,7 +36,7 @@ env_report() {
 # The π0.5 that robots on armory_sim are served: its features (one 64² camera, 2-d state), chunk 10
 # (libero timing), full size, bf16 (built once per machine).
 sim_pi05() {
-  [ -f /tmp/pi05-sim/config.json ] || python3 -c "from lerobot_armory.server.demo_policy import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--output=/tmp/pi05-sim'])"
+  [ -f /tmp/pi05-sim/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--output=/tmp/pi05-sim'])"
 }
 
 live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, real timing

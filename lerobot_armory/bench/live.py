@@ -29,9 +29,9 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import TIERS
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
@@ -112,7 +112,7 @@ def ensure_policy(cfg: BenchConfig, chunk_size: int) -> str:
         return cfg.policy_path
     path = Path("out") / f"planner-H{chunk_size}-S{cfg.image_size}"
     if not (path / "config.json").is_file():
-        from lerobot_armory.server.demo_policy import DemoPolicyConfig, make_demo_policy
+        from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
         make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=chunk_size, image_size=cfg.image_size))
     return str(path)
@@ -139,7 +139,7 @@ def cpu_seconds(pid: int) -> float:
 
 def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "lerobot_armory.server.app", *args],
+        [sys.executable, "-m", "lerobot_armory.entrypoints.server", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,

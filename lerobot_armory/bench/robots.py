@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.robot.armory_sim import ArmorySim, ArmorySimConfig
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
 from lerobot_armory.robot.features import FeatureMap

@@ -1,6 +1,6 @@
 """Client-side network emulation: per-request log-normal uplink and downlink delays.
 
-Exactly the simulator's model (:class:`~lerobot_armory.delay_model.LogNormalDelay`, drawn
+Exactly the simulator's model (:class:`~lerobot_armory.network_delay.LogNormalDelay`, drawn
 independently per message), applied to the real protocol: every observation and report waits its
 uplink delay before it enters the gRPC stream, every chunk waits its downlink delay before the
 robot sees it. Live and simulated runs are therefore comparable.
@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 
 
 class DelayLine:

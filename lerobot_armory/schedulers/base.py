@@ -30,10 +30,10 @@ from typing import Any
 import draccus
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import RobotMirror
 from lerobot_armory.schedulers.plugins import discover_once
-from lerobot_armory.schedulers.timing import check_timing, hold_until
+from lerobot_armory.schedulers.dispatch_timing import check_timing, hold_until
 
 
 class Scheduler(abc.ABC):

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance, observed_tick, request_is_useful
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
 

@@ -56,7 +56,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import (
     Queue,
     RobotMirror,
@@ -69,7 +69,7 @@ from lerobot_armory.mirror import (
     tick_reaching,
 )
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
-from lerobot_armory.schedulers.timing import next_observation_at
+from lerobot_armory.schedulers.dispatch_timing import next_observation_at
 
 # First batches rolled out per decision (at most): the due batch, Lookahead's choice, its best
 # single robot and pair; more did not change the study's results and cost a rollout each.

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.sim.run import SimConfig, simulate, table
 
 

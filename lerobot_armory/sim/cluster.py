@@ -31,10 +31,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import TIERS, RobotSpec
 from lerobot_armory.placement import NoReplica, ReplicaView, make_placement, place_all
-from lerobot_armory.sim.fleet import Fleet
+from lerobot_armory.sim.fleet_file import Fleet
 from lerobot_armory.sim.simulator import FleetSimulator
 
 # A composition: the sorted timing/weight/tier of a replica's robots (ids dropped).

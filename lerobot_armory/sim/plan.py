@@ -35,7 +35,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.placement import PLACEMENTS
 from lerobot_armory.sim.cluster import ClusterResult, simulate_cluster
-from lerobot_armory.sim.fleet import Fleet, load_fleet, with_overrides
+from lerobot_armory.sim.fleet_file import Fleet, load_fleet, with_overrides
 
 PROG = "lerobot-armory-plan"
 # Above this many GPUs a plan is a data-centre question, not a simulation to run in seconds.

@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
+from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline
 from lerobot_armory.schedulers.base import Scheduler
 

@@ -197,7 +197,7 @@ def run(cfg: SweepConfig) -> list[dict[str, Any]]:
         writer.writerows(csv_row(r) for r in records)
     (out / "sweep.json").write_text(json.dumps({"runs": records}) + "\n")
     command = "lerobot-armory-sweep " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    from lerobot_armory.sim.plots import plot_all  # matplotlib import is slow; only here
+    from lerobot_armory.sim.sweep_plots import plot_all  # matplotlib import is slow; only here
 
     figures = plot_all(records, out)
     (out / "COMMAND.md").write_text(

@@ -43,7 +43,7 @@ import numpy as np
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.presets import MIXES, get_preset
 from lerobot_armory.sim.run import SimConfig, run_label, simulate
@@ -611,7 +611,7 @@ def run(cfg: FrontierConfig) -> FrontierResults:
         )
         text.append("== fraction of the optimum (%) ==\n" + md)
     if results.fleet:
-        from lerobot_armory.sim.plots import plot_fleet
+        from lerobot_armory.sim.sweep_plots import plot_fleet
         from lerobot_armory.sim.sweep import CSV_FIELDS, csv_row
 
         with open(out / "starvation_vs_fleet.csv", "w", newline="") as f:

@@ -59,7 +59,7 @@ from functools import lru_cache
 
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline, advance, tick_of
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.schedulers.edf import EarliestDeadlineScheduler

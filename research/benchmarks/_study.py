@@ -17,7 +17,7 @@ for _path in (ROOT / "benchmarks", ROOT / "research"):
 
 from _common import Targets, sim  # noqa: E402  (benchmarks/_common.py of the product)
 
-from lerobot_armory.latency import load_profile  # noqa: E402
+from lerobot_armory.inference_latency import load_profile  # noqa: E402
 from lerobot_armory.schedulers import make_scheduler_config  # noqa: E402
 from lerobot_armory.sim.presets import get_preset  # noqa: E402
 

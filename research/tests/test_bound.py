@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.schedulers import make_scheduler_config
 from armory_research.bound import device_time, lagrangian_bound, robot_value
 from armory_research.optimal import Episode, episode_for, play, solve

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import load_profile
+from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.mirror import advance
 from lerobot_armory.schedulers import check_batch, make_scheduler_config
 from lerobot_armory.schedulers.rollout import RolloutScheduler

@@ -28,11 +28,11 @@ from typing import Any
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.server.fleet import Fleet, FleetError, RobotSession
-from lerobot_armory.server.fleet_policy import FleetPolicy, Request
-from lerobot_armory.server.openpi.keymap import KeyMap
-from lerobot_armory.server.openpi.wire import pack, unpack
-from lerobot_armory.server.security import AuthTokens
+from lerobot_armory.serving.fleet import Fleet, FleetError, RobotSession
+from lerobot_armory.serving.fleet_policy import FleetPolicy, Request
+from lerobot_armory.entrypoints.openpi.keymap import KeyMap
+from lerobot_armory.entrypoints.openpi.codec import pack, unpack
+from lerobot_armory.serving.security import AuthTokens
 from lerobot_armory.wire import WireError, decode
 
 log = logging.getLogger(__name__)

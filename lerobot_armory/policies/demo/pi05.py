@@ -25,8 +25,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.server.demo_policy import policy_features
-from lerobot_armory.server.engine import TOKENIZER_DIR  # where the loader looks for it
+from lerobot_armory.policies.demo.common import policy_features
+from lerobot_armory.policies.layout import TOKENIZER_DIR  # where the loader looks for it
 
 SIZES = ("tiny", "narrow", "full")
 
@@ -63,7 +63,7 @@ def make_pi05_policy(
     from lerobot.policies.factory import make_pre_post_processors
 
     from lerobot_armory.policies import pi05_variants
-    from lerobot_armory.server.standin_tokenizer import build_standin_tokenizer
+    from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
 
     if size not in SIZES:
         raise ConfigError("size", f"must be one of {', '.join(SIZES)}, got {size!r}")

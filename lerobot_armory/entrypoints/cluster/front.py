@@ -29,15 +29,15 @@ from typing import Any
 
 import grpc
 
-from lerobot_armory.cluster.replica import ReplicaDown, ReplicaSet, spec_of
+from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.placement import Capacity, Move, NoReplica, Placement, ReplicaView, make_placement, rebalance
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
-from lerobot_armory.proto.hardening import Malformed
-from lerobot_armory.server.peer_log import ThrottledLog
-from lerobot_armory.server.service import RunningServer, start_grpc_server
+from lerobot_armory.entrypoints.grpc.hardening import Malformed
+from lerobot_armory.serving.peer_log import ThrottledLog
+from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_server
 
 log = logging.getLogger(__name__)
 

@@ -13,9 +13,9 @@ from prometheus_client import CollectorRegistry, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-from lerobot_armory.latency import OnlineLatency
-from lerobot_armory.server.fleet import Fleet
-from lerobot_armory.server.loop import BatchRecord, LoopStats
+from lerobot_armory.inference_latency import OnlineLatency
+from lerobot_armory.serving.fleet import Fleet
+from lerobot_armory.serving.loop import BatchRecord, LoopStats
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 DECISION_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05)

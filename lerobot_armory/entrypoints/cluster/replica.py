@@ -1,6 +1,6 @@
 """One replica of a cluster, and the sets of replicas a front talks to.
 
-A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.server.app.build_server` with the
+A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.entrypoints.server.build_server` with the
 user's options on a free port. It adds three calls for the front: ``info`` (where it listens,
 its ``d_infer`` table), ``load`` (info plus the robots it serves, from its own fleet: the front
 rebuilds its whole view from these, so a restarted front loses nothing) and ``release`` (move a
@@ -22,7 +22,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.server.app import ArmoryServer, ServerConfig, build_server
+from lerobot_armory.entrypoints.server import ArmoryServer, ServerConfig, build_server
 
 log = logging.getLogger(__name__)
 

@@ -23,12 +23,12 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec, spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
-from lerobot_armory.proto.hardening import Malformed, add_armory_to_server
+from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
-from lerobot_armory.server.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
-from lerobot_armory.server.fleet_policy import FleetPolicy, Request, describe_grant
-from lerobot_armory.server.peer_log import ThrottledLog
-from lerobot_armory.server.security import AuthTokens, Credential, RateLimiter
+from lerobot_armory.serving.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
+from lerobot_armory.serving.fleet_policy import FleetPolicy, Request, describe_grant
+from lerobot_armory.serving.peer_log import ThrottledLog
+from lerobot_armory.serving.security import AuthTokens, Credential, RateLimiter
 from lerobot_armory.wire import FeatureSpec, WireError, check_features, decode_all
 
 log = logging.getLogger(__name__)

@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.server.loop import Engine
+from lerobot_armory.inference_latency import LatencyProfile
+from lerobot_armory.serving.loop import Engine
 
 
 class EmulatedLatencyEngine:

@@ -21,7 +21,7 @@ import numpy as np
 
 from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotSpec
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.server.security import RateLimiter
+from lerobot_armory.serving.security import RateLimiter
 from lerobot_armory.wire import FeatureSpec
 
 # A registration that has not opened its stream within this long is dropped (and, when the fleet

@@ -22,12 +22,12 @@ import numpy as np
 
 from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.mirror import Chunk, RobotMirror
-from lerobot_armory.latency import OnlineLatency
+from lerobot_armory.inference_latency import OnlineLatency
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler
-from lerobot_armory.server.engine import noise_seed
-from lerobot_armory.server.fleet import Fleet, RobotSession
-from lerobot_armory.server.rtc import Prefix
+from lerobot_armory.engine.policy_engine import noise_seed
+from lerobot_armory.serving.fleet import Fleet, RobotSession
+from lerobot_armory.engine.rtc import Prefix
 from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)

@@ -27,21 +27,21 @@ from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit, split_passthrough
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
+from lerobot_armory.inference_latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
 from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.server.emulation import EmulatedLatencyEngine
-from lerobot_armory.server.engine import EngineOptions, PolicyEngine, PolicyOptions
-from lerobot_armory.server.fleet import Fleet
-from lerobot_armory.server.fleet_policy import FleetPolicy
-from lerobot_armory.server.logs import configure_logging
-from lerobot_armory.server.loop import BatchRecord, Engine, ServingLoop
-from lerobot_armory.server.metrics import ServerMetrics
-from lerobot_armory.server.openpi.endpoint import OpenpiEndpoint, OpenpiOptions
-from lerobot_armory.server.openpi.keymap import KeyMap
-from lerobot_armory.server.rtc import RTCOptions
-from lerobot_armory.server.security import AuthTokens, read_tls
-from lerobot_armory.server.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
+from lerobot_armory.engine.emulation import EmulatedLatencyEngine
+from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
+from lerobot_armory.serving.fleet import Fleet
+from lerobot_armory.serving.fleet_policy import FleetPolicy
+from lerobot_armory.serving.logs import configure_logging
+from lerobot_armory.serving.loop import BatchRecord, Engine, ServingLoop
+from lerobot_armory.serving.metrics import ServerMetrics
+from lerobot_armory.entrypoints.openpi.endpoint import OpenpiEndpoint, OpenpiOptions
+from lerobot_armory.entrypoints.openpi.keymap import KeyMap
+from lerobot_armory.engine.rtc import RTCOptions
+from lerobot_armory.serving.security import AuthTokens, read_tls
+from lerobot_armory.entrypoints.grpc.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
 log = logging.getLogger("lerobot_armory.server")
 T = TypeVar("T")
@@ -354,7 +354,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     """Load the policy, warm it up, resolve ``d_infer`` and start serving on ``cfg.host:cfg.port``.
 
     Returns the running server and its start-up summary. ``serve`` and each replica of a cluster
-    (:mod:`lerobot_armory.cluster.replica`) build the same server through here.
+    (:mod:`lerobot_armory.entrypoints.cluster.replica`) build the same server through here.
     """
     cfg.validate()
     fleet_policy = cfg.fleet.load()  # before the model loads: a bad file is one line, at once

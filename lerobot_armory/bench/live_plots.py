@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lerobot_armory.mirror import TIERS  # noqa: E402
-from lerobot_armory.sim.plots import LABEL_ORDER  # noqa: E402
+from lerobot_armory.sim.sweep_plots import LABEL_ORDER  # noqa: E402
 
 
 def plot_live(runs: list[dict[str, Any]], out: Path) -> list[Path]:

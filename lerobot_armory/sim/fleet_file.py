@@ -30,9 +30,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from lerobot_armory.delay_model import LogNormalDelay
+from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, load_profile
 from lerobot_armory.mirror import TIERS, RobotSpec, spec_problems
 from lerobot_armory.placement import Capacity, demand
 from lerobot_armory.schedulers import EarliestDeadlineConfig, SchedulerConfig, make_scheduler_config
@@ -326,7 +326,7 @@ def _no_unknown(mapping: dict, known: tuple[str, ...], prefix: str, err) -> None
 
 
 def _builtin_names() -> set[str]:
-    from lerobot_armory.latency import BUILTIN_PROFILES
+    from lerobot_armory.inference_latency import BUILTIN_PROFILES
 
     return set(BUILTIN_PROFILES)
 

@@ -46,18 +46,13 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.latency import LatencyProfile
-from lerobot_armory.server import rtc as rtc_mod
+from lerobot_armory.inference_latency import LatencyProfile
+from lerobot_armory.engine import rtc as rtc_mod
+from lerobot_armory.policies.layout import SIDECAR, TOKENIZER_DIR, VLM_DIR
 from lerobot_armory.wire import FeatureSpec
 
 log = logging.getLogger(__name__)
 
-# Optional sidecar a policy directory may carry (the demo policy writes it): action names.
-SIDECAR = "armory.json"
-# A tokenizer stored inside the policy directory (the π0.5 demo's stand-in) replaces the one the
-# saved pre-processor names, wherever the directory has been moved to.
-TOKENIZER_DIR = "tokenizer"
-VLM_DIR = "vlm"  # a stand-in VLM inside the directory (the SmolVLA demo's)
 # Pre-processor steps known to leave images alone or to work on any device. Images go to the device
 # before the pre-processor only when every step before its device step is one of these (GR00T's
 # steps, for one, pull images back to the host with .cpu().numpy(): for such a policy the images
@@ -133,7 +128,7 @@ class EngineOptions:
 
     def validate(self) -> None:
         from lerobot_armory.policies.pi05_static import ATTENTION
-        from lerobot_armory.server.cuda_graphs import MODES
+        from lerobot_armory.engine.cuda_graphs import MODES
 
         if self.cuda_graphs not in MODES:
             raise ConfigError("engine.cuda_graphs", f"must be one of {', '.join(MODES)}, got {self.cuda_graphs!r}")
@@ -237,7 +232,7 @@ class PolicyEngine:
         import torch
 
         from lerobot_armory.policies import pi05_static
-        from lerobot_armory.server.cuda_graphs import BucketedSampler
+        from lerobot_armory.engine.cuda_graphs import BucketedSampler
 
         o = self.engine_options
         cuda = torch.device(self.device).type == "cuda"
@@ -519,7 +514,7 @@ class PolicyEngine:
         With the static sampler, the batch sizes are its buckets, and on a CUDA device each
         bucket's graph is recorded first (largest first: the smaller ones reuse its memory)."""
         if self.sampler is not None:
-            from lerobot_armory.server.cuda_graphs import parse_buckets
+            from lerobot_armory.engine.cuda_graphs import parse_buckets
 
             self.sampler.set_buckets(parse_buckets(self.engine_options.graph_buckets, max_batch_size))
             if self.graphs_wanted and not self.sampler.captured:
@@ -594,7 +589,7 @@ class PolicyEngine:
         Measured medians are made non-decreasing (a larger batch is never cheaper to schedule
         for), as the schedulers require.
         """
-        from lerobot_armory.server.cuda_graphs import bucket_for
+        from lerobot_armory.engine.cuda_graphs import bucket_for
 
         sizes = self._sizes(max_batch_size)
         for _ in range(warmup):

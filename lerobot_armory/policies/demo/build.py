@@ -1,0 +1,141 @@
+"""``lerobot-armory-make-demo-policy``: a random-weight LeRobot policy saved as a normal policy dir.
+
+Built entirely offline, with its pre/post-processors, so ``--policy.path=DIR`` loads it through the
+very same code path as a hub policy. Kinds: a small ACT (``pretrained_backbone_weights=None``: no
+ImageNet download; deterministic at inference), π0.5 at ``--size=tiny|full`` (LeRobot's own
+classes, a stand-in tokenizer inside DIR: :mod:`.pi05`), a tiny SmolVLA (LeRobot's own
+classes, a stand-in VLM config and tokenizer inside DIR: :mod:`.smolvla`) and the
+analytic planner (:mod:`.planner`). Each kind is one builder in :data:`BUILDERS`.
+
+    lerobot-armory-make-demo-policy --output=out/demo-policy
+    lerobot-armory-make-demo-policy --kind=pi05 --size=tiny --output=out/pi05-tiny
+    lerobot-armory-make-demo-policy --kind=smolvla --output=out/smolvla-tiny
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.policies.demo.common import write_sidecar
+
+
+@dataclass
+class DemoPolicyConfig:
+    """Options of the demo policy.
+
+    Attributes:
+        output: directory to write (created).
+        kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights),
+            ``smolvla`` (LeRobot's SmolVLA, tiny, random weights) or ``planner`` (the analytic
+            ``armory_planner`` that solves the ``armory_sim`` tasks when served on time; one
+            camera, 2-D state).
+        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU), ``narrow``
+            (the real depths at tiny widths: ``armory_narrow``) or
+            ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
+        dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
+        chunk_size: H, actions per chunk.
+        state_dim: length of ``observation.state``.
+        action_dim: length of each action (default: state_dim).
+        cameras: comma-separated camera names (features ``observation.images.<name>``).
+        image_size: square image side in pixels.
+        dim_model: transformer width (small keeps CPU inference fast).
+        n_encoder_layers: transformer encoder layers.
+        seed: torch seed for the random weights.
+        device: π0.5 only: where the random weights are created (``cuda``: seconds instead of
+            minutes for the full size); the directory is the same either way.
+    """
+
+    output: str = "out/demo-policy"
+    kind: str = "act"
+    size: str = "tiny"
+    dtype: str = "float32"
+    chunk_size: int = 20
+    state_dim: int = 2
+    action_dim: int | None = None
+    cameras: str = "front"
+    image_size: int = 64
+    dim_model: int = 128
+    n_encoder_layers: int = 2
+    seed: int = 0
+    device: str = "cpu"
+
+
+def _build_act(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot_armory.policies.demo.act import make_act_policy
+
+    return make_act_policy(cfg, cameras)
+
+
+def _build_pi05(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot_armory.policies.demo.pi05 import make_pi05_policy
+
+    out = make_pi05_policy(
+        cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype,
+        cfg.device,
+    )
+    write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "pi05", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
+    return out
+
+
+def _build_smolvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot_armory.policies.demo.smolvla import make_smolvla_policy
+
+    if cfg.size != "tiny" or cfg.dtype != "float32":
+        raise ConfigError("size", "SmolVLA is built at size=tiny, dtype=float32 only")
+    out = make_smolvla_policy(cfg.output, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed)
+    write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "smolvla", "size": "tiny", "random_weights": True, "seed": cfg.seed})
+    return out
+
+
+def _build_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot_armory.policies.demo.planner import make_planner_policy
+
+    return make_planner_policy(cfg, cameras)
+
+
+# kind -> builder (each imports its LeRobot classes only when called); a new kind is one module
+# under policies/demo/ and one entry here.
+BUILDERS: dict[str, Callable[[DemoPolicyConfig, list[str]], Path]] = {
+    "act": _build_act,
+    "pi05": _build_pi05,
+    "smolvla": _build_smolvla,
+    "planner": _build_planner,
+}
+KINDS = tuple(BUILDERS)
+# what --size and --dtype apply to
+SIZED_KINDS = ("pi05", "smolvla")
+
+
+def make_demo_policy(cfg: DemoPolicyConfig) -> Path:
+    """Build and save the policy; returns its directory."""
+    if cfg.kind not in BUILDERS:
+        raise ConfigError("kind", f"must be one of {', '.join(KINDS)}, got {cfg.kind!r}")
+    cameras = [c.strip() for c in cfg.cameras.split(",") if c.strip()]
+    if cfg.kind not in SIZED_KINDS and (cfg.size, cfg.dtype) != ("tiny", "float32"):
+        raise ConfigError("size" if cfg.size != "tiny" else "dtype", f"--size and --dtype apply to pi05 (and smolvla), not to {cfg.kind}")
+    return BUILDERS[cfg.kind](cfg, cameras)
+
+
+def _run(cfg: DemoPolicyConfig) -> None:
+    out = make_demo_policy(cfg)
+    size_mb = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 1e6
+    what = {
+        "planner": "analytic armory_planner policy",
+        "act": "ACT policy (random weights)",
+        "smolvla": "SmolVLA tiny policy (random weights, stand-in VLM config and tokenizer)",
+    }.get(cfg.kind, f"π0.5 {cfg.size} policy (random weights, stand-in tokenizer)")
+    print(f"demo {what}, {size_mb:.1f} MB, written to {out}; serve it with --policy.path={out}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point."""
+    cfg = parse_or_exit(DemoPolicyConfig, argv, "lerobot-armory-make-demo-policy")
+    run_or_exit(_run, cfg, "lerobot-armory-make-demo-policy")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,1 +1,0 @@
-"""The batched multi-robot policy server: frontend, engine and live scheduling loop."""
