@@ -4,8 +4,8 @@ Each run starts ``lerobot-armory-server`` (the analytic planner policy, H=10, 64
 ``--engine.emulate_profile=l40s-pi05``, ``--max_batch_size=3``; started with the usual soft
 limit of 1024 open files, as systemd and most shells give it), one process of four honest
 ``armory_sim`` robots (20 fps, h_min 5, h_max 10, weight 1, emulated network 3.75 ms median with
-the libero preset's jitter; ``python benchmarks/_adversaries.py honest SPEC.json``) and, in this
-process, on its own thread, one attacker from ``benchmarks/_adversaries.py`` speaking the raw
+the libero preset's jitter; ``python tests/support/adversaries.py honest SPEC.json``) and, in this
+process, on its own thread, one attacker from ``tests/support/adversaries.py`` speaking the raw
 protocol. The honest robots tick for ``warmup_s + duration_s``; the attacker starts after the
 warm-up (or, for the attacks on joining — slot_squat, identity, idle_sockets — before the honest
 robots start). The same honest fleet without an attacker, once per scheduler, is the baseline.
@@ -53,8 +53,9 @@ from typing import Any
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-import _adversaries as adv
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+from tests.support import adversaries as adv  # noqa: E402 - the attackers are the tests' doubles
 
 from lerobot_armory.bench.live import machine_cpu
 from lerobot_armory.sim.presets import get_preset
@@ -295,7 +296,7 @@ def run_once(spec: RunSpec, cfg: Config, policy: str, work: Path) -> dict[str, A
         "ready_file": str(ready), "go_file": str(go), "robots": honest_specs(spec, cfg),
     }  # fmt: skip
     (run_dir / "group.json").write_text(json.dumps(group_spec, indent=1))
-    group = subprocess.Popen([sys.executable, str(HERE / "_adversaries.py"), "honest", str(run_dir / "group.json")])
+    group = subprocess.Popen([sys.executable, str(ROOT / "tests" / "support" / "adversaries.py"), "honest", str(run_dir / "group.json")])
     args = [
         f"--policy.path={policy}", "--policy.device=cpu", "--port=0", f"--scheduler.type={spec.scheduler}",
         f"--max_batch_size={spec.cap}", "--engine.emulate_profile=l40s-pi05", "--status_interval_s=0", "--log_level=warning",

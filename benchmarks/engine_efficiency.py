@@ -123,7 +123,8 @@ def main() -> None:
     from lerobot_armory.inference_latency import LatencyProfile
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.entrypoints.server import ArmoryServer, tune_process
-    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import EngineOptions, PolicyOptions
     from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 
     parser = argparse.ArgumentParser(description="served chunks/s vs a bare batched loop")

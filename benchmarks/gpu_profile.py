@@ -73,7 +73,7 @@ CAPTURE_TARGET_S = 60.0
 
 def engine_options(config: str) -> Any:
     """The ``--engine.*`` options of a configuration."""
-    from lerobot_armory.engine.policy_engine import EngineOptions
+    from lerobot_armory.engine.options import EngineOptions
 
     if "-graphs" not in config:
         return EngineOptions(cuda_graphs="off")
@@ -289,7 +289,8 @@ def _plot(path: Path, data: dict[str, Any]) -> None:
 def main() -> None:
     import torch
 
-    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     if device == "cpu" and not ARGS.allow_cpu:

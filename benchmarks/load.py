@@ -12,9 +12,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parent.parent))  # the repository: tests.support
 from _common import Targets  # noqa: E402
 
-from _load import run_load  # noqa: E402
+from tests.support.load import run_load  # noqa: E402 - the load generator is the tests' too
 
 
 def main() -> None:

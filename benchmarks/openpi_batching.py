@@ -47,7 +47,7 @@ PACE_S = 5 / 20.0
 
 def run(python: str, planner: str, batch_cap: int, n: int, duration_s: float, setting: str) -> dict:
     from lerobot_armory.entrypoints.server import build_server
-    from lerobot_armory.entrypoints.openpi.endpoint import OpenpiOptions
+    from lerobot_armory.serving.config import OpenpiOptions
 
     fps, pace = (1000.0, 0.0) if setting == "evaluation" else (20.0, PACE_S)
     cfg = dataclasses.replace(replica_config(planner), max_batch_size=batch_cap, openpi=OpenpiOptions(port=0, fps=fps))

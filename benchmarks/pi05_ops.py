@@ -87,7 +87,8 @@ def main() -> None:
     import torch
 
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,8", help="batch sizes to count")

@@ -97,8 +97,10 @@ def live(
 
 def wrong_delay_sweep(trials: int) -> dict[int, dict[str, float]]:
     """Seam at a fixed true switch index when RTC is told the delay off by ``e`` steps."""
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
-    from lerobot_armory.engine.rtc import Prefix, RTCOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
+    from lerobot_armory.engine.rtc import Prefix
+    from lerobot_armory.engine.options import RTCOptions
 
     engine = PolicyEngine(PolicyOptions(policy_for(10), "cpu"), RTCOptions(enabled=True, delay_margin=0))  # the delay as told
     shift, true_delay = 2, 3  # the new observation is 2 steps into the old chunk; it arrives 3 steps later
@@ -121,8 +123,9 @@ def wrong_delay_sweep(trials: int) -> dict[int, dict[str, float]]:
 
 def latency_cost(max_b: int, reps: int) -> list[dict[str, float]]:
     """Median forward pass, plain and guided, for b = 1..max_b (one engine, same process)."""
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
-    from lerobot_armory.engine.rtc import RTCOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
+    from lerobot_armory.engine.options import RTCOptions
 
     engine = PolicyEngine(PolicyOptions(policy_for(10), "cpu"), RTCOptions(enabled=True))
     engine.warmup(max_b, log_progress=False)

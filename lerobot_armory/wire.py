@@ -13,15 +13,16 @@ import io
 import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_armory.feature_spec import ALLOWED_DTYPES, MAX_DIMS, FeatureSpec, WireError, check_features
 from lerobot_armory.proto import armory_pb2 as pb
 
-# dtypes a tensor may declare; anything else (object, void, strings...) is refused.
-ALLOWED_DTYPES = ("float32", "float64", "float16", "uint8", "int8", "int16", "int32", "int64", "bool")
-MAX_DIMS = 8
+__all__ = [
+    "ALLOWED_DTYPES", "MAX_DIMS", "FeatureSpec", "WireError", "check_features", "decode", "decode_all", "encode",
+    "spec_from_proto", "spec_to_proto",
+]  # fmt: skip
 
 # Scans a JPEG may have. A baseline JPEG has 1 (3 when non-interleaved), libjpeg's progressive
 # script (PIL ``progressive=True``, OpenCV ``IMWRITE_JPEG_PROGRESSIVE``, ``cjpeg -progressive``)
@@ -44,60 +45,14 @@ _JPEG_STANDALONE = frozenset({0x01, *range(0xD0, 0xD8)})
 _JPEG_SOS, _JPEG_EOI = 0xDA, 0xD9
 
 
-class WireError(ValueError):
-    """A tensor or message that does not decode; the message says what is wrong."""
+def spec_to_proto(spec: FeatureSpec) -> pb.TensorSpec:
+    """A feature spec as the wire's ``TensorSpec``."""
+    return pb.TensorSpec(name=spec.name, dtype=spec.dtype, shape=list(spec.shape))
 
 
-@dataclass(frozen=True)
-class FeatureSpec:
-    """What one observation feature looks like on the wire."""
-
-    name: str
-    dtype: str
-    shape: tuple[int, ...]
-
-    def to_proto(self) -> pb.TensorSpec:
-        return pb.TensorSpec(name=self.name, dtype=self.dtype, shape=list(self.shape))
-
-    @classmethod
-    def from_proto(cls, msg: pb.TensorSpec) -> FeatureSpec:
-        return cls(msg.name, msg.dtype, tuple(int(d) for d in msg.shape))
-
-    def describe(self) -> str:
-        return f"{self.dtype}{list(self.shape)}"
-
-
-def check_features(declared: Sequence[FeatureSpec], expected: Sequence[FeatureSpec]) -> list[str]:
-    """Every mismatch between a robot's declared features and the policy's inputs (empty: OK).
-
-    The server checks registrations with it. It lives beside :class:`FeatureSpec` rather than in
-    the server so that anything holding a policy's expected features (a robot reading its
-    ``RegisterResponse``, a test) can run the same check without importing the server.
-
-    Images may be declared as uint8 (H, W, 3) or as float32 (3, H, W) in [0, 1].
-    """
-    problems = []
-    exp = {s.name: s for s in expected}
-    seen = set()
-    for spec in declared:
-        if spec.name in seen:
-            problems.append(f"feature {spec.name!r} declared twice")
-            continue
-        seen.add(spec.name)
-        want = exp.get(spec.name)
-        if want is None:
-            problems.append(f"unexpected feature {spec.name!r} {spec.describe()}: the policy does not use it")
-            continue
-        ok = spec == want
-        if not ok and want.dtype == "uint8" and len(want.shape) == 3:  # image: CHW float also fine
-            h, w, c = want.shape
-            ok = spec.dtype == "float32" and spec.shape == (c, h, w)
-        if not ok:
-            problems.append(f"feature {spec.name!r}: declared {spec.describe()}, the policy needs {want.describe()}")
-    for name in exp:
-        if name not in seen:
-            problems.append(f"missing feature {name!r}: the policy needs {exp[name].describe()}")
-    return problems
+def spec_from_proto(msg: pb.TensorSpec) -> FeatureSpec:
+    """A wire ``TensorSpec`` as a feature spec (its shape is checked by whoever uses it)."""
+    return FeatureSpec(msg.name, msg.dtype, tuple(int(d) for d in msg.shape))
 
 
 def encode(name: str, array: np.ndarray, jpeg_quality: int | None = None) -> pb.Tensor:
@@ -222,4 +177,4 @@ def decode_all(tensors: Iterable[pb.Tensor], expected: Mapping[str, FeatureSpec]
 
 
 def specs_to_proto(specs: Sequence[FeatureSpec]) -> list[pb.TensorSpec]:
-    return [s.to_proto() for s in specs]
+    return [spec_to_proto(s) for s in specs]

@@ -14,8 +14,8 @@ from lerobot_armory.robot.connection import Connection
 from lerobot_armory.robot.features import FeatureMap
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ServerConfig
-from lerobot_armory.engine.policy_engine import EngineOptions
-from lerobot_armory.engine.policy_engine import PolicyOptions
+from lerobot_armory.engine.options import EngineOptions
+from lerobot_armory.engine.options import PolicyOptions
 
 IMAGE = 32
 

@@ -22,7 +22,8 @@ def engine(demo_policy_dir):
     """The tiny ACT loaded through the --policy.path code path, on the CPU."""
     import torch
 
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
 
     torch.set_num_threads(1)  # tests share 2 cores with the server's threads
     return PolicyEngine(PolicyOptions(str(demo_policy_dir), "cpu"))

@@ -1,4 +1,4 @@
-"""One robot cannot hurt the fleet: each attack of ``benchmarks/_adversaries.py``, briefly, next to
+"""One robot cannot hurt the fleet: each attack of ``tests/support/adversaries.py``, briefly, next to
 a few honest light robots on an in-process server, then a fuzzer of mutated messages.
 
 Every test checks that the serving loop is alive and never failed, and that the honest robots
@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from benchmarks._load import EchoEngine
+from tests.support.echo import EchoEngine
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
@@ -34,8 +34,7 @@ from lerobot_armory.serving.security import AuthTokens
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-import _adversaries as adv
+from tests.support import adversaries as adv
 
 STATE = {"observation.state": ("float32", (4,))}
 WITH_IMAGE = {"observation.state": ("float32", (4,)), "observation.images.front": ("uint8", (32, 32, 3))}
@@ -237,7 +236,7 @@ def test_huge_report_does_not_stall_the_fleet():
 
 ECHO_SERVER_PROCESS = """
 import sys
-from benchmarks._load import echo_server
+from tests.support.echo import echo_server
 server = echo_server(max_obs_rate_hz=0.0)
 print(server.address, flush=True)
 sys.stdin.read()  # serve until the test closes stdin

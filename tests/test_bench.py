@@ -13,9 +13,10 @@ from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.armory_sim import ArmorySimEnv, WorldParams
 from lerobot_armory.robot.netem import DelayLine, NetworkEmulator
 from lerobot_armory.engine.emulation import EmulatedLatencyEngine
+from lerobot_armory.engine.protocol import UnguidedEngine
 
 
-class FakeEngine:
+class FakeEngine(UnguidedEngine):
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
 
@@ -66,7 +67,8 @@ def test_network_emulator_delays_exactly_with_zero_jitter():
 @pytest.fixture(scope="module")
 def planner(tmp_path_factory):
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
 
     path = tmp_path_factory.mktemp("planner") / "p"
     make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=64))

@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from benchmarks._load import FEATURES as ECHO_FEATURES
-from benchmarks._load import echo_server
+from tests.support.echo import FEATURES as ECHO_FEATURES
+from tests.support.echo import echo_server
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
@@ -28,6 +28,7 @@ from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
+from lerobot_armory.engine.protocol import UnguidedEngine
 
 SIM_FEATURES = [FeatureSpec("observation.state", "float32", (2,)), FeatureSpec("observation.images.front", "uint8", (32, 32, 3))]
 
@@ -108,7 +109,7 @@ def test_feature_map_follows_lerobot_conventions():
 # ---- against a real server -------------------------------------------------------------------
 
 
-class ConstEngine:
+class ConstEngine(UnguidedEngine):
     """Returns chunks whose every action equals ``value`` (optionally slow)."""
 
     def __init__(self, value: float, delay_s: float = 0.0, horizon: int = 10) -> None:

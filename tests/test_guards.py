@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -19,11 +20,12 @@ from lerobot_armory.mirror import (
     RobotMirror,
     RobotSpec,
 )
-from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.serving.fleet import OUTBOX_NOTICES, Fleet, FleetError, Outbox
-from lerobot_armory.serving.fleet_policy import FleetPolicy, Request
+from lerobot_armory.serving.fleet import Fleet, FleetError
+from lerobot_armory.serving.messages import ChunkOut, Notice, NoticeKind
+from lerobot_armory.serving.outbox import OUTBOX_NOTICES, Outbox
+from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest
 from lerobot_armory.serving.security import AuthTokens
 
 SPEC = RobotSpec("r", fps=20.0, chunk_size=10, h_min=0, h_max=10)
@@ -169,7 +171,7 @@ def test_schedulers_decide_whatever_robots_claimed(config):
 
 
 def test_builtin_policy_caps_weight_at_one_and_keeps_the_rest():
-    grant, problems = FleetPolicy.builtin().grant(Request("a", 20.0, 0, 10, 3.0, "fast"))
+    grant, problems = FleetPolicy.builtin().grant(GrantRequest("a", 20.0, 0, 10, 3.0, "fast"))
     assert not problems
     assert (grant.weight, grant.tier, grant.h_min, grant.h_max, grant.rule) == (1.0, "fast", 0, 10, "default")
 
@@ -182,11 +184,11 @@ def test_policy_rules_by_robot_and_token(tmp_path):
         "tokens:\n  lab-b: {max_weight: 2, max_device_share: 0.25}\n"
     )
     policy = FleetPolicy.load(str(path))
-    g, _ = policy.grant(Request("arm-7", 30.0, 0, 10, 5.0, "fast"))
+    g, _ = policy.grant(GrantRequest("arm-7", 30.0, 0, 10, 5.0, "fast"))
     assert (g.weight, g.tier, g.h_min, g.rule) == (3.0, "fast", 2, "robot:arm-7")  # h_min raised into bounds
-    g, _ = policy.grant(Request("x", 30.0, 4, 10, 5.0, "fast"), token_name="lab-b")
+    g, _ = policy.grant(GrantRequest("x", 30.0, 4, 10, 5.0, "fast"), token_name="lab-b")
     assert (g.weight, g.tier, g.max_device_share, g.rule) == (2.0, "slow", 0.25, "token:lab-b")
-    g, problems = policy.grant(Request("x", 200.0, 4, 1, 1.0, "slow"))
+    g, problems = policy.grant(GrantRequest("x", 200.0, 4, 1, 1.0, "slow"))
     assert g is None and any("fps 200" in p for p in problems) and any("h_min 4" in p for p in problems)
 
 
@@ -242,11 +244,11 @@ def test_session_is_bound_to_its_credential_and_squatters_make_room():
 def test_outbox_keeps_at_most_its_limits_for_a_robot_that_never_reads():
     box = Outbox()
     for k in range(1000):
-        box.put(pb.ServerMessage(notice=pb.Notice(message=f"n{k}")))
-        box.put(pb.ServerMessage(chunk=pb.ActionChunk(chunk_id=k)))
+        box.put(Notice(NoticeKind.INFO, f"n{k}"))
+        box.put(ChunkOut(k, 0, np.zeros((1, 1), np.float32), 0.0, 0.0))
     kinds = []
     while (msg := box.get(timeout=0)) is not None:
-        kinds.append((msg.WhichOneof("kind"), msg.chunk.chunk_id if msg.HasField("chunk") else msg.notice.message))
+        kinds.append(("chunk", msg.chunk_id) if isinstance(msg, ChunkOut) else ("notice", msg.message))
     assert sum(k == "notice" for k, _ in kinds) == OUTBOX_NOTICES
     assert sum(k == "chunk" for k, _ in kinds) == box.limit
     assert kinds[-1] == ("chunk", 999) and ("notice", "n999") in kinds  # the newest are kept
@@ -263,7 +265,7 @@ def test_live_grant_and_device_share_cap():
 
     import numpy as np
 
-    from benchmarks._load import FEATURES, EchoEngine, echo_server
+    from tests.support.echo import FEATURES, EchoEngine, echo_server
     from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
 
     policy = FleetPolicy.from_dict({"robots": {"hog": {"max_device_share": 0.2, "max_weight": 2}}})

@@ -16,8 +16,9 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile, validate_latencies
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ArmoryServer, ServerConfig, latency_learning
-from lerobot_armory.engine.policy_engine import EngineOptions
+from lerobot_armory.engine.options import EngineOptions
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
+from lerobot_armory.engine.protocol import UnguidedEngine
 from tests.test_server import Pusher
 
 SPEC_TABLES = {
@@ -384,7 +385,7 @@ def test_which_tables_learn():
     assert learning_decision("profiled", latency_learning=False)[0] is False
 
 
-class TimedEngine:
+class TimedEngine(UnguidedEngine):
     """Batches take a known time (base + per robot), chunks are zeros of the policy's shape."""
 
     def __init__(self, horizon: int, action_dim: int, base_s: float = 0.020, per_robot_s: float = 0.005) -> None:

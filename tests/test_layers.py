@@ -1,15 +1,16 @@
-"""The package's layers: what may import what.
+"""The package's layers: what may import what, and no import cycle.
 
-The robot side (``lerobot_armory.robot``) runs on the robot's computer: it must not drag in the
-simulator, the schedulers or the server (their dependencies, their import time, their memory).
-The mirror and the schedulers are the pure core that the server and the simulator share: they
-import neither of them, nor the robot side. And the product package never imports the research
-code or the benchmarks, which are not shipped.
+Lowest first: the pure core (mirror, dispatch, schedulers, placement, the delay and latency
+models); policies (model code); the engine (a loaded policy, run batched); the serving core (fleet,
+sessions, the loop), which speaks its own message types; the entrypoints (gRPC, openpi, cluster),
+which translate their wire at their edge. The robot side runs on the robot's computer and drags in
+none of the server. The product package never imports the research code, the benchmarks or the
+tests, which are not shipped.
 
-Two checks: a static one over the source (every ``import``, including those inside functions,
-named by file and line), and a dynamic one that imports the client in a fresh interpreter and
-looks at what got loaded (catching what the static check cannot see, e.g. ``importlib`` calls or
-an ``__init__`` that pulls in a sibling).
+:data:`CONTRACTS` is the one table: ``pyproject.toml``'s import-linter contracts must say the same
+(checked below), ``lint-imports`` checks them transitively, and a static check over the source
+names every offending import by file and line (including imports inside functions); a dynamic
+check imports the client in a fresh interpreter and looks at what got loaded.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import ast
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -25,10 +27,49 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "lerobot_armory"
 
-ROBOT_MAY_NOT = ("lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.server", "lerobot_armory.bench", "lerobot_armory.entrypoints.cluster", "ray")
-PURE_MAY_NOT = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.bench", "lerobot_armory.robot", "lerobot_armory.entrypoints.cluster")
-# research/ holds the ``armory_research`` package (offline optimum, bounds); benchmarks/ the scripts.
-NOBODY_MAY = ("research", "armory_research", "benchmarks")
+# (contract name, source modules, forbidden modules); the same in pyproject.toml.
+CONTRACTS: list[tuple[str, tuple[str, ...], tuple[str, ...]]] = [
+    (
+        "the robot side imports no simulator, scheduler, engine, serving core, entrypoint or bench",
+        ("lerobot_armory.robot",),
+        ("lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.engine", "lerobot_armory.serving",
+         "lerobot_armory.entrypoints", "lerobot_armory.bench", "ray"),
+    ),
+    (
+        "the core (mirror, dispatch, schedulers, placement, delay and latency models) is pure: no engine, serving, wire or I/O layer",
+        ("lerobot_armory.mirror", "lerobot_armory.dispatch", "lerobot_armory.schedulers", "lerobot_armory.placement",
+         "lerobot_armory.network_delay", "lerobot_armory.inference_latency"),
+        ("lerobot_armory.engine", "lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.sim",
+         "lerobot_armory.bench", "lerobot_armory.robot", "lerobot_armory.policies", "lerobot_armory.proto",
+         "lerobot_armory.wire", "torch", "grpc", "google", "websockets"),
+    ),
+    (
+        "policies are model code: no engine, serving core, entrypoint, simulator, scheduler or bench",
+        ("lerobot_armory.policies",),
+        ("lerobot_armory.engine", "lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.sim",
+         "lerobot_armory.schedulers", "lerobot_armory.bench", "lerobot_armory.robot"),
+    ),
+    (
+        "the engine knows no robots, sessions or wires",
+        ("lerobot_armory.engine",),
+        ("lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.sim", "lerobot_armory.bench",
+         "lerobot_armory.robot", "lerobot_armory.schedulers", "lerobot_armory.dispatch", "lerobot_armory.mirror",
+         "lerobot_armory.proto", "lerobot_armory.wire", "grpc", "google", "websockets"),
+    ),
+    (
+        "the serving core speaks its own messages: no entrypoint, protobuf, gRPC or websockets",
+        ("lerobot_armory.serving",),
+        ("lerobot_armory.entrypoints", "lerobot_armory.proto.armory_pb2", "lerobot_armory.proto.armory_pb2_grpc",
+         "lerobot_armory.wire", "lerobot_armory.sim", "lerobot_armory.bench", "lerobot_armory.robot", "grpc", "google",
+         "websockets"),
+    ),
+    (
+        "the product package imports no research, benchmark or test code",
+        ("lerobot_armory",),
+        ("research", "armory_research", "benchmarks", "tests"),
+    ),
+]  # fmt: skip
+ROBOT_MAY_NOT = CONTRACTS[0][2]
 
 
 def _module_name(path: Path, root: Path) -> str:
@@ -85,40 +126,102 @@ def _py_files(*paths: Path) -> list[Path]:
     return files
 
 
+def test_pyproject_holds_the_same_contracts():
+    """import-linter's contracts are this table, word for word: neither can drift alone."""
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    assert [(c["name"], tuple(c["source_modules"]), tuple(c["forbidden_modules"])) for c in declared] == CONTRACTS
+    assert all(c["type"] == "forbidden" for c in declared)
+
+
+@pytest.mark.parametrize("name,sources,forbidden", CONTRACTS, ids=[c[0].split(":")[0][:60] for c in CONTRACTS])
+def test_every_file_keeps_its_layer(name, sources, forbidden):
+    files = []
+    for source in sources:
+        path = ROOT / source.replace(".", "/")
+        files += _py_files(path) if path.is_dir() else _py_files(path.with_suffix(".py"))
+    assert files, f"{sources} match no file"
+    found = _violations(files, forbidden)
+    assert not found, f"{name}:\n" + "\n".join(found)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (anywhere in it, functions included)."""
+    modules = {_module_name(p, ROOT): p for p in PACKAGE.rglob("*.py")}
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for module, path in modules.items():
+        for _, name in _imports(path):
+            while name and name not in modules:  # ``from pkg import name`` names an attribute
+                name = name.rpartition(".")[0]
+            if name and name != module and not module.startswith(name + "."):  # a package's own __init__ is no cycle
+                graph[module].add(name)
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for start in graph:
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_module_of_the_package_imports_itself_back():
+    """No import cycle, counting imports inside functions and under TYPE_CHECKING."""
+    cycles = _cycles(_import_graph())
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
 def test_the_static_check_sees_imports_inside_functions_and_relative_ones(tmp_path):
     """The checker itself: a nested import and a relative one are both found, with their line."""
     pkg = tmp_path / "lerobot_armory" / "robot"
     pkg.mkdir(parents=True)
-    (pkg / "m.py").write_text("import os\n\ndef f():\n    from lerobot_armory.sim.run import simulate\n\nfrom ..server import app\n")
+    (pkg / "m.py").write_text("import os\n\ndef f():\n    from lerobot_armory.sim.run import simulate\n\nfrom ..serving import loop\n")
     found = _violations([pkg / "m.py"], ROBOT_MAY_NOT, root=tmp_path)
     assert found == [
         "lerobot_armory/robot/m.py:4: imports lerobot_armory.sim.run",
         "lerobot_armory/robot/m.py:4: imports lerobot_armory.sim.run.simulate",
-        "lerobot_armory/robot/m.py:6: imports lerobot_armory.server",
-        "lerobot_armory/robot/m.py:6: imports lerobot_armory.entrypoints.server",
+        "lerobot_armory/robot/m.py:6: imports lerobot_armory.serving",
+        "lerobot_armory/robot/m.py:6: imports lerobot_armory.serving.loop",
     ]
-
-
-def test_the_robot_side_imports_no_simulator_scheduler_server_or_bench():
-    found = _violations(_py_files(PACKAGE / "robot"), ROBOT_MAY_NOT)
-    assert not found, "the robot side must stay importable alone:\n" + "\n".join(found)
-
-
-def test_the_mirror_and_the_schedulers_are_a_pure_layer():
-    found = _violations(_py_files(PACKAGE / "mirror.py", PACKAGE / "schedulers", PACKAGE / "placement.py"), PURE_MAY_NOT)
-    assert not found, "mirror.py, schedulers/ and placement.py must not depend on server, sim, bench or robot:\n" + "\n".join(found)
-
-
-def test_policies_are_model_code_below_the_server():
-    may_not = ("lerobot_armory.server", "lerobot_armory.sim", "lerobot_armory.schedulers", "lerobot_armory.bench",
-               "lerobot_armory.entrypoints.cluster", "lerobot_armory.robot")  # fmt: skip
-    found = _violations(_py_files(PACKAGE / "policies"), may_not)
-    assert not found, "policies/ (model code: the static sampler, LeRobot variants) must not depend on the server:\n" + "\n".join(found)
-
-
-def test_the_product_package_imports_no_research_or_benchmark_code():
-    found = _violations(_py_files(PACKAGE), NOBODY_MAY)
-    assert not found, "lerobot_armory must not import research/ or benchmarks/:\n" + "\n".join(found)
 
 
 def test_importing_the_client_loads_no_simulator_scheduler_or_server():

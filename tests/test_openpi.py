@@ -20,9 +20,9 @@ import pytest
 
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ServerConfig, build_server
-from lerobot_armory.engine.policy_engine import EngineOptions
-from lerobot_armory.engine.policy_engine import PolicyOptions
-from lerobot_armory.entrypoints.openpi.endpoint import OpenpiOptions
+from lerobot_armory.engine.options import EngineOptions
+from lerobot_armory.engine.options import PolicyOptions
+from lerobot_armory.serving.config import OpenpiOptions
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.entrypoints.openpi.codec import pack, unpack
 from lerobot_armory.wire import FeatureSpec, WireError
@@ -238,15 +238,14 @@ def test_with_tls_and_tokens_the_endpoint_is_wss_and_checks_the_api_key(tmp_path
 def test_a_chunk_left_over_from_a_timed_out_request_never_answers_the_next_one(server):
     from websockets.sync.client import connect
 
-    from lerobot_armory.proto import armory_pb2 as pb
-    from lerobot_armory.wire import encode
+    from lerobot_armory.serving.messages import ChunkOut
 
     with connect(f"ws://127.0.0.1:{server.openpi.port}", compression=None, max_size=None) as ws:
         unpack(ws.recv(), 1 << 20)
         with server.fleet.cond:
             mine = [s for s in server.fleet.sessions.values() if s.robot_id.startswith("openpi-")][-1]
         stale = np.full((10, 2), 99.0, np.float32)
-        mine.outbox.put(pb.ServerMessage(chunk=pb.ActionChunk(chunk_id=999, i_start=0, actions=encode("action", stale))))
+        mine.outbox.put(ChunkOut(999, 0, stale, 0.0, 0.0))
         ws.send(pack({"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}))
         reply = unpack(ws.recv(timeout=10), 1 << 20)
         assert not np.any(reply["actions"] == 99.0)

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.options import PolicyOptions
+from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,

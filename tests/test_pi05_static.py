@@ -10,7 +10,9 @@ import pytest
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.engine import rtc
 from lerobot_armory.engine.cuda_graphs import BucketedSampler, bucket_for, parse_buckets
-from lerobot_armory.engine.policy_engine import EngineOptions, PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+from lerobot_armory.engine.protocol import noise_seed
 from tests.vla_helpers import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 
 BUCKETS = (1, 2, 4, 8)

@@ -17,8 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from benchmarks._load import EchoEngine as QuickEngine
-from benchmarks._load import echo_server, run_load
+from tests.support.echo import EchoEngine as QuickEngine
+from tests.support.echo import echo_server
+from tests.support.load import run_load
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
 from lerobot_armory.robot.client import ArmoryClient, RegistrationRefused, RobotIdentity

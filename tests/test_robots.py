@@ -42,6 +42,7 @@ from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.wire import FeatureSpec
+from lerobot_armory.engine.protocol import UnguidedEngine
 
 register_robot_types()  # at import: the parametrised test below needs the types at collection
 LEROBOT_TYPES = lerobot_robot_types()
@@ -300,7 +301,8 @@ def so101_engine(tmp_path_factory):
     import torch
 
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
 
     out = tmp_path_factory.mktemp("policy") / "so101-act"
     make_demo_policy(
@@ -379,7 +381,7 @@ def test_so101_runs_the_client_loop_and_its_motors_get_the_chunks_in_order(
     assert "executed" in capsys.readouterr().out
 
 
-class SevenDimEngine:
+class SevenDimEngine(UnguidedEngine):
     """A policy for so101's observations whose actions have 7 dims."""
 
     def infer(self, observations, tasks, noise_seeds=None):

@@ -8,7 +8,9 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.engine import rtc
-from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions, noise_seed
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.options import PolicyOptions
+from lerobot_armory.engine.protocol import noise_seed
 from tests.vla_helpers import observation
 
 

@@ -341,7 +341,8 @@ def test_engine_failure_hits_one_batch_only(server, engine, monkeypatch):
 
 
 def test_engine_rejects_missing_and_non_chunking_policies(engine, tmp_path, monkeypatch):
-    from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
 
     with pytest.raises(ConfigError, match="policy.path"):
         PolicyEngine(PolicyOptions(str(tmp_path / "nothing-here"), "cpu"))
@@ -445,25 +446,5 @@ def test_an_engine_that_always_fails_stops_the_loop_instead_of_failing_forever(s
         assert server.loop.stats.failed_batches == MAX_CONSECUTIVE_FAILURES
         assert wait_for(lambda: not server.loop.alive, timeout=10)
         assert sum(n.kind == pb.Notice.INFERENCE_FAILED for n in robot.notices) >= 1
-    finally:
-        robot.stop()
-
-
-def test_an_engine_without_noise_seeds_is_still_served(server, engine, monkeypatch):
-    """Engines written before per-request noise (``infer(observations, tasks)``) keep working."""
-    from lerobot_armory.serving.loop import takes_noise_seeds
-
-    real = engine.infer
-
-    def old_style(obs, tasks):
-        return real(obs, tasks)
-
-    monkeypatch.setattr(server.loop.engine, "infer", old_style)
-    assert not takes_noise_seeds(server.loop.engine)
-    monkeypatch.setattr(server.loop, "_seeds", False)  # what the loop decides for such an engine at start
-    robot = Pusher(server.address, engine, 0).start()
-    try:
-        assert wait_for(lambda: len(robot.chunks) >= 2, timeout=30)
-        assert server.loop.stats.failed_batches == 0
     finally:
         robot.stop()

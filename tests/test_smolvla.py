@@ -11,7 +11,8 @@ import socket
 import pytest
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.engine.policy_engine import PolicyEngine, PolicyOptions
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.wire import check_features
 from tests.vla_helpers import (
     IMAGE,

@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from lerobot_armory import wire
-from benchmarks._load import echo_server
+from tests.support.echo import echo_server
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server, rpc_names, safe_deserializer
 from lerobot_armory.robot.connection import Connection

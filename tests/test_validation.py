@@ -8,7 +8,7 @@ import math
 import grpc
 import pytest
 
-from benchmarks._load import FEATURES, echo_server
+from tests.support.echo import FEATURES, echo_server
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import MAX_ROBOT_ID, TIERS, RobotSpec, spec_problems
 from lerobot_armory.robot.armory_sim import ArmorySimConfig

@@ -13,7 +13,8 @@ from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.engine.emulation import EmulatedLatencyEngine
-from lerobot_armory.engine.policy_engine import PolicyEngine, noise_seed
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from tests.test_server import wait_for
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.serving.loop import Engine
+from lerobot_armory.engine.protocol import Engine
 
 
 class EmulatedLatencyEngine:
@@ -36,7 +36,7 @@ class EmulatedLatencyEngine:
     @property
     def rtc(self) -> Any:
         """The wrapped engine's RTC processor (None: no real-time chunking)."""
-        return getattr(self.engine, "rtc", None)
+        return self.engine.rtc
 
     def infer(
         self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
@@ -54,7 +54,7 @@ class EmulatedLatencyEngine:
         prefixes: Sequence[Any],
     ) -> tuple[np.ndarray, np.ndarray]:
         start = self.clock()
-        out = self.engine.infer_guided(observations, tasks, noise_seeds, prefixes)  # type: ignore[attr-defined]
+        out = self.engine.infer_guided(observations, tasks, noise_seeds, prefixes)
         self._hold(start, len(observations))
         return out
 

@@ -20,7 +20,7 @@ because torch.compile's CUDA graphs keep per-thread state (a graph recorded on o
 be replayed from another).
 
 Flow-matching policies (π0, π0.5, SmolVLA) start from Gaussian noise. The engine draws it per
-request from a seed (:func:`noise_seed`: robot id and chunk id), so a robot's chunk does not depend
+request from a seed (:func:`~lerobot_armory.engine.protocol.noise_seed`: robot id and chunk id), so a robot's chunk does not depend
 on who shared its batch, and a chunk can be recomputed alone.
 """
 
@@ -37,9 +37,7 @@ import os
 import statistics
 import threading
 import time
-import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +46,10 @@ import numpy as np
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.engine import rtc as rtc_mod
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+
 from lerobot_armory.policies.layout import SIDECAR, TOKENIZER_DIR, VLM_DIR
-from lerobot_armory.wire import FeatureSpec
+from lerobot_armory.feature_spec import FeatureSpec
 
 log = logging.getLogger(__name__)
 
@@ -64,89 +64,6 @@ DEVICE_AGNOSTIC_STEPS = frozenset(
         "pi0_new_line_processor", "smolvla_new_line_processor",
     }
 )  # fmt: skip
-
-
-@dataclass
-class PolicyOptions:
-    """``--policy.*`` options.
-
-    Attributes:
-        path: local policy directory or hub id (``lerobot/pi05_libero``).
-        device: torch device (``cuda``, ``cuda:1``, ``cpu``, ``mps``); default: cuda if available.
-        cpu_threads: torch intra-op threads when the policy runs on the CPU; default: all cores
-            but one, so the network threads keep a core (oversubscribing makes every batch slower).
-        overrides: fields of the policy's own config, as LeRobot takes them after
-            ``--policy.path`` (``["dtype=bfloat16", "num_inference_steps=5"]``); on the command
-            line every ``--policy.<field>=value`` that is not one of the options above.
-    """
-
-    path: str = ""
-    device: str | None = None
-    cpu_threads: int | None = None
-    overrides: list[str] = field(default_factory=list)
-
-
-@dataclass
-class EngineOptions:
-    """``--engine.*`` options.
-
-    Attributes:
-        emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
-            ``d_infer(b)`` per batch (the real model must be faster than that).
-        cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5),
-            ``on`` (refuse to start without them) or ``off`` (LeRobot's own eager sampler). With
-            graphs, batches are padded to buckets and each bucket is one recorded CUDA graph
-            (``server/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
-            the start-up log says why.
-        graph_buckets: the bucket sizes, comma-separated (default: 1, 2, 4, 8, … up to
-            ``--max_batch_size``, and the cap itself).
-        static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,
-            fewer operations); unset: wherever graphs are on.
-        attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
-            (``torch.nn.functional.scaled_dot_product_attention``).
-        compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph, one
-            compilation per bucket at warm-up) before its graphs are recorded: fused kernels,
-            fewer of them; compiling takes minutes.
-        matmul_precision: float32 matrix products (``torch.set_float32_matmul_precision``, for the
-            whole process): ``highest`` (true float32, LeRobot's numerics) or ``high`` (TF32 on a
-            GPU that has it). With ``--policy.dtype=bfloat16`` LeRobot still runs the SigLIP
-            tower, the projector, the norms and the action/time projections in float32.
-    """
-
-    emulate_profile: str | None = None
-    cuda_graphs: str = "auto"
-    graph_buckets: str | None = None
-    static_sampler: bool | None = None
-    attention: str = "eager"
-    compile_sampler: bool = False
-    matmul_precision: str = "highest"
-
-    def __post_init__(self) -> None:
-        # The command-line parser reads YAML, where on/off are booleans: take them back.
-        value = str(self.cuda_graphs).lower()
-        self.cuda_graphs = {"true": "on", "false": "off", "yes": "on", "no": "off"}.get(value, value)
-
-    def validate(self) -> None:
-        from lerobot_armory.policies.pi05_static import ATTENTION
-        from lerobot_armory.engine.cuda_graphs import MODES
-
-        if self.cuda_graphs not in MODES:
-            raise ConfigError("engine.cuda_graphs", f"must be one of {', '.join(MODES)}, got {self.cuda_graphs!r}")
-        if self.attention not in ATTENTION:
-            raise ConfigError("engine.attention", f"must be one of {', '.join(ATTENTION)}, got {self.attention!r}")
-        if self.matmul_precision not in ("highest", "high", "medium"):
-            raise ConfigError("engine.matmul_precision", f"must be highest, high or medium, got {self.matmul_precision!r}")
-        if self.cuda_graphs == "on" and self.static_sampler is False:
-            raise ConfigError("engine.static_sampler", "CUDA graphs record the static sampler: it cannot be off with --engine.cuda_graphs=on")
-
-
-def noise_seed(robot_id: str, chunk_id: int) -> int:
-    """The noise seed of one request: fixed by the robot and its chunk number, not by the batch.
-
-    32 bits, because torch's CPU generator keeps only the low 32 bits of a seed (a seed that put
-    the robot in the high bits would give every robot the same noise for the same chunk number).
-    """
-    return zlib.crc32(f"{chunk_id}:{robot_id}".encode())
 
 
 class PolicyEngine:

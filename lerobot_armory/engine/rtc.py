@@ -41,58 +41,9 @@ from typing import Any
 
 import numpy as np
 
+from lerobot_armory.engine.options import RTCOptions
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.policies.rtc_guidance import guidance_weight
-
-SCHEDULES = ("ZEROS", "ONES", "LINEAR", "EXP")
-
-
-@dataclass
-class RTCOptions:
-    """``--rtc.*``: real-time chunking from the mirror (LeRobot's ``RTCConfig`` fields).
-
-    Attributes:
-        enabled: guide every chunk toward what its robot executes meanwhile.
-        execution_horizon: how far into the new chunk the guidance reaches (steps); LeRobot's
-            default. Capped per robot by the length of what it would execute.
-        max_guidance_weight: clamp of the guidance weight (LeRobot's ``max_guidance_weight``).
-        prefix_attention_schedule: how the guidance fades after the delay: ZEROS (only the
-            delayed steps), ONES (full to the horizon), LINEAR or EXP (fading to the horizon).
-        delay_margin: steps added to the mirror's predicted delay before it reaches the guidance.
-            The action the robot switches at is then held to what it was going to execute
-            anyway even when the switch comes a step later than predicted (jitter); an
-            underestimate leaves the switch in the fading part, where short chunks have little
-            weight, an overestimate only holds one more action (``docs/results/rtc``). LeRobot's
-            own engine is conservative the same way (the ceiling of the worst recent latency).
-    """
-
-    enabled: bool = False
-    execution_horizon: int = 10
-    max_guidance_weight: float = 10.0
-    prefix_attention_schedule: str = "LINEAR"
-    delay_margin: int = 1
-
-    def validate(self) -> None:
-        if self.execution_horizon < 1:
-            raise ConfigError("rtc.execution_horizon", f"must be >= 1, got {self.execution_horizon}")
-        if self.delay_margin < 0:
-            raise ConfigError("rtc.delay_margin", f"must be >= 0, got {self.delay_margin}")
-        if not self.max_guidance_weight > 0:
-            raise ConfigError("rtc.max_guidance_weight", f"must be > 0, got {self.max_guidance_weight}")
-        if self.prefix_attention_schedule.upper() not in SCHEDULES:
-            raise ConfigError("rtc.prefix_attention_schedule", f"must be one of {', '.join(SCHEDULES)}, got {self.prefix_attention_schedule!r}")
-
-    def lerobot_config(self) -> Any:
-        """The equivalent ``lerobot.policies.rtc.RTCConfig``."""
-        from lerobot.configs import RTCAttentionSchedule
-        from lerobot.policies.rtc.configuration_rtc import RTCConfig
-
-        return RTCConfig(
-            enabled=True,
-            prefix_attention_schedule=RTCAttentionSchedule[self.prefix_attention_schedule.upper()],
-            max_guidance_weight=float(self.max_guidance_weight),
-            execution_horizon=int(self.execution_horizon),
-        )
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
 from lerobot_armory.proto.limits import CLIENT_KEEPALIVE_OPTIONS, DEFAULT_MAX_MESSAGE_BYTES, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.robot.netem import NetworkEmulator
-from lerobot_armory.wire import FeatureSpec, decode, encode
+from lerobot_armory.wire import FeatureSpec, decode, encode, spec_from_proto
 
 _CLOSE = object()
 
@@ -63,7 +63,7 @@ class Registration:
             list(response.action_names),
             response.chunk_size,
             response.policy,
-            [FeatureSpec.from_proto(f) for f in response.expected_features],
+            [spec_from_proto(f) for f in response.expected_features],
             clock_sync,
             response.action_dim or len(response.action_names),
             granted,

@@ -20,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotSpec
-from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.serving.messages import ClockSync, ExecutionReport, Grant, Notice, NoticeKind, SyncRequest
+from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS, Outbox
 from lerobot_armory.serving.security import RateLimiter
-from lerobot_armory.wire import FeatureSpec
+from lerobot_armory.feature_spec import FeatureSpec
 
 # A registration that has not opened its stream within this long is dropped (and, when the fleet
 # is full, the oldest such registration makes room for a new one at once).
@@ -46,75 +47,6 @@ class FleetError(Exception):
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
-
-
-# What one robot's outbox may hold: a robot that never reads its stream costs at most this much
-# server memory (notices are short: their text is cut at MAX_NOTICE_CHARS).
-OUTBOX_CHUNKS = 8
-OUTBOX_NOTICES = 16
-MAX_NOTICE_CHARS = 300
-
-
-class Outbox:
-    """Messages waiting to be written to one robot's stream.
-
-    Never blocks the producer (the serving loop) and never grows without bound: if the robot stops
-    reading, the oldest *chunk* is dropped once ``limit`` messages wait (a newer chunk supersedes
-    it anyway), and the oldest *notice* once ``notice_limit`` notices wait. ``get`` returns None
-    once closed and drained.
-    """
-
-    def __init__(self, limit: int = OUTBOX_CHUNKS, notice_limit: int = OUTBOX_NOTICES) -> None:
-        self._items: collections.deque[pb.ServerMessage] = collections.deque()
-        self._cond = threading.Condition()
-        self._closed = False
-        self.limit = limit
-        self.notice_limit = notice_limit
-        self._notices = 0
-        self.dropped_chunks = 0
-        self.dropped_notices = 0
-
-    def put(self, msg: pb.ServerMessage) -> None:
-        with self._cond:
-            if self._closed:
-                return
-            self._items.append(msg)
-            if msg.WhichOneof("kind") != "chunk":
-                self._notices += 1
-                if self._notices > self.notice_limit and self._drop_oldest(lambda kind: kind != "chunk"):
-                    self._notices -= 1
-                    self.dropped_notices += 1
-            while len(self._items) > self.limit + self._notices and self._drop_oldest(lambda kind: kind == "chunk"):
-                self.dropped_chunks += 1
-            self._cond.notify()
-
-    def _drop_oldest(self, kind_matches: Callable[[str | None], bool]) -> bool:
-        for k, old in enumerate(self._items):
-            if kind_matches(old.WhichOneof("kind")):
-                del self._items[k]
-                return True
-        return False
-
-    def get(self, timeout: float | None = None) -> pb.ServerMessage | None:
-        with self._cond:
-            while not self._items and not self._closed:
-                if not self._cond.wait(timeout):
-                    return None
-            if not self._items:
-                return None
-            msg = self._items.popleft()
-            if msg.WhichOneof("kind") != "chunk":
-                self._notices -= 1
-            return msg
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
 
 
 @dataclass
@@ -147,7 +79,7 @@ class RobotSession:
     model_chunks: dict[int, np.ndarray] = field(default_factory=dict)
     # who registered it (a digest of the token; None without auth) and what the policy granted
     credential: bytes | None = None
-    grant: pb.Grant | None = None
+    grant: Grant | None = None
     # the registration round trip's server stamps (the robot completes it with a ClockSync)
     register_stamps: tuple[float, float] | None = None
     pending_syncs: dict[int, float] = field(default_factory=dict)  # sync_id -> server send time
@@ -191,7 +123,7 @@ class Fleet:
         task: str,
         features: dict[str, FeatureSpec],
         credential: bytes | None = None,
-        grant: pb.Grant | None = None,
+        grant: Grant | None = None,
         register_recv: float | None = None,
     ) -> RobotSession:
         """Add a robot. A robot id already *streaming* is refused; a stale registration of the
@@ -240,7 +172,7 @@ class Fleet:
         with self.cond:
             if self.sessions.get(session.session_id) is not session:
                 return
-            session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.DROPPED, message=reason[:MAX_NOTICE_CHARS])))
+            session.outbox.put(Notice(NoticeKind.DROPPED, reason[:MAX_NOTICE_CHARS]))
             self._drop(session.session_id)
             self.cond.notify_all()
 
@@ -263,7 +195,7 @@ class Fleet:
 
     def move_now(self, session: RobotSession, reason: str = "moved to another replica by the cluster") -> None:
         """Tell ``session`` it moves and end it (lock held)."""
-        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.MOVED, message=reason[:MAX_NOTICE_CHARS])))
+        session.outbox.put(Notice(NoticeKind.MOVED, reason[:MAX_NOTICE_CHARS]))
         self._drop(session.session_id)
         self.cond.notify_all()
 
@@ -306,7 +238,7 @@ class Fleet:
                 self.cond.notify_all()
             return True
 
-    def on_clock_sync(self, session: RobotSession, msg: pb.ClockSync, recv: float) -> str | None:
+    def on_clock_sync(self, session: RobotSession, msg: ClockSync, recv: float) -> str | None:
         """Fold a clock exchange in; returns why it was refused (None: taken).
 
         The server side of an exchange is always the server's own stamps (those of the
@@ -336,7 +268,7 @@ class Fleet:
             return "clock sync refused: its round trip is impossible"
         return None
 
-    def sync_request(self, session: RobotSession, now: float) -> pb.ServerMessage | None:
+    def sync_request(self, session: RobotSession, now: float) -> SyncRequest | None:
         """A ClockSyncRequest to send now, if one is due (stream start, every SYNC_INTERVAL_S,
         or at once after a suspected clock step), stamped with ``now``."""
         with self.cond:
@@ -350,16 +282,16 @@ class Fleet:
             session.pending_syncs[sync_id] = now
             while len(session.pending_syncs) > MAX_PENDING_SYNCS:  # a robot that never answers
                 session.pending_syncs.pop(next(iter(session.pending_syncs)))
-            return pb.ServerMessage(sync_request=pb.ClockSyncRequest(sync_id=sync_id, server_send_time=now))
+            return SyncRequest(sync_id, now)
 
-    def on_report(self, session: RobotSession, report: pb.ExecutionReport, recv: float) -> int:
+    def on_report(self, session: RobotSession, report: ExecutionReport, recv: float) -> int:
         """Fold an execution report into the mirror (delay exchanges) and the counters.
 
         Only the first ``SENT_TABLE`` receipts are read (no more chunks can be awaiting a report),
         so the fleet lock is held for a bounded time whatever the report's size. Returns how many
         receipts were refused as implausible.
         """
-        receipts = [(int(c.chunk_id), float(c.arrival_time), int(c.first_executed_index)) for c in report.chunks[:SENT_TABLE]]
+        receipts = [(int(c.chunk_id), float(c.arrival_time), int(c.first_executed_index)) for c in report.receipts[:SENT_TABLE]]
         refused = 0
         with self.cond:
             mirror = session.mirror

@@ -31,7 +31,7 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import MAX_FPS, MAX_WEIGHT, MIN_FPS, TIERS
-from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.serving.messages import Grant
 
 FIELD = "fleet.policy"
 _BIG = 1 << 30
@@ -94,7 +94,7 @@ def _bounds(where: str, name: str, value: Any, low: float, high: float, kind: ty
 
 
 @dataclass(frozen=True)
-class Request:
+class GrantRequest:
     """What a robot asks for at registration."""
 
     robot_id: str
@@ -170,7 +170,7 @@ class FleetPolicy:
             return self.tokens[token_name], f"token:{token_name}"
         return self.default, "default"
 
-    def grant(self, request: Request, token_name: str | None = None) -> tuple[pb.Grant | None, list[str]]:
+    def grant(self, request: GrantRequest, token_name: str | None = None) -> tuple[Grant | None, list[str]]:
         """What ``request`` is granted, or None and every reason it is refused."""
         rule, name = self.rule_for(request.robot_id, token_name)
         problems = []
@@ -187,12 +187,12 @@ class FleetPolicy:
             return None, problems
         tier = request.tier if request.tier in rule.tiers else rule.tiers[0]
         weight = min(request.weight, rule.max_weight)
-        return pb.Grant(
+        return Grant(
             weight=weight, tier=tier, fps=request.fps, h_min=h_min, h_max=h_max, max_device_share=rule.max_device_share, rule=name
         ), []
 
 
-def describe_grant(request: Request, grant: pb.Grant) -> str:
+def describe_grant(request: GrantRequest, grant: Grant) -> str:
     """One phrase of what the robot asked and got, naming only what differs (for logs)."""
     changed = [
         f"{name} {asked:g}->{got:g}" if isinstance(asked, float) else f"{name} {asked}->{got}"

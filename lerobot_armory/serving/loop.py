@@ -11,24 +11,21 @@ model runs; they never wait for it and it never waits for them.
 from __future__ import annotations
 
 import collections
-import inspect
 import logging
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.mirror import Chunk, RobotMirror
 from lerobot_armory.inference_latency import OnlineLatency
-from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.schedulers.base import Scheduler
-from lerobot_armory.engine.policy_engine import noise_seed
+from lerobot_armory.engine.protocol import Engine, noise_seed
 from lerobot_armory.serving.fleet import Fleet, RobotSession
+from lerobot_armory.serving.messages import ChunkOut, Notice, NoticeKind
 from lerobot_armory.engine.rtc import Prefix
-from lerobot_armory.wire import encode
 
 log = logging.getLogger(__name__)
 
@@ -41,23 +38,6 @@ DRIFT_WARN_PCT = 25.0
 MAX_CONSECUTIVE_FAILURES = 20
 # With RTC, sent chunks kept per robot for the next leftovers (the mirror's queue holds fewer).
 MAX_MODEL_CHUNKS = 16
-
-
-class Engine(Protocol):
-    """What the loop needs from an engine (``PolicyEngine`` or a test double)."""
-
-    def infer(
-        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
-    ) -> np.ndarray: ...
-
-
-def takes_noise_seeds(engine: Engine) -> bool:
-    """Whether ``engine.infer`` accepts ``noise_seeds`` (engines written before it existed do not)."""
-    try:
-        params = inspect.signature(engine.infer).parameters.values()
-    except (TypeError, ValueError):
-        return False
-    return any(p.name == "noise_seeds" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params) or len(params) >= 3
 
 
 @dataclass
@@ -107,7 +87,7 @@ class ServingLoop:
 
     Args:
         fleet: the shared fleet state.
-        engine: anything with ``infer(observations, tasks) -> (B, H, A)``.
+        engine: an :class:`~lerobot_armory.engine.protocol.Engine`.
         scheduler: a registered scheduler built for the engine's latency profile.
         on_batch: optional callback with each :class:`BatchRecord` (batch logs).
         latency: if given, every served batch's time feeds this model and its table replaces the
@@ -131,9 +111,8 @@ class ServingLoop:
         self.on_batch = on_batch
         self.latency = latency
         self._drift_warned = False
-        self._seeds = takes_noise_seeds(engine)
         # Real-time chunking: the engine guides each chunk by the prefix the mirror predicts.
-        self.rtc = getattr(engine, "rtc", None) is not None
+        self.rtc = engine.rtc is not None
         self._failures_in_a_row = 0
         self.stats = LoopStats(started=fleet.clock())
         self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
@@ -214,14 +193,11 @@ class ServingLoop:
         try:
             tasks = [s.task for s in batch.sessions]
             model_actions = None
+            seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
             if batch.prefixes is not None:
-                seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
-                actions, model_actions = self.engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)  # type: ignore[attr-defined]
-            elif self._seeds:
-                seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
-                actions = self.engine.infer(batch.observations, tasks, seeds)
+                actions, model_actions = self.engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)
             else:
-                actions = self.engine.infer(batch.observations, tasks)
+                actions = self.engine.infer(batch.observations, tasks, seeds)
             if actions.shape[0] != plan.size:
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {plan.size}")
         except Exception as exc:
@@ -237,14 +213,8 @@ class ServingLoop:
                 chunk = request.chunk
                 if model_actions is not None:
                     _keep_model_chunk(session, chunk.chunk_id, model_actions[k])
-                msg = pb.ServerMessage(
-                    chunk=pb.ActionChunk(
-                        chunk_id=chunk.chunk_id,
-                        i_start=chunk.i_start,
-                        actions=encode("action", np.ascontiguousarray(actions[k], dtype=np.float32)),
-                        server_send_time=t_done,
-                        obs_capture_time=chunk.capture_robot,
-                    )
+                msg = ChunkOut(
+                    chunk.chunk_id, chunk.i_start, np.ascontiguousarray(actions[k], dtype=np.float32), t_done, chunk.capture_robot
                 )
                 fleet.record_sent(session, t_done)
                 session.outbox.put(msg)
@@ -293,12 +263,10 @@ class ServingLoop:
             self.fleet.in_flight = set()
             for request, session in zip(plan.requests, batch.sessions, strict=True):
                 session.outbox.put(
-                    pb.ServerMessage(
-                        notice=pb.Notice(
-                            kind=pb.Notice.INFERENCE_FAILED,
-                            message=f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
-                            index=request.chunk.i_start,
-                        )
+                    Notice(
+                        NoticeKind.INFERENCE_FAILED,
+                        f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
+                        request.chunk.i_start,
                     )
                 )
                 if session.move_after_chunk and self.fleet.sessions.get(session.session_id) is session:

@@ -30,7 +30,7 @@ from lerobot_armory.cli_util import run_or_exit
 from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, RayReplicas
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.entrypoints.server import ServerConfig, parse_server_args
+from lerobot_armory.serving.config import ServerConfig, parse_server_args
 from lerobot_armory.serving.logs import configure_logging
 from lerobot_armory.serving.security import read_tls
 

@@ -22,7 +22,8 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.entrypoints.server import ArmoryServer, ServerConfig, build_server
+from lerobot_armory.entrypoints.server import ArmoryServer, build_server
+from lerobot_armory.serving.config import ServerConfig
 
 log = logging.getLogger(__name__)
 

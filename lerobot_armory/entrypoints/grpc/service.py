@@ -24,12 +24,15 @@ from lerobot_armory.mirror import RobotSpec, spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server
+from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, grant_to_wire, report_from_wire, to_wire
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
-from lerobot_armory.serving.fleet import MAX_NOTICE_CHARS, SENT_TABLE, Fleet, FleetError, RobotSession
-from lerobot_armory.serving.fleet_policy import FleetPolicy, Request, describe_grant
+from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError, RobotSession
+from lerobot_armory.serving.messages import Notice, NoticeKind
+from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
+from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest, describe_grant
 from lerobot_armory.serving.peer_log import ThrottledLog
 from lerobot_armory.serving.security import AuthTokens, Credential, RateLimiter
-from lerobot_armory.wire import FeatureSpec, WireError, check_features, decode_all
+from lerobot_armory.wire import FeatureSpec, WireError, check_features, decode_all, spec_from_proto, specs_to_proto
 
 log = logging.getLogger(__name__)
 
@@ -81,14 +84,14 @@ class ArmoryService(ArmoryServicer):
             if credential is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
         problems = self._check_registration(request)
-        asked = Request(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
+        asked = GrantRequest(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
         grant = None
         if not problems:
             grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
         if problems or grant is None:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
         spec = RobotSpec(request.robot_id, grant.fps, self.policy.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
-        features = {f.name: FeatureSpec.from_proto(f) for f in request.features}
+        features = {f.name: spec_from_proto(f) for f in request.features}
         try:
             session = self.fleet.register(
                 spec, request.task, features, credential.digest if credential else None, grant, register_recv=recv
@@ -111,9 +114,9 @@ class ArmoryService(ArmoryServicer):
             server_recv_time=session.register_stamps[0],
             server_send_time=session.register_stamps[1],
             policy=self.policy.description,
-            expected_features=[f.to_proto() for f in self.policy.wire_features],
+            expected_features=specs_to_proto(self.policy.wire_features),
             max_message_bytes=self.max_message_bytes,
-            granted=grant,
+            granted=grant_to_wire(grant),
         )
 
     def _check_registration(self, r: pb.RegisterRequest) -> list[str]:
@@ -127,7 +130,7 @@ class ArmoryService(ArmoryServicer):
             if any(d < 0 for d in f.shape) or len(f.shape) > 8:
                 problems.append(f"feature {f.name!r}: invalid shape {list(f.shape)}")
             else:
-                declared.append(FeatureSpec.from_proto(f))
+                declared.append(spec_from_proto(f))
         problems += check_features(declared, self.policy.wire_features)
         return problems
 
@@ -158,7 +161,7 @@ class ArmoryService(ArmoryServicer):
                 # Stamped the moment it is handed to gRPC: the server side of the exchange is ours.
                 sync = self.fleet.sync_request(session, self.fleet.clock())
                 if sync is not None:
-                    yield sync
+                    yield to_wire(sync)
                 msg = session.outbox.get(timeout=SYNC_POLL_S)
                 if msg is None:
                     if session.outbox.closed:
@@ -166,7 +169,7 @@ class ArmoryService(ArmoryServicer):
                     if not context.is_active():
                         return
                     continue
-                yield msg
+                yield to_wire(msg)
         finally:
             self.fleet.detach(session.session_id)
             log.info("stream closed: %s (its state is dropped)", session.robot_id)
@@ -185,11 +188,11 @@ class ArmoryService(ArmoryServicer):
                 elif kind == "report":
                     self._report(session, msg.report)
                 elif kind == "clock_sync":
-                    problem = self.fleet.on_clock_sync(session, msg.clock_sync, self.fleet.clock())
+                    problem = self.fleet.on_clock_sync(session, clock_sync_from_wire(msg.clock_sync), self.fleet.clock())
                     if problem is not None:
-                        self._notice(session, pb.Notice.CLOCK, problem)
+                        self._notice(session, NoticeKind.CLOCK, problem)
                 else:
-                    self._notice(session, pb.Notice.INFO, "empty message ignored")
+                    self._notice(session, NoticeKind.INFO, "empty message ignored")
         except grpc.RpcError:
             pass  # the stream died (client gone, cancelled): the writer side cleans up
         except Exception:  # pragma: no cover - a bug must not take the server down
@@ -203,7 +206,7 @@ class ArmoryService(ArmoryServicer):
             session.rejected += 1
             self._throttled_notice(
                 session, f"observation rate above the server's limit of {self.max_obs_rate_hz:g} Hz: observations dropped",
-                pb.Notice.REJECTED_OBSERVATION, obs.index,
+                NoticeKind.REJECTED_OBSERVATION, obs.index,
             )  # fmt: skip
             return
         try:
@@ -218,29 +221,29 @@ class ArmoryService(ArmoryServicer):
             self.fleet.on_observation(session, int(obs.index), float(obs.capture_time), arrays, recv)
         except (WireError, ValueError) as exc:
             session.rejected += 1
-            self._notice(session, pb.Notice.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)
+            self._notice(session, NoticeKind.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)
 
     def _report(self, session: RobotSession, report: pb.ExecutionReport) -> None:
         recv = self.fleet.clock()
         if not session.report_rate.allow():
             return  # a robot reports a few times a second; a flood is dropped before any work
         if not math.isfinite(report.report_time) or report.executed_steps < 0 or report.starved_steps < 0:
-            self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite time or negative counts")
+            self._notice(session, NoticeKind.REJECTED_REPORT, "execution report dropped: non-finite time or negative counts")
             return
         read = report.chunks[:SENT_TABLE]
         if any(not math.isfinite(c.arrival_time) for c in read):
-            self._notice(session, pb.Notice.REJECTED_REPORT, "execution report dropped: non-finite chunk arrival time")
+            self._notice(session, NoticeKind.REJECTED_REPORT, "execution report dropped: non-finite chunk arrival time")
             return
         if len(report.chunks) > SENT_TABLE:
             self._notice(
-                session, pb.Notice.REJECTED_REPORT,
+                session, NoticeKind.REJECTED_REPORT,
                 f"execution report has {len(report.chunks)} receipts; only the first {SENT_TABLE} were read",
             )  # fmt: skip
-        refused = self.fleet.on_report(session, report, recv)
+        refused = self.fleet.on_report(session, report_from_wire(report, SENT_TABLE), recv)
         if refused:
-            self._notice(session, pb.Notice.CLOCK, f"{refused} chunk arrival time(s) implausible for the server's clock: not used")
+            self._notice(session, NoticeKind.CLOCK, f"{refused} chunk arrival time(s) implausible for the server's clock: not used")
 
-    def _throttled_notice(self, session: RobotSession, message: str, kind: int = pb.Notice.INFO, index: int = -1) -> None:
+    def _throttled_notice(self, session: RobotSession, message: str, kind: NoticeKind = NoticeKind.INFO, index: int = -1) -> None:
         """A notice for a flood (rate limit, garbage): one a second, not one per message."""
         now = self.fleet.clock()
         if now - session.rate_notified > 1.0:
@@ -248,10 +251,10 @@ class ArmoryService(ArmoryServicer):
             self._notice(session, kind, message, index)
 
     @staticmethod
-    def _notice(session: RobotSession, kind: int, message: str, index: int = -1) -> None:
+    def _notice(session: RobotSession, kind: NoticeKind, message: str, index: int = -1) -> None:
         # Cut: a message can echo what the robot sent (a tensor name), and notices wait in memory.
         text = message if len(message) <= MAX_NOTICE_CHARS else message[: MAX_NOTICE_CHARS - 3] + "..."
-        session.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=kind, message=text, index=index)))
+        session.outbox.put(Notice(kind, text, index))
 
 
 @dataclass
@@ -366,7 +369,7 @@ def shutdown_notice(fleet: Fleet, message: str = "the server is shutting down; r
     def notify() -> None:
         with fleet.cond:
             for s in list(fleet.sessions.values()):
-                s.outbox.put(pb.ServerMessage(notice=pb.Notice(kind=pb.Notice.SHUTDOWN, message=message)))
+                s.outbox.put(Notice(NoticeKind.SHUTDOWN, message))
                 s.outbox.close()
 
     return notify

@@ -17,7 +17,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from lerobot_armory.wire import ALLOWED_DTYPES, MAX_DIMS, WireError
+from lerobot_armory.feature_spec import ALLOWED_DTYPES, MAX_DIMS, WireError
 
 _ARRAY_KEYS = frozenset({b"__ndarray__", b"data", b"dtype", b"shape"})
 _SCALAR_KEYS = frozenset({b"__npgeneric__", b"data", b"dtype"})

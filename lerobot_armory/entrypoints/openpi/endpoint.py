@@ -21,50 +21,23 @@ import itertools
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from http import HTTPStatus
 from typing import Any
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.serving.fleet import Fleet, FleetError, RobotSession
-from lerobot_armory.serving.fleet_policy import FleetPolicy, Request
+from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest
+from lerobot_armory.serving.messages import ChunkOut, ClockSync, ExecutionReport, Notice, NoticeKind, Receipt
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.entrypoints.openpi.codec import pack, unpack
+from lerobot_armory.serving.config import OpenpiOptions
 from lerobot_armory.serving.security import AuthTokens
-from lerobot_armory.wire import WireError, decode
+from lerobot_armory.feature_spec import WireError
 
 log = logging.getLogger(__name__)
 
 CHUNK_TIMEOUT_S = 30.0  # a chunk not served in this long is an error frame, not a hang
-
-
-@dataclass
-class OpenpiOptions:
-    """``--openpi.*``: the openpi-compatible endpoint (off unless ``--openpi.port`` is set).
-
-    Attributes:
-        port: websocket port (openpi's default is 8000); unset: no endpoint.
-        keymap: JSON/YAML file mapping openpi observation keys to the policy's features.
-        fps: control rate the mirror assumes for openpi clients (they do not say theirs).
-        replan_steps: actions an openpi client executes per chunk (LIBERO's example: 5).
-        tier: ``fast`` or ``slow`` for the schedulers' reports.
-    """
-
-    port: int | None = None
-    keymap: str | None = None
-    fps: float = 20.0
-    replan_steps: int = 5
-    tier: str = "slow"
-
-    def validate(self) -> None:
-        if self.port is not None and not 0 <= self.port <= 65535:
-            raise ConfigError("openpi.port", f"must be in 0..65535, got {self.port}")
-        if not self.fps > 0:
-            raise ConfigError("openpi.fps", f"must be > 0, got {self.fps}")
-        if self.replan_steps < 1:
-            raise ConfigError("openpi.replan_steps", f"must be >= 1, got {self.replan_steps}")
 
 
 class OpenpiSession:
@@ -88,10 +61,7 @@ class OpenpiSession:
         if self.last_chunk is not None:
             chunk_id, sent = self.last_chunk
             self.executed += self.replan
-            report = pb.ExecutionReport(
-                report_time=now, index=self.index, executed_steps=self.executed, starved_steps=0,
-                chunks=[pb.ChunkReceipt(chunk_id=chunk_id, arrival_time=sent, first_executed_index=0)],
-            )  # fmt: skip
+            report = ExecutionReport(now, self.index, self.executed, 0, (Receipt(chunk_id, sent, 0),))
             self.fleet.on_report(self.session, report, now)
         self.session.task = task or self.session.task
         # A chunk that came after its request timed out answers an older observation: never
@@ -107,13 +77,12 @@ class OpenpiSession:
             msg = self.session.outbox.get(timeout=max(0.0, deadline - time.monotonic()))
             if msg is None:
                 raise RuntimeError("no chunk: " + ("the server dropped this client" if self.session.outbox.closed else "timed out"))
-            kind = msg.WhichOneof("kind")
-            if kind == "chunk":
+            if isinstance(msg, ChunkOut):
                 break
-            if kind == "notice" and msg.notice.kind in (pb.Notice.INFERENCE_FAILED, pb.Notice.DROPPED, pb.Notice.SHUTDOWN):
-                raise RuntimeError(msg.notice.message)
-        chunk = msg.chunk
-        actions = decode(chunk.actions)
+            if isinstance(msg, Notice) and msg.kind in (NoticeKind.INFERENCE_FAILED, NoticeKind.DROPPED, NoticeKind.SHUTDOWN):
+                raise RuntimeError(msg.message)
+        chunk = msg
+        actions = chunk.actions  # the loop's own array: never encoded, never decoded again
         sent = self.fleet.clock()
         self.last_chunk = (chunk.chunk_id, sent)
         self.index = chunk.i_start + self.replan  # what it will have executed when it asks again
@@ -224,7 +193,7 @@ class OpenpiEndpoint:
                 raise FleetError("UNAUTHENTICATED", "missing or wrong api key (openpi client's api_key)")
         opts = self.options
         h_max = min(opts.replan_steps, self.chunk_size)
-        asked = Request(robot_id, opts.fps, 1, h_max, 1.0, opts.tier)
+        asked = GrantRequest(robot_id, opts.fps, 1, h_max, 1.0, opts.tier)
         grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
         if grant is None:
             raise FleetError("INVALID_ARGUMENT", "; ".join(problems))
@@ -235,7 +204,7 @@ class OpenpiEndpoint:
         # Its clock is ours: complete the registration exchange with zero offset and no delay.
         assert session.register_stamps is not None
         b, s = session.register_stamps
-        self.fleet.on_clock_sync(session, pb.ClockSync(client_send_time=b, client_recv_time=s), now)
+        self.fleet.on_clock_sync(session, ClockSync(0, client_send_time=b, client_recv_time=s), now)
         self.fleet.attach(session.session_id, credential.digest if credential else None)
         return session
 

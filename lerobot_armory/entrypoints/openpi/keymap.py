@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.wire import FeatureSpec, WireError
+from lerobot_armory.feature_spec import FeatureSpec, WireError
 
 TASK = "task"
 TASK_KEYS = ("prompt", "task")

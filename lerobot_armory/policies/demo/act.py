@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.demo.common import policy_features, write_sidecar
-
-if TYPE_CHECKING:
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig
 
 
 def make_act_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:

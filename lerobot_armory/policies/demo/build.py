@@ -15,53 +15,12 @@ analytic planner (:mod:`.planner`). Each kind is one builder in :data:`BUILDERS`
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.policies.demo.common import write_sidecar
-
-
-@dataclass
-class DemoPolicyConfig:
-    """Options of the demo policy.
-
-    Attributes:
-        output: directory to write (created).
-        kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights),
-            ``smolvla`` (LeRobot's SmolVLA, tiny, random weights) or ``planner`` (the analytic
-            ``armory_planner`` that solves the ``armory_sim`` tasks when served on time; one
-            camera, 2-D state).
-        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU), ``narrow``
-            (the real depths at tiny widths: ``armory_narrow``) or
-            ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
-        dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
-        chunk_size: H, actions per chunk.
-        state_dim: length of ``observation.state``.
-        action_dim: length of each action (default: state_dim).
-        cameras: comma-separated camera names (features ``observation.images.<name>``).
-        image_size: square image side in pixels.
-        dim_model: transformer width (small keeps CPU inference fast).
-        n_encoder_layers: transformer encoder layers.
-        seed: torch seed for the random weights.
-        device: π0.5 only: where the random weights are created (``cuda``: seconds instead of
-            minutes for the full size); the directory is the same either way.
-    """
-
-    output: str = "out/demo-policy"
-    kind: str = "act"
-    size: str = "tiny"
-    dtype: str = "float32"
-    chunk_size: int = 20
-    state_dim: int = 2
-    action_dim: int | None = None
-    cameras: str = "front"
-    image_size: int = 64
-    dim_model: int = 128
-    n_encoder_layers: int = 2
-    seed: int = 0
-    device: str = "cpu"
+from lerobot_armory.policies.demo.config import DemoPolicyConfig
 
 
 def _build_act(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:

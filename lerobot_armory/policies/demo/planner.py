@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import SIDECAR
-
-if TYPE_CHECKING:
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig
 
 
 def make_planner_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:

@@ -1,9 +1,8 @@
-"""Load: many light robots (a 4-float state, no camera) against one server, and the echo engine.
+"""Load: many light robots (a 4-float state, no camera) against one server with the echo engine.
 
-:class:`EchoEngine` is the test double the load, transport and adversarial tests serve (no model:
-each chunk echoes its robot's first state value). It lives here, with the benchmarks, not in the
-product package. :func:`run_load` starts an in-process server with it and a *separate* process of
-robots (``python benchmarks/_load.py ADDRESS ROBOTS SECONDS FPS OUT.json``), so that the robots'
+The echo engine (``tests/support/echo.py``) is the tests' double: no model, each chunk echoes its
+robot's first state value. :func:`run_load` starts an in-process server with it and a *separate* process of
+robots (``python tests/support/load.py ADDRESS ROBOTS SECONDS FPS OUT.json``), so that the robots'
 Python threads do not share the server's interpreter: the server is measured, not the load
 generator. Each robot runs the real client loop. Used by the load test and ``benchmarks/load.py``.
 """
@@ -17,39 +16,15 @@ import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RobotIdentity
-from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.entrypoints.server import ArmoryServer
-from lerobot_armory.entrypoints.grpc.service import PolicyInfo
-from lerobot_armory.wire import FeatureSpec
 
-FEATURES = {"observation.state": ("float32", (4,))}
-
-
-class EchoEngine:
-    """Chunks whose actions all equal the robot's first state value (a robot can tell its own
-    chunk from another's); optionally slow."""
-
-    def __init__(self, delay_s: float = 0.0) -> None:
-        self.delay_s = delay_s
-
-    def infer(self, observations, tasks, noise_seeds=None) -> np.ndarray:
-        if self.delay_s:
-            time.sleep(self.delay_s)
-        first = np.array([o["observation.state"][0] for o in observations], np.float32)
-        return np.repeat(first[:, None, None], 10, axis=1).repeat(2, axis=2)
-
-
-def echo_server(engine: Any = None, cap: int = 4, scheduler: SchedulerConfig | None = None, **kwargs: Any) -> ArmoryServer:
-    """A started server on a free loopback port with the echo engine and state-only robots."""
-    info = PolicyInfo("echo", [FeatureSpec("observation.state", "float32", (4,))], ["a", "b"], 10)
-    profile = LatencyProfile("echo", tuple(5.0 + k for k in range(cap)))
-    return ArmoryServer(engine or EchoEngine(), info, profile, scheduler or LookaheadConfig(), cap, port=0, **kwargs).start()
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, when run as a script
+from tests.support.echo import FEATURES, echo_server  # noqa: E402
 
 
 def rss_mb() -> float:

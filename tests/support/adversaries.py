@@ -17,7 +17,7 @@ attack of the benchmark, a robot whose clock steps, is not an attacker but an ho
 a stepped clock: :func:`run_ticks` with a :class:`SteppedClock`.
 
 The module is also the honest fleet's process for the benchmark:
-``python benchmarks/_adversaries.py honest SPEC.json`` runs ``armory_sim`` robots built exactly as
+``python tests/support/adversaries.py honest SPEC.json`` runs ``armory_sim`` robots built exactly as
 ``lerobot_armory.bench.robots.run_robot`` builds them (real ArmoryClient, ArmorySim, emulated
 network), plus what the adversarial benchmark needs: an auth token per robot, a clock that steps
 mid-run, and each robot's tick-by-tick timeline (so starvation can be measured over any window)
@@ -1187,7 +1187,7 @@ def run_honest_robot(spec: dict[str, Any], group: dict[str, Any], address: str, 
 
 
 def honest_group(path: str) -> None:
-    """``python benchmarks/_adversaries.py honest SPEC.json``: build, say ready, wait for go, run.
+    """``python tests/support/adversaries.py honest SPEC.json``: build, say ready, wait for go, run.
 
     SPEC: ``duration_s``, ``stats_dir``, ``image_size``, ``net_median_ms``, ``net_sigma``,
     ``ready_file`` (written once imports are done), ``go_file`` (waited for; holds the server
@@ -1218,4 +1218,4 @@ if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "honest":
         honest_group(sys.argv[2])
     else:
-        sys.exit("usage: python benchmarks/_adversaries.py honest SPEC.json")
+        sys.exit("usage: python tests/support/adversaries.py honest SPEC.json")

@@ -1,0 +1,136 @@
+"""The engine's options: ``--policy.*``, ``--engine.*`` and ``--rtc.*``, each validated by itself.
+
+The server's whole configuration (:mod:`lerobot_armory.serving.config`) holds these beside its own
+and validates them all once, at start-up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from lerobot_armory.errors import ConfigError
+
+@dataclass
+class PolicyOptions:
+    """``--policy.*`` options.
+
+    Attributes:
+        path: local policy directory or hub id (``lerobot/pi05_libero``).
+        device: torch device (``cuda``, ``cuda:1``, ``cpu``, ``mps``); default: cuda if available.
+        cpu_threads: torch intra-op threads when the policy runs on the CPU; default: all cores
+            but one, so the network threads keep a core (oversubscribing makes every batch slower).
+        overrides: fields of the policy's own config, as LeRobot takes them after
+            ``--policy.path`` (``["dtype=bfloat16", "num_inference_steps=5"]``); on the command
+            line every ``--policy.<field>=value`` that is not one of the options above.
+    """
+
+    path: str = ""
+    device: str | None = None
+    cpu_threads: int | None = None
+    overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
+class EngineOptions:
+    """``--engine.*`` options.
+
+    Attributes:
+        emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
+            ``d_infer(b)`` per batch (the real model must be faster than that).
+        cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5),
+            ``on`` (refuse to start without them) or ``off`` (LeRobot's own eager sampler). With
+            graphs, batches are padded to buckets and each bucket is one recorded CUDA graph
+            (``server/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
+            the start-up log says why.
+        graph_buckets: the bucket sizes, comma-separated (default: 1, 2, 4, 8, … up to
+            ``--max_batch_size``, and the cap itself).
+        static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,
+            fewer operations); unset: wherever graphs are on.
+        attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
+            (``torch.nn.functional.scaled_dot_product_attention``).
+        compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph, one
+            compilation per bucket at warm-up) before its graphs are recorded: fused kernels,
+            fewer of them; compiling takes minutes.
+        matmul_precision: float32 matrix products (``torch.set_float32_matmul_precision``, for the
+            whole process): ``highest`` (true float32, LeRobot's numerics) or ``high`` (TF32 on a
+            GPU that has it). With ``--policy.dtype=bfloat16`` LeRobot still runs the SigLIP
+            tower, the projector, the norms and the action/time projections in float32.
+    """
+
+    emulate_profile: str | None = None
+    cuda_graphs: str = "auto"
+    graph_buckets: str | None = None
+    static_sampler: bool | None = None
+    attention: str = "eager"
+    compile_sampler: bool = False
+    matmul_precision: str = "highest"
+
+    def __post_init__(self) -> None:
+        # The command-line parser reads YAML, where on/off are booleans: take them back.
+        value = str(self.cuda_graphs).lower()
+        self.cuda_graphs = {"true": "on", "false": "off", "yes": "on", "no": "off"}.get(value, value)
+
+    def validate(self) -> None:
+        from lerobot_armory.policies.pi05_static import ATTENTION
+        from lerobot_armory.engine.cuda_graphs import MODES
+
+        if self.cuda_graphs not in MODES:
+            raise ConfigError("engine.cuda_graphs", f"must be one of {', '.join(MODES)}, got {self.cuda_graphs!r}")
+        if self.attention not in ATTENTION:
+            raise ConfigError("engine.attention", f"must be one of {', '.join(ATTENTION)}, got {self.attention!r}")
+        if self.matmul_precision not in ("highest", "high", "medium"):
+            raise ConfigError("engine.matmul_precision", f"must be highest, high or medium, got {self.matmul_precision!r}")
+        if self.cuda_graphs == "on" and self.static_sampler is False:
+            raise ConfigError("engine.static_sampler", "CUDA graphs record the static sampler: it cannot be off with --engine.cuda_graphs=on")
+
+
+SCHEDULES = ("ZEROS", "ONES", "LINEAR", "EXP")
+
+
+@dataclass
+class RTCOptions:
+    """``--rtc.*``: real-time chunking from the mirror (LeRobot's ``RTCConfig`` fields).
+
+    Attributes:
+        enabled: guide every chunk toward what its robot executes meanwhile.
+        execution_horizon: how far into the new chunk the guidance reaches (steps); LeRobot's
+            default. Capped per robot by the length of what it would execute.
+        max_guidance_weight: clamp of the guidance weight (LeRobot's ``max_guidance_weight``).
+        prefix_attention_schedule: how the guidance fades after the delay: ZEROS (only the
+            delayed steps), ONES (full to the horizon), LINEAR or EXP (fading to the horizon).
+        delay_margin: steps added to the mirror's predicted delay before it reaches the guidance.
+            The action the robot switches at is then held to what it was going to execute
+            anyway even when the switch comes a step later than predicted (jitter); an
+            underestimate leaves the switch in the fading part, where short chunks have little
+            weight, an overestimate only holds one more action (``docs/results/rtc``). LeRobot's
+            own engine is conservative the same way (the ceiling of the worst recent latency).
+    """
+
+    enabled: bool = False
+    execution_horizon: int = 10
+    max_guidance_weight: float = 10.0
+    prefix_attention_schedule: str = "LINEAR"
+    delay_margin: int = 1
+
+    def validate(self) -> None:
+        if self.execution_horizon < 1:
+            raise ConfigError("rtc.execution_horizon", f"must be >= 1, got {self.execution_horizon}")
+        if self.delay_margin < 0:
+            raise ConfigError("rtc.delay_margin", f"must be >= 0, got {self.delay_margin}")
+        if not self.max_guidance_weight > 0:
+            raise ConfigError("rtc.max_guidance_weight", f"must be > 0, got {self.max_guidance_weight}")
+        if self.prefix_attention_schedule.upper() not in SCHEDULES:
+            raise ConfigError("rtc.prefix_attention_schedule", f"must be one of {', '.join(SCHEDULES)}, got {self.prefix_attention_schedule!r}")
+
+    def lerobot_config(self) -> Any:
+        """The equivalent ``lerobot.policies.rtc.RTCConfig``."""
+        from lerobot.configs import RTCAttentionSchedule
+        from lerobot.policies.rtc.configuration_rtc import RTCConfig
+
+        return RTCConfig(
+            enabled=True,
+            prefix_attention_schedule=RTCAttentionSchedule[self.prefix_attention_schedule.upper()],
+            max_guidance_weight=float(self.max_guidance_weight),
+            execution_horizon=int(self.execution_horizon),
+        )

@@ -1,0 +1,72 @@
+"""What the serving loop needs from an engine: one protocol, every capability in it.
+
+The loop calls these and nothing else; it never probes an engine's signature or attributes. An
+engine that cannot guide chunks (no real-time chunking) says so with ``rtc = None``; the loop
+then never calls :meth:`Engine.infer_guided`. Test doubles derive from :class:`UnguidedEngine`.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+
+def noise_seed(robot_id: str, chunk_id: int) -> int:
+    """The noise seed of one request: fixed by the robot and its chunk number, not by the batch.
+
+    32 bits, because torch's CPU generator keeps only the low 32 bits of a seed (a seed that put
+    the robot in the high bits would give every robot the same noise for the same chunk number).
+    """
+    return zlib.crc32(f"{chunk_id}:{robot_id}".encode())
+
+
+class Engine(Protocol):
+    """A batched policy: observations in, one action chunk per robot out.
+
+    Attributes:
+        rtc: the real-time chunking processor (:mod:`lerobot_armory.engine.rtc`), or None when
+            the engine does not guide chunks by what each robot executes meanwhile.
+    """
+
+    rtc: Any
+
+    def infer(
+        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+    ) -> np.ndarray:
+        """``(B, H, A)`` float32 chunks for ``B`` observations; ``noise_seeds`` (one per row, None:
+        the engine's own) make a stochastic policy's chunk depend on its robot and chunk only."""
+        ...
+
+    def infer_guided(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None,
+        prefixes: Sequence[Any],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Chunks guided by each row's RTC prefix (None: unguided row): ``(actions, model_actions)``,
+        the second in the policy's own action space (the next prefixes are cut from it)."""
+        ...
+
+
+class UnguidedEngine:
+    """Base of engines without real-time chunking (test doubles, analytic policies)."""
+
+    rtc: Any = None
+
+    def infer(
+        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+    ) -> np.ndarray:
+        raise NotImplementedError
+
+    def infer_guided(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None,
+        prefixes: Sequence[Any],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError(f"{type(self).__name__} does not guide chunks (its rtc is None)")
