@@ -197,7 +197,7 @@ def test_observation_rate_limit_drops_the_flood_and_says_so():
         for i in range(300):
             flood.send_observation(i, {"observation.state": np.zeros(4, np.float32)})
         assert wait_for(lambda: any("rate" in n.message for n in notices))
-        assert wait_for(lambda: any(s.rejected > 200 for s in server.fleet.sessions.values()))
+        assert wait_for(lambda: any(s.counters.rejected > 200 for s in server.fleet.sessions.values()))
         good = light_client(server.address, "calm")
         stats = good.run(1.0)
         good.close()

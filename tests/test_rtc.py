@@ -9,7 +9,7 @@ import pytest
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.engine import rtc
 from lerobot_armory.engine.policy_engine import PolicyEngine
-from lerobot_armory.engine.options import PolicyOptions
+from lerobot_armory.engine.options import SCHEDULES, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
 from tests.vla_helpers import observation
 
@@ -27,7 +27,7 @@ def _toy_denoiser(seed: int = 0):
     return velocity
 
 
-@pytest.mark.parametrize("schedule", rtc.SCHEDULES)
+@pytest.mark.parametrize("schedule", SCHEDULES)
 @pytest.mark.parametrize("time", [1.0, 0.7, 0.1])
 def test_each_row_of_a_batched_step_is_lerobots_single_robot_step(schedule, time):
     import torch

@@ -183,7 +183,7 @@ def test_mirror_prediction_follows_a_real_control_loop(server, engine):
     stats = client.run(duration_s=3.0)
     with server.fleet.cond:
         session = next(s for s in server.fleet.sessions.values() if s.robot_id == "loop")
-        error, reported = session.index_error, session.reported_index
+        error, reported = session.counters.index_error, session.counters.reported_index
     client.close()
     assert stats["executed_steps"] == len(executed) > 20
     assert stats["executed_steps"] + stats["starved_steps"] == stats["ticks"]

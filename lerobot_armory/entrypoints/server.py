@@ -170,8 +170,8 @@ class ArmoryServer:
             sessions = self.fleet.active()
             tiers: dict[str, list[float]] = {}
             for s in sessions:
-                tiers.setdefault(s.spec.tier, []).append(s.reported_starvation_pct)
-            errors = [s.index_error for s in sessions if s.index_error is not None]
+                tiers.setdefault(s.spec.tier, []).append(s.counters.reported_starvation_pct)
+            errors = [s.counters.index_error for s in sessions if s.counters.index_error is not None]
         sizes = stats.batch_sizes
         total = sum(sizes.values())
         mean_b = sum(k * v for k, v in sizes.items()) / total if total else 0.0

@@ -8,22 +8,19 @@ inference after, the lock.
 
 from __future__ import annotations
 
-import collections
 import hmac
 import math
 import threading
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
+from lerobot_armory.feature_spec import FeatureSpec
 from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotSpec
 from lerobot_armory.serving.messages import ClockSync, ExecutionReport, Grant, Notice, NoticeKind, SyncRequest
-from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS, Outbox
-from lerobot_armory.serving.security import RateLimiter
-from lerobot_armory.feature_spec import FeatureSpec
+from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
+from lerobot_armory.serving.session import Link, RobotSession
 
 # A registration that has not opened its stream within this long is dropped (and, when the fleet
 # is full, the oldest such registration makes room for a new one at once).
@@ -33,10 +30,9 @@ STALE_SESSION_S = 5.0
 SYNC_INTERVAL_S = 10.0
 SYNC_MIN_GAP_S = 1.0
 MAX_PENDING_SYNCS = 4
-# Execution reports: a robot sends ~5 a second; each receipt names a chunk its mirror awaits (at
-# most MAX_AWAITING_REPORTS), so a report's first SENT_TABLE receipts are all that can mean anything.
+# Each receipt of an execution report names a chunk its mirror awaits (at most
+# MAX_AWAITING_REPORTS), so a report's first SENT_TABLE receipts are all that can mean anything.
 SENT_TABLE = MAX_AWAITING_REPORTS
-REPORT_RATE_HZ = 20.0
 # Device time accounting for the fleet policy's max_device_share: a decayed sum over this window.
 SHARE_WINDOW_S = 5.0
 
@@ -47,60 +43,6 @@ class FleetError(Exception):
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
-
-
-@dataclass
-class RobotSession:
-    """A registered robot: its spec, mirror, latest observation and stream."""
-
-    session_id: str
-    spec: RobotSpec
-    task: str
-    features: dict[str, FeatureSpec]
-    mirror: RobotMirror
-    registered_at: float
-    outbox: Outbox = field(default_factory=Outbox)
-    streaming: bool = False
-    latest: dict[str, np.ndarray] | None = None
-    # counters (reported by the robot, or counted here)
-    observations: int = 0
-    rejected: int = 0
-    chunks_sent: int = 0
-    reported_executed: int = 0
-    reported_starved: int = 0
-    reported_index: int | None = None
-    index_error: int | None = None  # |mirror's predicted index - robot's reported index| at last report
-    last_chunk_time: float | None = None
-    rate: Any = None  # the session's observation RateLimiter, if limits are on
-    rate_notified: float = 0.0
-    first_executed: collections.Counter = field(default_factory=collections.Counter)
-    # With RTC: the chunks sent, in the policy's action space, by chunk id (the leftovers of the
-    # next requests are cut from them); only chunks still in the mirror's queue are kept.
-    model_chunks: dict[int, np.ndarray] = field(default_factory=dict)
-    # who registered it (a digest of the token; None without auth) and what the policy granted
-    credential: bytes | None = None
-    grant: Grant | None = None
-    # the registration round trip's server stamps (the robot completes it with a ClockSync)
-    register_stamps: tuple[float, float] | None = None
-    pending_syncs: dict[int, float] = field(default_factory=dict)  # sync_id -> server send time
-    next_sync_id: int = 1
-    next_sync_at: float = 0.0
-    report_rate: RateLimiter = field(default_factory=lambda: RateLimiter(REPORT_RATE_HZ))
-    # decayed device seconds spent on this robot (max_device_share) and when last decayed
-    device_s: float = 0.0
-    device_t: float = 0.0
-    # A cluster's front asked to move this robot to another replica: done right after the chunk
-    # in flight is queued, so the robot never loses a chunk it was promised.
-    move_after_chunk: bool = False
-
-    @property
-    def robot_id(self) -> str:
-        return self.spec.robot_id
-
-    @property
-    def reported_starvation_pct(self) -> float:
-        total = self.reported_executed + self.reported_starved
-        return 100.0 * self.reported_starved / total if total else 0.0
 
 
 class Fleet:
@@ -135,20 +77,21 @@ class Fleet:
                 raise FleetError("UNAVAILABLE", "the server is shutting down")
             for sid, s in list(self.sessions.items()):
                 if s.robot_id == spec.robot_id:
-                    if s.streaming:
+                    if s.link.streaming:
                         raise FleetError("ALREADY_EXISTS", f"robot id {spec.robot_id!r} is already connected")
                     self._drop(sid)
             self._expire_unstreamed()
             if len(self.sessions) >= self.max_robots:
-                waiting = [sid for sid, s in self.sessions.items() if not s.streaming]
+                waiting = [sid for sid, s in self.sessions.items() if not s.link.streaming]
                 if not waiting:
                     raise FleetError(
                         "RESOURCE_EXHAUSTED", f"the server already serves {self.max_robots} robots (--max_robots); retry later"
                     )
                 self._drop(waiting[0])  # dicts keep insertion order: the oldest registration
             now = self.clock()
-            session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, credential=credential, grant=grant)
-            session.register_stamps = (now if register_recv is None else register_recv, now)
+            link = Link(credential=credential, grant=grant)
+            session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, link=link)
+            session.clock.register_stamps = (now if register_recv is None else register_recv, now)
             self.sessions[session.session_id] = session
             return session
 
@@ -159,11 +102,11 @@ class Fleet:
             session = self.sessions.get(session_id)
             if session is None:
                 raise FleetError("FAILED_PRECONDITION", "unknown or expired session: call Register first")
-            if session.credential is not None and not hmac.compare_digest(session.credential, credential or b""):
+            if session.link.credential is not None and not hmac.compare_digest(session.link.credential, credential or b""):
                 raise FleetError("PERMISSION_DENIED", "this session was registered with another credential")
-            if session.streaming:
+            if session.link.streaming:
                 raise FleetError("ALREADY_EXISTS", f"robot {session.robot_id!r} already has an open stream")
-            session.streaming = True
+            session.link.streaming = True
             return session
 
     def quarantine(self, session: RobotSession, reason: str) -> None:
@@ -213,12 +156,12 @@ class Fleet:
     def _expire_unstreamed(self) -> None:
         now = self.clock()
         for sid, s in list(self.sessions.items()):
-            if not s.streaming and now - s.registered_at > self.stale_session_s:
+            if not s.link.streaming and now - s.registered_at > self.stale_session_s:
                 self._drop(sid)
 
     def active(self) -> list[RobotSession]:
         """Sessions with an open stream, in registration order (call with the lock held)."""
-        return [s for s in self.sessions.values() if s.streaming]
+        return [s for s in self.sessions.values() if s.link.streaming]
 
     # ---- events from the network -------------------------------------------------------------
 
@@ -233,7 +176,7 @@ class Fleet:
             if not mirror.on_observation(index, capture_robot, recv):
                 return False
             session.latest = arrays
-            session.observations += 1
+            session.counters.observations += 1
             if mirror.is_useful():
                 self.cond.notify_all()
             return True
@@ -250,12 +193,12 @@ class Fleet:
         with self.cond:
             estimator = session.mirror.estimator
             if msg.sync_id == 0:
-                if session.register_stamps is None:
+                if session.clock.register_stamps is None:
                     return "clock sync refused: the registration exchange was already completed"
-                (b, s), session.register_stamps = session.register_stamps, None
+                (b, s), session.clock.register_stamps = session.clock.register_stamps, None
                 verdict = estimator.add_exchange(a, b, s, r)
             else:
-                sent = session.pending_syncs.pop(int(msg.sync_id), None)
+                sent = session.clock.pending.pop(int(msg.sync_id), None)
                 if sent is None:
                     return f"clock sync refused: no pending request {msg.sync_id}"
                 # Answer to our request: we sent at `sent`, the robot got it at r and answered at a,
@@ -272,16 +215,16 @@ class Fleet:
         """A ClockSyncRequest to send now, if one is due (stream start, every SYNC_INTERVAL_S,
         or at once after a suspected clock step), stamped with ``now``."""
         with self.cond:
-            if session.mirror.needs_sync and now - session.next_sync_at + SYNC_INTERVAL_S >= SYNC_MIN_GAP_S:
+            if session.mirror.needs_sync and now - session.clock.next_at + SYNC_INTERVAL_S >= SYNC_MIN_GAP_S:
                 session.mirror.needs_sync = False
-            elif now < session.next_sync_at:
+            elif now < session.clock.next_at:
                 return None
-            session.next_sync_at = now + SYNC_INTERVAL_S
-            sync_id = session.next_sync_id
-            session.next_sync_id += 1
-            session.pending_syncs[sync_id] = now
-            while len(session.pending_syncs) > MAX_PENDING_SYNCS:  # a robot that never answers
-                session.pending_syncs.pop(next(iter(session.pending_syncs)))
+            session.clock.next_at = now + SYNC_INTERVAL_S
+            sync_id = session.clock.next_id
+            session.clock.next_id += 1
+            session.clock.pending[sync_id] = now
+            while len(session.clock.pending) > MAX_PENDING_SYNCS:  # a robot that never answers
+                session.clock.pending.pop(next(iter(session.clock.pending)))
             return SyncRequest(sync_id, now)
 
     def on_report(self, session: RobotSession, report: ExecutionReport, recv: float) -> int:
@@ -301,14 +244,14 @@ class Fleet:
                     continue  # not a chunk awaiting its report (unknown, repeated, or forgotten)
                 refused += not verdict
                 key = "unused" if first < 0 else str(min(first, session.spec.chunk_size))
-                session.first_executed[key] += 1
-            session.reported_executed = int(report.executed_steps)
-            session.reported_starved = int(report.starved_steps)
-            session.reported_index = int(report.index)
+                session.counters.first_executed[key] += 1
+            session.counters.reported_executed = int(report.executed_steps)
+            session.counters.reported_starved = int(report.starved_steps)
+            session.counters.reported_index = int(report.index)
             if mirror.obs_index is not None:
                 window = mirror.estimator.uplink_window_s()
                 t = min(recv, max(recv - window, mirror.estimator.to_server_time(report.report_time)))
-                session.index_error = abs(mirror.predicted_index(t) - int(report.index))
+                session.counters.index_error = abs(mirror.predicted_index(t) - int(report.index))
         return refused
 
     # ---- device share (the fleet policy's max_device_share) ----------------------------------
@@ -317,7 +260,7 @@ class Fleet:
         """Book ``seconds`` of device time, split evenly, on the batch's robots (lock held)."""
         for session in sessions:
             self._decay(session, t_end)
-            session.device_s += seconds / max(1, len(sessions))
+            session.share.seconds += seconds / max(1, len(sessions))
 
     def over_share(self, session: RobotSession, now: float) -> bool:
         """Whether the robot used more than its granted share of device time lately (lock held).
@@ -326,24 +269,24 @@ class Fleet:
         exponential decay (time constant SHARE_WINDOW_S), so the ratio is its recent share from
         the first second on, not only once a whole window has passed.
         """
-        if session.grant is None or session.grant.max_device_share >= 1.0:
+        if session.link.grant is None or session.link.grant.max_device_share >= 1.0:
             return False
         self._decay(session, now)
         wall = SHARE_WINDOW_S * -math.expm1(-max(0.0, now - session.registered_at) / SHARE_WINDOW_S)
-        return session.device_s > session.grant.max_device_share * wall
+        return session.share.seconds > session.link.grant.max_device_share * wall
 
     @staticmethod
     def _decay(session: RobotSession, now: float) -> None:
-        if now > session.device_t:
-            session.device_s *= math.exp(-(now - session.device_t) / SHARE_WINDOW_S)
-            session.device_t = now
+        if now > session.share.at:
+            session.share.seconds *= math.exp(-(now - session.share.at) / SHARE_WINDOW_S)
+            session.share.at = now
 
     # ---- the serving loop's side -------------------------------------------------------------
 
     def record_sent(self, session: RobotSession, send_time: float) -> None:
         """Count a chunk sent to ``session`` (its report is awaited by the mirror)."""
-        session.chunks_sent += 1
-        session.last_chunk_time = send_time
+        session.counters.chunks_sent += 1
+        session.counters.last_chunk_time = send_time
 
     def stop(self) -> None:
         with self.cond:

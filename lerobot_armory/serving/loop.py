@@ -23,7 +23,8 @@ from lerobot_armory.mirror import Chunk, RobotMirror
 from lerobot_armory.inference_latency import OnlineLatency
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.engine.protocol import Engine, noise_seed
-from lerobot_armory.serving.fleet import Fleet, RobotSession
+from lerobot_armory.serving.fleet import Fleet
+from lerobot_armory.serving.session import RobotSession
 from lerobot_armory.serving.messages import ChunkOut, Notice, NoticeKind
 from lerobot_armory.engine.rtc import Prefix
 

@@ -79,7 +79,7 @@ class ArmoryReplica:
         """``info`` plus the robots streaming here (their granted specs) and a status line."""
         with self.server.fleet.cond:
             robots = [
-                {**dataclasses.asdict(s.spec), "starvation_pct": s.reported_starvation_pct} for s in self.server.fleet.active()
+                {**dataclasses.asdict(s.spec), "starvation_pct": s.counters.reported_starvation_pct} for s in self.server.fleet.active()
             ]
         return {**self.info(), "robots": robots, "status": self.server.status_line(), "alive": self.server.loop.alive}
 

@@ -26,7 +26,8 @@ from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server
 from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, grant_to_wire, report_from_wire, to_wire
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
-from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError, RobotSession
+from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError
+from lerobot_armory.serving.session import RobotSession
 from lerobot_armory.serving.messages import Notice, NoticeKind
 from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
 from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest, describe_grant
@@ -99,20 +100,20 @@ class ArmoryService(ArmoryServicer):
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         if self.max_obs_rate_hz > 0:
-            session.rate = RateLimiter(self.max_obs_rate_hz)
+            session.link.obs_rate = RateLimiter(self.max_obs_rate_hz)
         log.info(
             "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]; %s) task=%r",
             spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, describe_grant(asked, grant),
             request.task[:80],
         )  # fmt: skip
-        assert session.register_stamps is not None
+        assert session.clock.register_stamps is not None
         return pb.RegisterResponse(
             session_id=session.session_id,
             action_names=self.policy.action_names,
             chunk_size=self.policy.chunk_size,
             action_dim=len(self.policy.action_names),
-            server_recv_time=session.register_stamps[0],
-            server_send_time=session.register_stamps[1],
+            server_recv_time=session.clock.register_stamps[0],
+            server_send_time=session.clock.register_stamps[1],
             policy=self.policy.description,
             expected_features=specs_to_proto(self.policy.wire_features),
             max_message_bytes=self.max_message_bytes,
@@ -202,8 +203,8 @@ class ArmoryService(ArmoryServicer):
 
     def _observation(self, session: RobotSession, obs: pb.Observation) -> None:
         recv = self.fleet.clock()
-        if session.rate is not None and not session.rate.allow():
-            session.rejected += 1
+        if session.link.obs_rate is not None and not session.link.obs_rate.allow():
+            session.counters.rejected += 1
             self._throttled_notice(
                 session, f"observation rate above the server's limit of {self.max_obs_rate_hz:g} Hz: observations dropped",
                 NoticeKind.REJECTED_OBSERVATION, obs.index,
@@ -220,12 +221,12 @@ class ArmoryService(ArmoryServicer):
                     raise WireError(f"{name} contains NaN or inf")
             self.fleet.on_observation(session, int(obs.index), float(obs.capture_time), arrays, recv)
         except (WireError, ValueError) as exc:
-            session.rejected += 1
+            session.counters.rejected += 1
             self._notice(session, NoticeKind.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)
 
     def _report(self, session: RobotSession, report: pb.ExecutionReport) -> None:
         recv = self.fleet.clock()
-        if not session.report_rate.allow():
+        if not session.link.report_rate.allow():
             return  # a robot reports a few times a second; a flood is dropped before any work
         if not math.isfinite(report.report_time) or report.executed_steps < 0 or report.starved_steps < 0:
             self._notice(session, NoticeKind.REJECTED_REPORT, "execution report dropped: non-finite time or negative counts")
@@ -246,8 +247,8 @@ class ArmoryService(ArmoryServicer):
     def _throttled_notice(self, session: RobotSession, message: str, kind: NoticeKind = NoticeKind.INFO, index: int = -1) -> None:
         """A notice for a flood (rate limit, garbage): one a second, not one per message."""
         now = self.fleet.clock()
-        if now - session.rate_notified > 1.0:
-            session.rate_notified = now
+        if now - session.link.notified_at > 1.0:
+            session.link.notified_at = now
             self._notice(session, kind, message, index)
 
     @staticmethod

@@ -26,7 +26,8 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.serving.fleet import Fleet, FleetError, RobotSession
+from lerobot_armory.serving.fleet import Fleet, FleetError
+from lerobot_armory.serving.session import RobotSession
 from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest
 from lerobot_armory.serving.messages import ChunkOut, ClockSync, ExecutionReport, Notice, NoticeKind, Receipt
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
@@ -202,8 +203,8 @@ class OpenpiEndpoint:
         now = self.fleet.clock()
         session = self.fleet.register(spec, "", features, credential.digest if credential else None, grant, register_recv=now)
         # Its clock is ours: complete the registration exchange with zero offset and no delay.
-        assert session.register_stamps is not None
-        b, s = session.register_stamps
+        assert session.clock.register_stamps is not None
+        b, s = session.clock.register_stamps
         self.fleet.on_clock_sync(session, ClockSync(0, client_send_time=b, client_recv_time=s), now)
         self.fleet.attach(session.session_id, credential.digest if credential else None)
         return session
@@ -229,7 +230,7 @@ class OpenpiEndpoint:
                     obs = unpack(frame, self.max_message_bytes)
                     reply = await asyncio.to_thread(peer.infer, obs)
                 except (WireError, RuntimeError) as exc:
-                    session.rejected += 1
+                    session.counters.rejected += 1
                     await websocket.send(f"lerobot-armory: request refused: {exc}")
                     continue
                 await websocket.send(pack(reply))
