@@ -641,7 +641,7 @@ def markdown(
         f"`--engine.emulate_profile=l40s-pi05`, `--max_batch_size={CAP}` unless the row says b=1), "
         f"{HONEST} honest `armory_sim` robots (20 fps, h_min 5, h_max 10, weight 1, emulated network "
         "3.75 ms median, libero jitter) in one process, and one attacker speaking the raw protocol "
-        "(`benchmarks/_adversaries.py`). Honest robots tick for "
+        "(`tests/support/adversaries.py`). Honest robots tick for "
         f"{cfg.warmup_s:g} s + {cfg.duration_s:g} s; the attacker starts after the warm-up, or "
         f"{LEAD_S:g} s before the honest robots for slot_squat, identity and idle_sockets."),
         "",

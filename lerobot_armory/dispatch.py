@@ -2,7 +2,7 @@
 
 vLLM v1 splits its engine step into ``schedule()`` (decide, book the requests) and
 ``update_from_output()`` (book the results). A fleet has the same two moments, and every driver
-of the mirrors (the live loop in ``server/loop.py`` on wall time, the simulator in
+of the mirrors (the live loop in ``serving/loop.py`` on wall time, the simulator in
 ``sim/simulator.py`` on simulated time, the offline study in ``research/``) goes through them:
 
 - :meth:`Dispatcher.plan` at ``now``: the scheduler picks the batch among the mirrors,

@@ -41,7 +41,7 @@ class EngineOptions:
         cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5),
             ``on`` (refuse to start without them) or ``off`` (LeRobot's own eager sampler). With
             graphs, batches are padded to buckets and each bucket is one recorded CUDA graph
-            (``server/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
+            (``engine/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
             the start-up log says why.
         graph_buckets: the bucket sizes, comma-separated (default: 1, 2, 4, 8, … up to
             ``--max_batch_size``, and the cap itself).

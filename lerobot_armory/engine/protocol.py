@@ -53,14 +53,10 @@ class Engine(Protocol):
 
 
 class UnguidedEngine:
-    """Base of engines without real-time chunking (test doubles, analytic policies)."""
+    """Base of engines without real-time chunking (test doubles, analytic policies): they define
+    :meth:`Engine.infer` and inherit ``rtc = None``."""
 
     rtc: Any = None
-
-    def infer(
-        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
-    ) -> np.ndarray:
-        raise NotImplementedError
 
     def infer_guided(
         self,

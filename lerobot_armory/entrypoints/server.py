@@ -16,7 +16,6 @@ import dataclasses
 import json
 import logging
 import signal
-import statistics
 import sys
 import threading
 import time
@@ -37,7 +36,7 @@ from lerobot_armory.serving.fleet_policy import FleetPolicy
 from lerobot_armory.serving.logs import configure_logging
 from lerobot_armory.engine.protocol import Engine
 from lerobot_armory.serving.loop import BatchRecord, ServingLoop
-from lerobot_armory.serving.metrics import ServerMetrics
+from lerobot_armory.serving.metrics import ServerMetrics, status_line
 from lerobot_armory.entrypoints.openpi.endpoint import OpenpiEndpoint
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.serving.security import AuthTokens, read_tls
@@ -165,30 +164,7 @@ class ArmoryServer:
 
     def status_line(self) -> str:
         """One line of fleet status (logged every second)."""
-        stats = self.loop.stats
-        with self.fleet.cond:
-            sessions = self.fleet.active()
-            tiers: dict[str, list[float]] = {}
-            for s in sessions:
-                tiers.setdefault(s.spec.tier, []).append(s.counters.reported_starvation_pct)
-            errors = [s.counters.index_error for s in sessions if s.counters.index_error is not None]
-        sizes = stats.batch_sizes
-        total = sum(sizes.values())
-        mean_b = sum(k * v for k, v in sizes.items()) / total if total else 0.0
-        elapsed = max(1e-9, self.fleet.clock() - stats.started)
-        tier_txt = " ".join(f"{t} {statistics.mean(v):.1f}%" for t, v in sorted(tiers.items())) or "-"
-        dec = sorted(stats.decision_ms)
-        p99 = dec[min(len(dec) - 1, int(0.99 * len(dec)))] if dec else 0.0
-        if self.learn_latency:
-            worst = self.latency.max_drift()
-            latency_txt = f"d_infer_drift={worst.pct:+.0f}%@b={worst.batch_size}"
-        else:
-            latency_txt = "d_infer=fixed"
-        return (
-            f"robots={len(sessions)} batches={stats.batches} mean_b={mean_b:.2f} busy={100 * stats.busy_s / elapsed:.0f}% "
-            f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
-            f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches} {latency_txt}"
-        )
+        return status_line(self.fleet, self.loop.stats, self.latency if self.learn_latency else None)
 
 
 def tune_process() -> None:

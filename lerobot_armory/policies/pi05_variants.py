@@ -19,7 +19,7 @@ hub checkpoints load exactly as LeRobot loads them:
   and a small vocabulary (:data:`TINY_VOCAB`; the stand-in tokenizer's ids all fit in it).
 
 A process that loads such a policy directory must call :func:`register` first; the server does
-(``server/engine.py``), and so must any plain LeRobot script that loads one
+(``engine/policy_engine.py``), and so must any plain LeRobot script that loads one
 (``import lerobot_armory.policies.pi05_variants as v; v.register()``).
 """
 
@@ -35,7 +35,7 @@ TINY = "armory_tiny"
 # 8 query heads on 1 K/V head, 256 image tokens per 224² camera) at tiny widths: a model whose
 # forward pass launches as many kernels as the real π0.5's, which a CPU runs in a second.
 NARROW = "armory_narrow"
-# Vocabulary of the tiny variant: the stand-in tokenizer (``server/standin_tokenizer.py``) has
+# Vocabulary of the tiny variant: the stand-in tokenizer (``policies/demo/standin_tokenizer.py``) has
 # fewer pieces, so every id it emits is inside the model's embedding table.
 TINY_VOCAB = 1024
 

@@ -1,4 +1,4 @@
-"""RTC's guidance weight, shared by LeRobot's sampling loop (``server/rtc.py``'s batched processor)
+"""RTC's guidance weight, shared by LeRobot's sampling loop (``engine/rtc.py``'s batched processor)
 and the static sampler (``pi05_static.py``), so the two cannot drift apart."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Constants of the wire protocol that the server and the robot must agree on, defined once.
 
-Written by hand (the ``.proto`` cannot hold them); the server (``server/service.py``), the robot
-(``robot/connection.py``) and the server's request hardening (``proto/hardening.py``) import them.
+Written by hand (the ``.proto`` cannot hold them); the server (``entrypoints/grpc/service.py``), the robot
+(``robot/connection.py``) and the server's request hardening (``entrypoints/grpc/hardening.py``) import them.
 """
 
 from __future__ import annotations

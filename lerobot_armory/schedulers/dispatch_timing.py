@@ -51,7 +51,7 @@ def arrival_tick(mirror: RobotMirror, t_done: float) -> int:
     return tick_of(t_done + mirror.estimator.one_way_s, mirror.obs_anchor, mirror.spec.fps)
 
 
-def dry_tick(mirror: RobotMirror) -> int:
+def dry_tick_on_grid(mirror: RobotMirror) -> int:
     """Tick (same grid) at which the robot runs dry with the chunks it holds or awaits."""
     return tick_of(mirror.deadline(), mirror.obs_anchor, mirror.spec.fps)
 
@@ -83,7 +83,7 @@ def hold_until(
     )
     if not candidates:
         return None
-    dry = {id(m): dry_tick(m) for m in robots if m.obs_index is not None}
+    dry = {id(m): dry_tick_on_grid(m) for m in robots if m.obs_index is not None}
     # Each member's arrival now, and the tick by which it must land to cost nothing.
     limit = {id(m): max(arrival_tick(m, now + d_b), dry[id(m)]) for m in batch}
     others = [m for m in robots if id(m) not in members and m.obs_index is not None]

@@ -7,6 +7,7 @@ listener. Names follow Prometheus conventions: ``armory_`` prefix, base units in
 
 from __future__ import annotations
 
+import statistics
 from collections.abc import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
@@ -130,3 +131,32 @@ class ServerMetrics:
             thread.join(timeout=5)
 
         return bound, stop
+
+
+def status_line(fleet: Fleet, stats: LoopStats, learning: OnlineLatency | None) -> str:
+    """One line of fleet status (the server logs it every second): robots, batches, mean batch
+    size, device busy share, starvation by tier, decision p99, mirror error, idle-with-work time,
+    failed batches, and the learnt ``d_infer``'s drift (``learning``; None: the table is fixed)."""
+    with fleet.cond:
+        sessions = fleet.active()
+        tiers: dict[str, list[float]] = {}
+        for s in sessions:
+            tiers.setdefault(s.spec.tier, []).append(s.counters.reported_starvation_pct)
+        errors = [s.counters.index_error for s in sessions if s.counters.index_error is not None]
+    sizes = stats.batch_sizes
+    total = sum(sizes.values())
+    mean_b = sum(k * v for k, v in sizes.items()) / total if total else 0.0
+    elapsed = max(1e-9, fleet.clock() - stats.started)
+    tier_txt = " ".join(f"{t} {statistics.mean(v):.1f}%" for t, v in sorted(tiers.items())) or "-"
+    dec = sorted(stats.decision_ms)
+    p99 = dec[min(len(dec) - 1, int(0.99 * len(dec)))] if dec else 0.0
+    if learning is not None:
+        worst = learning.max_drift()
+        latency_txt = f"d_infer_drift={worst.pct:+.0f}%@b={worst.batch_size}"
+    else:
+        latency_txt = "d_infer=fixed"
+    return (
+        f"robots={len(sessions)} batches={stats.batches} mean_b={mean_b:.2f} busy={100 * stats.busy_s / elapsed:.0f}% "
+        f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
+        f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches} {latency_txt}"
+    )

@@ -18,7 +18,7 @@ a local directory, so this module writes one, ``DIR/vlm``, with nothing from the
   ``image_token`` names; saved with the ``SmolVLMProcessor`` that wraps it (``processor_config.json``).
 
 ``DIR/tokenizer`` holds the same tokenizer alone, so the server points the pre-processor's
-``tokenizer_processor`` step there wherever the directory has been moved (``server/engine.py``).
+``tokenizer_processor`` step there wherever the directory has been moved (``engine/policy_engine.py``).
 
 Everything else is LeRobot's real SmolVLA code path: prefix of image, language and state tokens,
 KV cache, the interleaved self/cross-attention action expert (0.75 × the VLM width), 10
@@ -26,7 +26,7 @@ flow-matching steps. 0.24 M parameters; a batch runs in tens of milliseconds on 
 
 ``config.json`` stores ``vlm_model_name`` as the absolute path of ``DIR/vlm`` at build time
 (SmolVLA resolves it against the working directory, not the policy directory); the server points
-it at the directory's own ``vlm`` wherever the directory now is (``server/engine.py``), and a plain
+it at the directory's own ``vlm`` wherever the directory now is (``engine/policy_engine.py``), and a plain
 LeRobot script loading a moved directory passes ``vlm_model_name=NEWDIR/vlm``.
 """
 
