@@ -73,7 +73,7 @@ research-frontier: setup
 # Regenerate the committed code of lerobot_armory/proto/armory.proto: the messages (armory_pb2.py,
 # armory_pb2.pyi) and the gRPC client stub and servicer base (armory_pb2_grpc.py; grpc_tools has no
 # typed-stub option for it). The server binds them through entrypoints/grpc/hardening.py, which swaps in request
-# deserializers that never raise (see its docstring). tests/test_server.py fails when they are stale.
+# deserializers that never raise (see its docstring). tests/entrypoints/test_server.py fails when they are stale.
 proto: setup
 	@$(PY) -c 'import grpc_tools' 2>/dev/null || $(PY) -m pip install --quiet -e '.[dev]'
 	$(PY) -m grpc_tools.protoc -I. --python_out=. --pyi_out=. --grpc_python_out=. lerobot_armory/proto/armory.proto

@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets
 
-from tests.cluster_helpers import make_planner, replica_config, stale_actions, start_fleet, wait_for
+from tests.support.cluster import make_planner, replica_config, stale_actions, start_fleet, wait_for
 
 
 def main() -> int:

@@ -38,10 +38,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets
 
-from tests.cluster_helpers import make_planner, replica_config
-from tests.openpi_env import openpi_python
+from tests.support.cluster import make_planner, replica_config
+from tests.support.openpi_env import openpi_python
 
-CLIENTS = ROOT / "tests" / "openpi_clients.py"
+CLIENTS = ROOT / "tests" / "support" / "openpi_clients.py"
 PACE_S = 5 / 20.0
 
 

@@ -287,7 +287,7 @@ def observed_tick(t: float, origin: float, fps: float, one_way_s: float) -> int:
 # ``(coverage end at tick 0, pending (arrival tick, end) sorted)`` -- and the functions below
 # answer "index at a tick", "when does it run dry", "when does it reach an index" in a loop over
 # the few pending arrivals. They are :func:`advance` specialised to such chunk sets (property-
-# tested against it in ``tests/test_mirror.py``), not a second transition.
+# tested against it in ``tests/core/test_mirror.py``), not a second transition.
 
 Queue = tuple[int, tuple[tuple[int, int], ...]]
 

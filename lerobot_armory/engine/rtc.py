@@ -15,7 +15,7 @@ hands them to the policy:
   (``get_prefix_weights(delay_b, horizon_b, T)``, per row) and applies LeRobot's guidance to the
   whole batch in one pass; given a plain integer delay it is LeRobot's processor, untouched.
   Rows are independent in the denoiser, so row ``b`` equals LeRobot's single-robot RTC with row
-  ``b``'s delay and leftover (``tests/test_rtc.py`` checks it, on the guidance step and through a
+  ``b``'s delay and leftover (``tests/engine/test_rtc.py`` checks it, on the guidance step and through a
   whole π0.5 forward pass).
 - :func:`enable` installs it on a policy that supports RTC (π0, π0.5, SmolVLA: the policies whose
   ``predict_action_chunk`` forwards ``inference_delay`` / ``prev_chunk_left_over`` to that loop)

@@ -31,7 +31,7 @@ batch to a bucket size (``engine/cuda_graphs.py``).
 RTC: LeRobot 0.6.1 evaluates the velocity before marking ``x_t`` as requiring a gradient, so its
 "vector-Jacobian product" is taken through ``x_t - t·v`` with ``v`` held fixed: the correction is
 the weighted error itself, ``(leftover - (x_t - t·v)) · w``. The step here computes that directly
-(``tests/test_pi05_static.py`` checks it against LeRobot's processor); ``engine/rtc.py`` supplies
+(``tests/policies/test_pi05_static.py`` checks it against LeRobot's processor); ``engine/rtc.py`` supplies
 the per-row weights from LeRobot's own ``get_prefix_weights``.
 
 Numerics: with ``attention="eager"`` every operation is the one LeRobot runs, in its dtype

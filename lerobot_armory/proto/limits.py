@@ -7,7 +7,7 @@ Written by hand (the ``.proto`` cannot hold them); the server (``entrypoints/grp
 from __future__ import annotations
 
 # Full name of the service in armory.proto (package lerobot_armory.v1, service Armory): the path
-# prefix of every RPC and the name the health service reports. tests/test_server.py checks it
+# prefix of every RPC and the name the health service reports. tests/entrypoints/test_server.py checks it
 # against the .proto's descriptor.
 SERVICE_NAME = "lerobot_armory.v1.Armory"
 

@@ -1,7 +1,7 @@
 """The offline optimum, the deterministic episode driver, Rollout on its episodes, the frontier CLI.
 
 The Rollout scheduler on its own (registered, validated, the batch contract) is tested with the
-product: ``tests/test_rollout.py``; its queue form (the mirror's) in ``tests/test_mirror.py``.
+product: ``tests/core/test_rollout.py``; its queue form (the mirror's) in ``tests/core/test_mirror.py``.
 """
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ def test_play_matches_the_simulator_without_jitter(name, preset, mix):
 
 
 # ------------------------------------------------------------------------------------------
-# The search's canonical queue agrees with advance() (the mirror's queue form: tests/test_mirror.py)
+# The search's canonical queue agrees with advance() (the mirror's queue form: tests/core/test_mirror.py)
 
 
 def test_canonical_queue_keeps_advance():

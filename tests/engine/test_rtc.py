@@ -11,7 +11,7 @@ from lerobot_armory.engine import rtc
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import SCHEDULES, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
-from tests.vla_helpers import observation
+from tests.support.vla import observation
 
 
 def _toy_denoiser(seed: int = 0):
@@ -245,8 +245,8 @@ def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.entrypoints.server import ArmoryServer
     from lerobot_armory.entrypoints.grpc.service import PolicyInfo
-    from tests.test_server import wait_for
-    from tests.vla_helpers import PromptRobot
+    from tests.support.pusher import wait_for
+    from tests.support.vla import PromptRobot
 
     recording = _Recording(guided)
     info = PolicyInfo(guided.description, guided.wire_features, guided.action_names, guided.chunk_size)

@@ -55,7 +55,7 @@ LEROBOT_061 = {
 SO101_MOTORS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
 SO101_KEYS = tuple(f"{m}.pos" for m in SO101_MOTORS)
 HAVE_FEETECH = importlib.util.find_spec("scservo_sdk") is not None and importlib.util.find_spec("serial") is not None
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CAMERA = '--robot.cameras={"front": {"type": "opencv", "index_or_path": 0, "width": 32, "height": 32, "fps": 30}}'
 
 

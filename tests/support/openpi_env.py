@@ -12,7 +12,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ENV = ROOT / ".cache" / "openpi-client-env"
 PACKAGES = ["openpi-client==0.1.2", "numpy<2", "websockets>=13", "typing_extensions"]
 

@@ -19,7 +19,7 @@ ray = pytest.importorskip("ray")
 from lerobot_armory.entrypoints.cluster.cli import ClusterConfig, RayOptions, ReplicaOptions, start_replicas
 from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica
-from tests.cluster_helpers import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
+from tests.support.cluster import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
 
 NAMESPACE = "armory-test"
 

@@ -16,7 +16,7 @@ from lerobot_armory.engine.emulation import EmulatedLatencyEngine
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
-from tests.test_server import wait_for
+from tests.support.pusher import wait_for
 
 STATE = "observation.state"
 IMAGE = "observation.images.front"

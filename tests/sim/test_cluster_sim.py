@@ -14,7 +14,7 @@ from lerobot_armory.sim.cluster import place_fleet, simulate_cluster
 from lerobot_armory.sim.fleet_file import Fleet, RobotGroup, fleet_from_dict, load_fleet
 from lerobot_armory.sim.plan import main as plan_main
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "fleets"
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "fleets"
 
 
 def libero(fast: int, slow: int, **kwargs) -> Fleet:

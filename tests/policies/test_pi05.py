@@ -18,7 +18,7 @@ from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.wire import check_features
-from tests.vla_helpers import (
+from tests.support.vla import (
     IMAGE,
     TASKS,
     assert_batched_equals_alone,

@@ -127,7 +127,7 @@ def test_live_loop_waits_and_keeps_serving(engine):
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.entrypoints.server import ArmoryServer
     from lerobot_armory.entrypoints.grpc.service import PolicyInfo
-    from tests.test_server import Pusher, wait_for
+    from tests.support.pusher import Pusher, wait_for
 
     profile = LatencyProfile("test", (20.0, 24.0, 28.0, 32.0))
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)

@@ -19,7 +19,7 @@ import pytest
 
 pytest.importorskip("ray")
 
-from tests.cluster_helpers import make_planner, sim_robot, wait_for  # noqa: E402
+from tests.support.cluster import make_planner, sim_robot, wait_for  # noqa: E402
 
 BIN = Path(sys.executable).parent
 

@@ -1,6 +1,6 @@
 """The Rollout scheduler on its own: it is registered and validated, deterministic and within
 the batch contract in the simulator (its queue arithmetic is the mirror's, tested in
-``tests/test_mirror.py``).
+``tests/core/test_mirror.py``).
 
 Its comparison with the exact optimum on deterministic episodes is part of the offline study:
 ``research/tests/test_frontier.py`` (``make research``).

@@ -19,7 +19,7 @@ from lerobot_armory.entrypoints.server import ArmoryServer, ServerConfig, latenc
 from lerobot_armory.engine.options import EngineOptions
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.engine.protocol import UnguidedEngine
-from tests.test_server import Pusher
+from tests.support.pusher import Pusher
 
 SPEC_TABLES = {
     "l40s-pi05": [73.0, 109.8, 142.4, 177.5, 211.1],

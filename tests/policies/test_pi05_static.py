@@ -13,7 +13,7 @@ from lerobot_armory.engine.cuda_graphs import BucketedSampler, bucket_for, parse
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
-from tests.vla_helpers import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
+from tests.support.vla import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 
 BUCKETS = (1, 2, 4, 8)
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)

@@ -1,6 +1,6 @@
 """The openpi-compatible endpoint, driven by the real ``openpi-client`` in its own environment.
 
-The clients run in a separate venv with numpy < 2 (``tests/openpi_env.py``), as on a robot
+The clients run in a separate venv with numpy < 2 (``tests/support/openpi_env.py``), as on a robot
 computer; they import nothing of ours. The server is the real one (the analytic planner,
 batches taking the H100 π0.5 profile's time, EDF, b = 4).
 """
@@ -26,10 +26,10 @@ from lerobot_armory.serving.config import OpenpiOptions
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.entrypoints.openpi.codec import pack, unpack
 from lerobot_armory.wire import FeatureSpec, WireError
-from tests.cluster_helpers import make_planner, sim_robot, wait_for
-from tests.openpi_env import openpi_python
+from tests.support.cluster import make_planner, sim_robot, wait_for
+from tests.support.openpi_env import openpi_python
 
-CLIENTS = Path(__file__).with_name("openpi_clients.py")
+CLIENTS = Path(__file__).resolve().parents[1] / "support" / "openpi_clients.py"
 
 
 @pytest.fixture(scope="module")

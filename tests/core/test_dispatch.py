@@ -14,10 +14,10 @@ from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import Chunk
 from lerobot_armory.schedulers import EarliestDeadlineScheduler, RoundRobinScheduler
 from lerobot_armory.schedulers.base import Scheduler
-from tests.helpers import mirror
+from tests.support.mirrors import mirror
 
 PROFILE = LatencyProfile("test", (100.0, 150.0, 200.0))  # d_infer 0.1 / 0.15 / 0.2 s
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def fleet(n: int = 3):

@@ -24,7 +24,7 @@ from lerobot_armory.schedulers import (
 )
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
 from lerobot_armory.sim.cli import main as sim_main
-from tests.helpers import mirror
+from tests.support.mirrors import mirror
 
 PROFILE = load_profile("l40s-pi05")  # 73.0, 109.8, 142.4 ms for b = 1, 2, 3
 

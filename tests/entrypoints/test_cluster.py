@@ -16,7 +16,7 @@ import pytest
 from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, LocalReplicas
 from lerobot_armory.robot.connection import Connection
-from tests.cluster_helpers import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
+from tests.support.cluster import make_planner, one_chunk, replica_config, stale_actions, start_fleet, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +143,7 @@ def test_a_chunk_through_the_cluster_equals_a_single_server_s(cluster, planner_d
 def test_a_replica_gone_silent_is_detected_by_keepalive_and_its_robot_resumes_elsewhere(planner_dir):
     """No reset, no close: the replica's host just stops answering. gRPC keepalive breaks the
     stream (5 s pings, 3 s timeout) and the robot fails over through the front."""
-    from tests.cluster_helpers import FreezableProxy
+    from tests.support.cluster import FreezableProxy
 
     hidden = ArmoryReplica(replica_config(planner_dir), "r0")
     proxy = FreezableProxy(hidden.server.port)

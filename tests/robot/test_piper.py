@@ -46,7 +46,7 @@ try:  # the optional extra: without it only the config/clamping tests run
 except ImportError:
     HAVE_SDK = False
 if HAVE_SDK:
-    from tests.fake_piper_arm import DISABLE_FLAG, ENABLE_FLAG, FakePiperArm, GripperCmd, MotionCtrl
+    from tests.support.piper_arm import DISABLE_FLAG, ENABLE_FLAG, FakePiperArm, GripperCmd, MotionCtrl
 
 # piper_sdk 0.6.2 still passes python-can's deprecated `bustype=`; not our warning to fix.
 pytestmark = pytest.mark.filterwarnings("ignore:The 'bustype' argument is deprecated:DeprecationWarning")
@@ -508,7 +508,7 @@ def test_config_module_needs_neither_piper_sdk_nor_python_can():
         "from lerobot_armory.robot.piper import PiperConfig, Piper\n"
         "assert PiperConfig().type == 'piper'\n"
     )
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     result = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
 

@@ -32,7 +32,7 @@ from lerobot_armory.mirror import (
 )
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
-from tests.helpers import consistent_chunks, mirror, naive_run, spec
+from tests.support.mirrors import consistent_chunks, mirror, naive_run, spec
 
 
 def record_uses(index, chunks, n_ticks):
