@@ -16,6 +16,7 @@ from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ServerConfig
 from lerobot_armory.engine.options import EngineOptions
 from lerobot_armory.engine.options import PolicyOptions
+from tests.support.pusher import wait_for  # noqa: F401 - the one wait_for, re-exported for the cluster tests
 
 IMAGE = 32
 
@@ -92,14 +93,6 @@ def stale_actions(client: ArmoryClient) -> list[tuple]:
     return [e for lost_t, lost_epoch in client.losses for e in log if e[0] >= lost_t and e[1] <= lost_epoch]
 
 
-def wait_for(predicate, timeout: float = 10.0, step: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return False
-
 
 def start_fleet(address: str, n: int = 6, duration_s: float = 8.0):
     robots = [sim_robot(address, f"robot{k}", fast=k % 2 == 0, seed=k) for k in range(n)]
@@ -107,7 +100,6 @@ def start_fleet(address: str, n: int = 6, duration_s: float = 8.0):
         r.start(duration_s)
         time.sleep(0.05)  # robots join one after another, as placement sees them
     return robots
-
 
 
 def one_chunk(address: str) -> tuple[np.ndarray, str]:
