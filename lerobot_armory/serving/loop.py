@@ -22,6 +22,7 @@ from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.mirror import Chunk, RobotMirror
 from lerobot_armory.inference_latency import OnlineLatency
 from lerobot_armory.schedulers.base import Scheduler
+from lerobot_armory.engine.faults import Fault, classify
 from lerobot_armory.engine.protocol import Engine, noise_seed
 from lerobot_armory.serving.fleet import Fleet
 from lerobot_armory.serving.session import RobotSession
@@ -34,8 +35,8 @@ log = logging.getLogger(__name__)
 DRIFT_WARN_PCT = 25.0
 # This many failed batches in a row, across whichever robots they held, mean the engine is broken,
 # not one request: the loop stops and the server exits 1 (a supervisor restarts it) rather than
-# failing every robot's every request forever. One failure alone is not enough to tell: a CUDA
-# out-of-memory error passes, an illegal memory access does not.
+# failing every robot's every request forever. Errors known to leave the device unusable stop it
+# at the first (engine/faults.py); out-of-memory lowers the batch cap instead of failing.
 MAX_CONSECUTIVE_FAILURES = 20
 # With RTC, sent chunks kept per robot for the next leftovers (the mirror's queue holds fewer).
 MAX_MODEL_CHUNKS = 16
@@ -78,6 +79,8 @@ class LoopStats:
     # for a core (on a loaded 2-core machine wall time mostly measures those).
     decision_cpu_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
     failed_decisions: int = 0  # decisions the scheduler could not make (served in order instead)
+    oom_batches: int = 0  # batches that ran out of device memory and lowered the cap (not failed)
+    batch_cap: int | None = None  # the cap after an out-of-memory batch lowered it (None: as configured)
     busy_s: float = 0.0
     idle_with_work_s: float = 0.0
     started: float = 0.0
@@ -255,34 +258,58 @@ class ServingLoop:
             self._drift_warned = False  # back near the profile: warn again on the next excursion
 
     def _fail(self, batch: Batch, exc: Exception, t_start: float) -> None:
-        """An engine error hurts only this batch: its robots are told and become useful again."""
+        """An engine error hurts only this batch (:mod:`lerobot_armory.engine.faults`).
+
+        A batch that ran out of device memory lowers the batch cap below its size, and its robots
+        are served again in smaller batches without being told of an error (they see a delay). A
+        lost device stops the loop at once (the server exits 1, a supervisor restarts it). Any
+        other error fails this batch: its robots are told and become useful again.
+        """
         plan = batch.plan
-        log.error("inference failed for a batch of %d (%s): %s", plan.size, ", ".join(plan.robot_ids), exc)
+        fault = classify(exc)
+        shrink = fault is Fault.OUT_OF_MEMORY and plan.size > 1
+        if shrink:
+            log.warning(
+                "out of device memory at a batch of %d (%s): the batch cap is now %d until restart; these robots are "
+                "served again in smaller batches", plan.size, _first_line(exc), plan.size - 1,
+            )  # fmt: skip
+        else:
+            log.error("inference failed for a batch of %d (%s): %s", plan.size, ", ".join(plan.robot_ids), exc)
         t_end = self.fleet.clock()
         with self.fleet.cond:
             self.dispatcher.cancel(plan)
             self.fleet.in_flight = set()
+            if shrink:
+                self.scheduler.max_batch_size = min(self.scheduler.max_batch_size, plan.size - 1)
+                self.stats.batch_cap = self.scheduler.max_batch_size
+                self.stats.oom_batches += 1
+            else:
+                self.stats.failed_batches += 1
             for request, session in zip(plan.requests, batch.sessions, strict=True):
-                session.outbox.put(
-                    Notice(
-                        NoticeKind.INFERENCE_FAILED,
-                        f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
-                        request.chunk.i_start,
+                if not shrink:
+                    session.outbox.put(
+                        Notice(
+                            NoticeKind.INFERENCE_FAILED,
+                            f"inference failed for this batch ({type(exc).__name__}: {exc}); your next observation will be served",
+                            request.chunk.i_start,
+                        )
                     )
-                )
                 if session.move_after_chunk and self.fleet.sessions.get(session.session_id) is session:
                     self.fleet.move_now(session)  # no chunk is coming: the move need not wait
-            self.stats.failed_batches += 1
             self._finish(plan.size, t_start, t_end)
             self.fleet.cond.notify_all()
         self._record(plan, t_start, t_end, ok=False)
+        if shrink:
+            return
         self._failures_in_a_row += 1
-        if self._failures_in_a_row >= MAX_CONSECUTIVE_FAILURES:
-            # A sticky device error (an illegal memory access leaves the CUDA context unusable) fails
-            # every batch in quick succession and lands here within a second or so.
+        if fault is Fault.DEVICE_LOST:
+            self.error = RuntimeError(f"the device is lost ({type(exc).__name__}: {_first_line(exc)}); restart the server")
+        elif self._failures_in_a_row >= MAX_CONSECUTIVE_FAILURES:
+            # An error this module does not know as sticky may still fail every batch.
             self.error = RuntimeError(
                 f"the engine is broken ({self._failures_in_a_row} failed batches in a row; last: {type(exc).__name__}: {exc})"
             )
+        if self.error is not None:
             log.error("stopping: %s", self.error)
             self.fleet.stop()  # the loop ends at its next decision; the server sees loop.error and exits 1
 
@@ -349,3 +376,7 @@ def _keep_model_chunk(session: RobotSession, chunk_id: int, actions: np.ndarray)
         del session.model_chunks[old]
     while len(session.model_chunks) > MAX_MODEL_CHUNKS:  # oldest first (insertion order)
         del session.model_chunks[next(iter(session.model_chunks))]
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [""])[0][:200]

@@ -1,0 +1,126 @@
+"""A device that fails: out of memory at some batch size lowers the cap (robots see a delay, not
+an error); a lost device stops the server at once; anything else fails one batch."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_armory.engine.faults import Fault, classify
+from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
+from lerobot_armory.schedulers import EarliestDeadlineConfig
+from tests.support.echo import FEATURES, EchoEngine, echo_server
+from tests.support.pusher import wait_for
+
+
+@pytest.mark.parametrize(
+    "exc,fault",
+    [
+        (torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"), Fault.OUT_OF_MEMORY),
+        (torch.cuda.OutOfMemoryError("CUDA out of memory."), Fault.OUT_OF_MEMORY),
+        (MemoryError(), Fault.OUT_OF_MEMORY),
+        (RuntimeError("CUDA error: CUBLAS_STATUS_ALLOC_FAILED when calling cublasCreate(handle)"), Fault.OUT_OF_MEMORY),
+        (RuntimeError("CUDA error: an illegal memory access was encountered"), Fault.DEVICE_LOST),
+        (RuntimeError("CUDA error: device-side assert triggered"), Fault.DEVICE_LOST),
+        (RuntimeError("CUDA error: unspecified launch failure"), Fault.DEVICE_LOST),
+        (RuntimeError("shape mismatch: (3, 2) and (4, 2)"), Fault.BATCH),
+        (ValueError("bad observation"), Fault.BATCH),
+    ],
+)
+def test_each_exception_is_the_fault_it_stands_for(exc, fault):
+    assert classify(exc) is fault
+
+
+class OutOfMemoryAbove(EchoEngine):
+    """The echo engine, out of (emulated) device memory at batch sizes >= ``limit``."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(0.01)
+        self.limit = limit
+        self.sizes: list[int] = []
+
+    def infer(self, observations, tasks, noise_seeds=None):
+        self.sizes.append(len(observations))
+        if len(observations) >= self.limit:
+            raise torch.OutOfMemoryError(f"CUDA out of memory at a batch of {len(observations)}")
+        return super().infer(observations, tasks, noise_seeds)
+
+
+class LostDevice(EchoEngine):
+    def infer(self, observations, tasks, noise_seeds=None):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+
+
+def _robots(server, n: int, seconds: float) -> list[ArmoryClient]:
+    clients = []
+    for k in range(n):
+        state = np.full(4, float(k), np.float32)
+        clients.append(
+            ArmoryClient(
+                server.address, RobotIdentity(f"r{k}", 20.0, 2, 10), FEATURES,
+                observe=lambda state=state: {"observation.state": state}, act=lambda a: None,
+            )  # fmt: skip
+        )
+    threads = [threading.Thread(target=c.run, args=(seconds,)) for c in clients]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return clients
+
+
+def test_out_of_memory_at_a_batch_size_lowers_the_cap_and_the_robots_are_served_without_an_error():
+    engine = OutOfMemoryAbove(limit=3)
+    server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
+    try:
+        clients = _robots(server, 4, 3.0)
+        stats = server.loop.stats
+        assert any(b >= 3 for b in engine.sizes), f"no batch of 3 or more was tried: {engine.sizes}"
+        assert stats.oom_batches >= 1 and stats.batch_cap == 2 and server.scheduler.max_batch_size == 2
+        assert stats.failed_batches == 0 and server.loop.error is None and server.loop.alive
+        first_oom = next(k for k, b in enumerate(engine.sizes) if b >= 3)
+        # At most one more try at 3 (the cap went 4 -> 3 -> 2); after that, never above 2.
+        assert all(b <= 2 for b in engine.sizes[first_oom + 2 :]), engine.sizes
+        for c in clients:
+            assert c.chunks_received > 10, (c.identity.robot_id, c.chunks_received)
+            assert not any("inference failed" in n for n in c.notices), c.notices
+        assert "batch_cap=2" in server.status_line()
+    finally:
+        for c in clients:
+            c.close()
+        server.stop(0.5)
+
+
+def test_out_of_memory_at_a_batch_of_one_fails_that_batch_and_tells_its_robot():
+    engine = OutOfMemoryAbove(limit=1)
+    server = echo_server(engine, cap=2, scheduler=EarliestDeadlineConfig())
+    try:
+        (client,) = _robots(server, 1, 1.0)
+        stats = server.loop.stats
+        assert stats.failed_batches >= 1 and stats.batch_cap in (None, 1)
+        assert any("inference failed" in n for n in client.notices)
+    finally:
+        server.stop(0.5)
+
+
+def test_a_lost_device_stops_the_loop_at_the_first_batch_with_one_clear_reason():
+    server = echo_server(LostDevice(), cap=2, scheduler=EarliestDeadlineConfig())
+    try:
+        state = np.zeros(4, np.float32)
+        client = ArmoryClient(
+            server.address, RobotIdentity("r0", 20.0, 2, 10), FEATURES,
+            observe=lambda: {"observation.state": state}, act=lambda a: None,
+        )  # fmt: skip
+        runner = threading.Thread(target=client.run, args=(2.0,))
+        runner.start()
+        assert wait_for(lambda: server.loop.error is not None, timeout=10)
+        assert server.loop.stats.failed_batches == 1
+        assert "the device is lost" in str(server.loop.error) and "illegal memory access" in str(server.loop.error)
+        assert wait_for(lambda: not server.loop.alive, timeout=5)
+        runner.join()
+    finally:
+        client.close()
+        server.stop(0.5)
