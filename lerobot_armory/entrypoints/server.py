@@ -31,6 +31,7 @@ from lerobot_armory.schedulers import SchedulerConfig
 from lerobot_armory.engine.emulation import EmulatedLatencyEngine
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.serving.fleet import Fleet
+from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.config import OpenpiOptions, ServerConfig, parse_server_args
 from lerobot_armory.serving.fleet_policy import FleetPolicy
 from lerobot_armory.serving.logs import configure_logging
@@ -86,7 +87,9 @@ class ArmoryServer:
         self.loop = ServingLoop(
             self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None
         )
-        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy)
+        # One admission limit per peer and credential, whichever entrypoint the registrations use.
+        self.admission = AdmissionLimiter()
+        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy, self.admission)
         self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
         self.batch_listeners.append(self.metrics.on_batch)
         self._tls = tls
@@ -135,7 +138,7 @@ class ArmoryServer:
             self.fleet, KeyMap.load(self.policy.wire_features, keymap), options, self.policy.chunk_size,
             {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,
              "action_names": self.policy.action_names},
-            self._host, self._max_message_bytes, self._fleet_policy, self._auth, self._tls,
+            self._host, self._max_message_bytes, self._fleet_policy, self._auth, self._tls, self.admission,
         ).start()  # fmt: skip
         return self.openpi.port
 

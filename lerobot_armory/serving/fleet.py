@@ -25,6 +25,10 @@ from lerobot_armory.serving.session import Link, RobotSession
 # A registration that has not opened its stream within this long is dropped (and, when the fleet
 # is full, the oldest such registration makes room for a new one at once).
 STALE_SESSION_S = 5.0
+# A slot is held by a robot that asks: when the fleet is full, a streaming robot that has sent no
+# observation for this long (a socket held open, a robot stopped) gives its slot to a newcomer. It
+# is told why and may register again. A robot that asks at 1 Hz or faster never comes near it.
+IDLE_SESSION_S = 10.0
 # Clock exchanges the server starts itself: one at stream start, then every SYNC_INTERVAL_S; a
 # suspected clock step asks again at once (at most once per SYNC_MIN_GAP_S).
 SYNC_INTERVAL_S = 10.0
@@ -48,10 +52,18 @@ class FleetError(Exception):
 class Fleet:
     """All sessions, in registration order, behind one condition variable."""
 
-    def __init__(self, clock: Callable[[], float], max_robots: int = 64, stale_session_s: float = STALE_SESSION_S) -> None:
+    def __init__(
+        self,
+        clock: Callable[[], float],
+        max_robots: int = 64,
+        stale_session_s: float = STALE_SESSION_S,
+        idle_session_s: float = IDLE_SESSION_S,
+    ) -> None:
         self.clock = clock
         self.max_robots = max_robots
         self.stale_session_s = stale_session_s
+        self.idle_session_s = idle_session_s
+        self.evicted_idle = 0  # streaming sessions that gave their slot to a newcomer
         self.cond = threading.Condition()
         self.sessions: dict[str, RobotSession] = {}
         self.stopping = False
@@ -69,9 +81,14 @@ class Fleet:
         register_recv: float | None = None,
     ) -> RobotSession:
         """Add a robot. A robot id already *streaming* is refused; a stale registration of the
-        same id (never streamed, or its stream ended) is replaced. Registrations that never open
-        a stream hold no slot for long: they expire after ``stale_session_s``, and a full fleet
-        drops the oldest of them to make room (so squatting the slots buys nothing)."""
+        same id (never streamed, or its stream ended) is replaced.
+
+        A slot is held by a robot that streams and asks, on every entrypoint alike: registrations
+        that never open a stream expire after ``stale_session_s``, and a full fleet drops the
+        oldest of them to make room; failing that, the streaming robot that has sent no
+        observation for the longest, if that is over ``idle_session_s`` (so squatting the slots,
+        with registrations or with idle streams, buys nothing). Only a fleet full of robots that
+        ask refuses (``RESOURCE_EXHAUSTED``)."""
         with self.cond:
             if self.stopping:
                 raise FleetError("UNAVAILABLE", "the server is shutting down")
@@ -81,14 +98,9 @@ class Fleet:
                         raise FleetError("ALREADY_EXISTS", f"robot id {spec.robot_id!r} is already connected")
                     self._drop(sid)
             self._expire_unstreamed()
-            if len(self.sessions) >= self.max_robots:
-                waiting = [sid for sid, s in self.sessions.items() if not s.link.streaming]
-                if not waiting:
-                    raise FleetError(
-                        "RESOURCE_EXHAUSTED", f"the server already serves {self.max_robots} robots (--max_robots); retry later"
-                    )
-                self._drop(waiting[0])  # dicts keep insertion order: the oldest registration
             now = self.clock()
+            if len(self.sessions) >= self.max_robots:
+                self._make_room(now)
             link = Link(credential=credential, grant=grant)
             session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, link=link)
             session.clock.register_stamps = (now if register_recv is None else register_recv, now)
@@ -158,6 +170,31 @@ class Fleet:
         for sid, s in list(self.sessions.items()):
             if not s.link.streaming and now - s.registered_at > self.stale_session_s:
                 self._drop(sid)
+
+    def _make_room(self, now: float) -> None:
+        """Free one slot for a newcomer, or refuse it (lock held; see :meth:`register`)."""
+        waiting = [sid for sid, s in self.sessions.items() if not s.link.streaming]
+        if waiting:
+            self._drop(waiting[0])  # dicts keep insertion order: the oldest registration
+            return
+        idle = [
+            (now - (s.mirror.obs_recv if s.mirror.obs_index is not None else s.registered_at), s)
+            for s in self.sessions.values()
+            if s.session_id not in self.in_flight
+        ]
+        quiet_s, quietest = max(idle, key=lambda pair: pair[0], default=(0.0, None))
+        if quietest is None or quiet_s <= self.idle_session_s:
+            raise FleetError("RESOURCE_EXHAUSTED", f"the server already serves {self.max_robots} robots (--max_robots); retry later")
+        quietest.outbox.put(
+            Notice(
+                NoticeKind.DROPPED,
+                f"your session sent no observation for {quiet_s:.0f} s and the server is full: its slot went to "
+                "another robot; register again",
+            )
+        )
+        self._drop(quietest.session_id)
+        self.evicted_idle += 1
+        self.cond.notify_all()
 
     def active(self) -> list[RobotSession]:
         """Sessions with an open stream, in registration order (call with the lock held)."""

@@ -68,13 +68,22 @@ class FleetCollector(Collector):
                 one_way.add_metric(lv, s.mirror.estimator.one_way_s)
                 weight.add_metric(lv, s.spec.weight)
             connected = len(sessions)
+            evicted = self.fleet.evicted_idle
         yield from (starvation, executed, starved, served, rejected, obs_age, chunk_age, round_trip, one_way, weight)
         yield GaugeMetricFamily("armory_robots_connected", "Robots with an open stream", value=connected)
+        yield CounterMetricFamily(
+            "armory_sessions_evicted_idle", "Streaming sessions that sent nothing and gave their slot to a newcomer", value=evicted
+        )
         yield CounterMetricFamily("armory_device_busy_seconds", "Time the device spent on batches", value=self.stats.busy_s)
         yield CounterMetricFamily(
             "armory_device_idle_with_work_seconds", "Time the device sat idle while a useful request waited", value=self.stats.idle_with_work_s
         )
         yield CounterMetricFamily("armory_batches_failed", "Batches whose inference raised", value=self.stats.failed_batches)
+        yield CounterMetricFamily(
+            "armory_batches_out_of_memory", "Batches that ran out of device memory (each lowered the batch cap)", value=self.stats.oom_batches
+        )
+        if self.stats.batch_cap is not None:
+            yield GaugeMetricFamily("armory_batch_cap", "The batch cap after out-of-memory batches lowered it", value=self.stats.batch_cap)
 
 
 class LatencyCollector(Collector):
@@ -159,4 +168,5 @@ def status_line(fleet: Fleet, stats: LoopStats, learning: OnlineLatency | None) 
         f"robots={len(sessions)} batches={stats.batches} mean_b={mean_b:.2f} busy={100 * stats.busy_s / elapsed:.0f}% "
         f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
         f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches} {latency_txt}"
+        + (f" batch_cap={stats.batch_cap} (lowered after {stats.oom_batches} out-of-memory batches)" if stats.batch_cap is not None else "")
     )

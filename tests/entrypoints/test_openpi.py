@@ -240,12 +240,15 @@ def test_a_chunk_left_over_from_a_timed_out_request_never_answers_the_next_one(s
 
     from lerobot_armory.serving.messages import ChunkOut
 
+    obs = {"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}
     with connect(f"ws://127.0.0.1:{server.openpi.port}", compression=None, max_size=None) as ws:
         unpack(ws.recv(), 1 << 20)
+        ws.send(pack(obs))  # the first request registers the connection as a robot
+        unpack(ws.recv(timeout=10), 1 << 20)
         with server.fleet.cond:
             mine = [s for s in server.fleet.sessions.values() if s.robot_id.startswith("openpi-")][-1]
         stale = np.full((10, 2), 99.0, np.float32)
         mine.outbox.put(ChunkOut(999, 0, stale, 0.0, 0.0))
-        ws.send(pack({"observation/image": np.zeros((32, 32, 3), np.uint8), "observation/state": np.zeros(2)}))
+        ws.send(pack(obs))
         reply = unpack(ws.recv(timeout=10), 1 << 20)
         assert not np.any(reply["actions"] == 99.0)

@@ -20,6 +20,7 @@ re-registers here and is steered to the target.
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -38,6 +39,7 @@ from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
 from lerobot_armory.entrypoints.grpc.hardening import Malformed
 from lerobot_armory.serving.peer_log import ThrottledLog
 from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_server
+from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +129,8 @@ class ClusterFront(ArmoryServicer):
         self.moves: list[Move] = []
         self._members: frozenset[tuple[str, str]] = frozenset()  # (robot, replica) pairs and ("", replica up)
         self.peer_log = ThrottledLog(log)
+        self.admission = AdmissionLimiter()  # registrations per peer host, as on a replica
+        self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
 
     # ---- the view ----------------------------------------------------------------------------
 
@@ -241,7 +245,13 @@ class ClusterFront(ArmoryServicer):
                     else:  # the replica will refuse it and say why: any open one answers
                         rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
                 except (NoReplica, ValueError):
-                    return
+                    # Every replica looks full to placement. A replica makes room itself (it drops
+                    # registrations that never streamed and robots that stopped asking), so the
+                    # healthy ones decide, least loaded first; they refuse if they cannot.
+                    healthy = sorted((v for v in views if v.healthy), key=lambda v: (len(v.robots), v.replica_id))
+                    if not healthy:
+                        return
+                    rid = healthy[0].replica_id
             tried.add(rid)
             yield rid
 
@@ -265,7 +275,10 @@ class ClusterFront(ArmoryServicer):
         if isinstance(request, Malformed):
             self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
-        last = "no replica is up"
+        refused = self.admission.check(peer_host(context.peer()))
+        if refused is not None:
+            self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "rate", refused)
+        answers: list[tuple[str, grpc.StatusCode, str]] = []  # (replica, code, details) of the replicas that said no
         for rid in self._choices(request):
             with self.lock:
                 state = self.state[rid]
@@ -285,7 +298,7 @@ class ClusterFront(ArmoryServicer):
             except grpc.RpcError as exc:
                 self._unreserve(rid, request.robot_id)
                 if exc.code() in TRY_ANOTHER:
-                    last = f"replica {rid}: {exc.code().name}: {exc.details()}"
+                    answers.append((rid, exc.code(), exc.details() or ""))
                     if exc.code() in DOWN:
                         self._mark_down(rid)
                     continue
@@ -299,7 +312,19 @@ class ClusterFront(ArmoryServicer):
                         self._rebuild(other)
             log.info("placed %s on %s (%s)", request.robot_id, rid, address)
             return response
-        context.abort(grpc.StatusCode.UNAVAILABLE, f"no replica can take this robot now ({last}); retry")
+        if answers and all(code == grpc.StatusCode.RESOURCE_EXHAUSTED for _, code, _ in answers):
+            what = "; ".join(f"{rid}: {details}" for rid, _, details in answers)
+            self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "full", f"every replica is full of robots that ask ({what}); retry later")
+        if answers:
+            what = "; ".join(f"{rid}: {code.name}: {details}" for rid, code, details in answers)
+            self._refuse(context, grpc.StatusCode.UNAVAILABLE, "unavailable", f"no replica could take this robot now ({what}); retry")
+        self._refuse(context, grpc.StatusCode.UNAVAILABLE, "down", "no replica is up; retry")
+
+    def _refuse(self, context: grpc.ServicerContext, code: grpc.StatusCode, why: str, message: str) -> None:
+        """Refuse a registration: counted by reason, logged once per peer (per 10 s), told as it is."""
+        self.refused[why] += 1
+        self.peer_log.warn(context.peer(), f"registration refused: {message}")
+        context.abort(code, message)
 
     def _unreserve(self, rid: str, robot_id: str) -> None:
         with self.lock:

@@ -26,6 +26,7 @@ from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server
 from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, grant_to_wire, report_from_wire, to_wire
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
+from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError
 from lerobot_armory.serving.session import RobotSession
 from lerobot_armory.serving.messages import Notice, NoticeKind
@@ -63,8 +64,10 @@ class ArmoryService(ArmoryServicer):
         auth: AuthTokens | None = None,
         max_obs_rate_hz: float = 0.0,
         fleet_policy: FleetPolicy | None = None,
+        admission: AdmissionLimiter | None = None,
     ) -> None:
         self.fleet = fleet
+        self.admission = admission or AdmissionLimiter()
         self.policy = policy
         self.max_message_bytes = max_message_bytes
         self.auth = auth
@@ -84,6 +87,10 @@ class ArmoryService(ArmoryServicer):
             credential = self.auth.identify(request.robot_id, request.auth_token)
             if credential is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
+        refused = self.admission.check(peer_host(context.peer()), credential.digest if credential else None)
+        if refused is not None:
+            self.peer_log.warn(context.peer(), refused)
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
         problems = self._check_registration(request)
         asked = GrantRequest(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
         grant = None

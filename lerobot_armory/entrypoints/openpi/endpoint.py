@@ -6,7 +6,9 @@ out (``{"actions": (H, A) float32, "server_timing": {...}}``), as openpi's own s
 message that does not decode or fit the policy gets a *text* frame saying why (openpi's client
 raises it as ``RuntimeError``) and the connection stays open; no other robot notices.
 
-Each connection is a robot of the fleet. openpi's client asks when it needs a chunk and waits, so
+Each connection that asks is a robot of the fleet: it is registered with its first request (a
+connection that never asks holds no slot, and is closed after ``FIRST_REQUEST_S``), under the
+same admission limits as gRPC registrations. openpi's client asks when it needs a chunk and waits, so
 the mirror models it as a robot whose request is due now: it executes ``--openpi.replan_steps``
 actions per chunk (``h_max``) at ``--openpi.fps``, its clock is the server's (zero offset), and
 every request after the first comes with the receipt of the chunk before (executed from its
@@ -17,10 +19,12 @@ robots share batches under any scheduler.
 from __future__ import annotations
 
 import asyncio
+import collections
 import itertools
 import logging
 import threading
 import time
+from collections.abc import AsyncIterator
 from http import HTTPStatus
 from typing import Any
 
@@ -33,12 +37,19 @@ from lerobot_armory.serving.messages import ChunkOut, ClockSync, ExecutionReport
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.entrypoints.openpi.codec import pack, unpack
 from lerobot_armory.serving.config import OpenpiOptions
-from lerobot_armory.serving.security import AuthTokens
+from lerobot_armory.serving.admission import AdmissionLimiter
+from lerobot_armory.serving.security import AuthTokens, Credential
 from lerobot_armory.feature_spec import WireError
 
 log = logging.getLogger(__name__)
 
 CHUNK_TIMEOUT_S = 30.0  # a chunk not served in this long is an error frame, not a hang
+# A connection becomes a robot of the fleet (takes a slot) with its first request, not when it
+# opens: one that sends none within FIRST_REQUEST_S is closed, and at most MAX_WAITING connections
+# wait for their first request at once (more are refused at once, so idle sockets cannot pile up).
+# openpi's client sends its first observation as soon as its policy runs.
+FIRST_REQUEST_S = 10.0
+MAX_WAITING = 64
 
 
 class OpenpiSession:
@@ -110,8 +121,12 @@ class OpenpiEndpoint:
         fleet_policy: FleetPolicy | None = None,
         auth: AuthTokens | None = None,
         tls: tuple[bytes, bytes] | None = None,
+        admission: AdmissionLimiter | None = None,
     ) -> None:
         self.fleet = fleet
+        self.admission = admission or AdmissionLimiter()
+        self.waiting = 0  # connections open that have not asked yet (the event loop's thread only)
+        self.refused = collections.Counter()  # why connections were refused, by reason
         self.keymap = keymap
         self.options = options
         self.chunk_size = chunk_size
@@ -185,13 +200,19 @@ class OpenpiEndpoint:
             context.load_cert_chain(paths[0], paths[1])
         return context
 
-    def _register(self, api_key: str) -> RobotSession:
-        robot_id = f"openpi-{next(self._ids)}"
-        credential = None
-        if self.auth is not None:
-            credential = self.auth.identify(robot_id, api_key)
-            if credential is None:
-                raise FleetError("UNAUTHENTICATED", "missing or wrong api key (openpi client's api_key)")
+    def _authenticate(self, robot_id: str, api_key: str) -> Credential | None:
+        """The credential of ``api_key`` (None without auth); FleetError when it is wrong."""
+        if self.auth is None:
+            return None
+        credential = self.auth.identify(robot_id, api_key)
+        if credential is None:
+            raise FleetError("UNAUTHENTICATED", "missing or wrong api key (openpi client's api_key)")
+        return credential
+
+    def _register(self, robot_id: str, credential: Credential | None, peer: str) -> RobotSession:
+        refused = self.admission.check(peer, credential.digest if credential else None)
+        if refused is not None:
+            raise FleetError("RESOURCE_EXHAUSTED", refused)
         opts = self.options
         h_max = min(opts.replan_steps, self.chunk_size)
         asked = GrantRequest(robot_id, opts.fps, 1, h_max, 1.0, opts.tier)
@@ -209,36 +230,70 @@ class OpenpiEndpoint:
         self.fleet.attach(session.session_id, credential.digest if credential else None)
         return session
 
+    async def _refuse(self, websocket: Any, reason: str, why: str) -> None:
+        self.refused[why] += 1
+        await websocket.send(f"lerobot-armory refused this client: {reason}")
+        await websocket.close()
+
     async def _handle(self, websocket: Any) -> None:
         header = websocket.request.headers.get("Authorization", "") if websocket.request is not None else ""
-        api_key = header.removeprefix("Api-Key ").strip()
+        # openpi's client sends "Api-Key <key>"; the key is compared as sent (HTTP itself drops
+        # the whitespace around a header's value, so no client can send a padded key).
+        api_key = header[len("Api-Key ") :] if header.startswith("Api-Key ") else ""
+        address = websocket.remote_address
+        peer = str(address[0]) if isinstance(address, tuple) and address else str(address)
+        robot_id = f"openpi-{next(self._ids)}"
         try:
-            session = await asyncio.to_thread(self._register, api_key)
+            credential = self._authenticate(robot_id, api_key)
         except FleetError as exc:
-            await websocket.send(f"lerobot-armory refused this client: {exc}")
-            await websocket.close()
+            await self._refuse(websocket, str(exc), "unauthenticated")
             return
-        peer = OpenpiSession(self.fleet, session, self.keymap, min(self.options.replan_steps, self.chunk_size))
-        log.info("openpi client %s connected as %s", websocket.remote_address, session.robot_id)
+        if self.waiting >= MAX_WAITING:
+            await self._refuse(
+                websocket, f"{MAX_WAITING} connections are already waiting for their first request; retry later", "waiting"
+            )
+            return
+        self.waiting += 1
         try:
             await websocket.send(pack(self.metadata))
-            async for frame in websocket:
+            first = await asyncio.wait_for(websocket.recv(), FIRST_REQUEST_S)
+        except TimeoutError:
+            await self._refuse(websocket, f"no request within {FIRST_REQUEST_S:g} s (a connection holds a slot only while it asks)", "idle")
+            return
+        except Exception:  # noqa: BLE001 - closed before asking: nothing was registered
+            return
+        finally:
+            self.waiting -= 1
+        session: RobotSession | None = None
+        try:
+            frames = _prepend(first, websocket)
+            async for frame in frames:
+                if session is None or self.fleet.sessions.get(session.session_id) is not session:
+                    # The first request, or the first after the fleet gave an idle client's slot away.
+                    try:
+                        session = await asyncio.to_thread(self._register, robot_id, credential, peer)
+                    except FleetError as exc:
+                        await self._refuse(websocket, str(exc), exc.code.lower())
+                        return
+                    client = OpenpiSession(self.fleet, session, self.keymap, min(self.options.replan_steps, self.chunk_size))
+                    log.info("openpi client %s asks as %s", address, session.robot_id)
                 if isinstance(frame, str):
                     await websocket.send("expected a binary msgpack frame (openpi's client packs the observation), got text")
                     continue
                 try:
                     obs = unpack(frame, self.max_message_bytes)
-                    reply = await asyncio.to_thread(peer.infer, obs)
+                    reply = await asyncio.to_thread(client.infer, obs)
                 except (WireError, RuntimeError) as exc:
                     session.counters.rejected += 1
                     await websocket.send(f"lerobot-armory: request refused: {exc}")
                     continue
                 await websocket.send(pack(reply))
         except Exception as exc:  # noqa: BLE001 - a connection's failure is its own
-            log.info("openpi client %s: connection ended (%s)", session.robot_id, type(exc).__name__)
+            log.info("openpi client %s: connection ended (%s)", robot_id, type(exc).__name__)
         finally:
-            await asyncio.to_thread(self.fleet.detach, session.session_id)
-            log.info("openpi client %s disconnected", session.robot_id)
+            if session is not None:
+                await asyncio.to_thread(self.fleet.detach, session.session_id)
+                log.info("openpi client %s disconnected", session.robot_id)
 
     def stop(self) -> None:
         if self._server is None:
@@ -251,3 +306,10 @@ class OpenpiEndpoint:
         asyncio.run_coroutine_threadsafe(close(), self._loop).result(timeout=10)
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=10)
+
+
+async def _prepend(first: Any, websocket: Any) -> AsyncIterator[Any]:
+    """The first frame (already received), then the connection's next ones until it closes."""
+    yield first
+    async for frame in websocket:
+        yield frame
