@@ -7,7 +7,7 @@ limit of 1024 open files, as systemd and most shells give it), one process of fo
 the libero preset's jitter; ``python tests/support/adversaries.py honest SPEC.json``) and, in this
 process, on its own thread, one attacker from ``tests/support/adversaries.py`` speaking the raw
 protocol. The honest robots tick for ``warmup_s + duration_s``; the attacker starts after the
-warm-up (or, for the attacks on joining — slot_squat, identity, idle_sockets — before the honest
+warm-up (or, for the attacks on joining — slot_squat, identity, idle_sockets, openpi_idle — before the honest
 robots start). The same honest fleet without an attacker, once per scheduler, is the baseline.
 
 A row passes when
@@ -62,13 +62,13 @@ from lerobot_armory.sim.presets import get_preset
 
 ALL_SCENARIOS = (
     "clock_nan", "capture_absurd", "report_absurd", "fps_absurd", "priority_flood", "clock_ahead", "huge_report",
-    "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage",
+    "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle",
 )  # fmt: skip
 # Attacks on something every scheduler shares (memory, sockets, slots, credentials, parsing) run
 # once, under the first of these that is selected; the others run under every scheduler.
-ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage")
+ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle")
 SINGLE_PREFERENCE = ("lookahead", "edf", "rr")
-JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0}  # scenario -> join limit (s)
+JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
 STEP_SETTLE_S = 1.0  # clock_step: the stepped robot is judged from this long after its step
 HONEST = 4
@@ -520,6 +520,8 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
         notes.append(f"sent {extra['sent MiB']:.0f} MiB unread-answer bait")
     if spec.scenario == "idle_sockets":
         notes.append(f"{extra.get('connected', '?')} idle sockets")
+    if spec.scenario == "openpi_idle":
+        notes.append(f"{extra.get('connected', '?')} idle openpi connections, {extra.get('told and closed by the server', '?')} closed by the server")
     if record.get("attack", {}).get("extra", {}).get("attacker error"):
         notes.append("attacker error: " + extra["attacker error"][:120])
     row["passed"] = not failures
@@ -578,6 +580,11 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 base.lead = True
             if name == "idle_sockets":
                 base.lead = True
+            if name == "openpi_idle":
+                port = free_port()
+                base.server_args = [f"--max_robots={HONEST + 4}", f"--openpi.port={port}"]
+                base.attack_kwargs = {"port": port}
+                base.lead = True
             if name == "identity":
                 path, auth = token_file(work)
                 base.server_args = [f"--auth_token_file={path}"]
@@ -592,6 +599,15 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
     needed = {(r.scheduler, r.cap) for r in runs}
     baselines = [RunSpec("baseline", s, cap=c) for s, c in sorted(needed, key=lambda p: (schedulers.index(p[0]) if p[0] in schedulers else 9, -p[1]))]
     return baselines + runs
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback now (for the openpi endpoint of a run)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def fmt(x: float | None, spec: str = ".1f", none: str = "-") -> str:
@@ -643,15 +659,17 @@ def markdown(
         "3.75 ms median, libero jitter) in one process, and one attacker speaking the raw protocol "
         "(`tests/support/adversaries.py`). Honest robots tick for "
         f"{cfg.warmup_s:g} s + {cfg.duration_s:g} s; the attacker starts after the warm-up, or "
-        f"{LEAD_S:g} s before the honest robots for slot_squat, identity and idle_sockets."),
+        f"{LEAD_S:g} s before the honest robots for slot_squat, identity, idle_sockets and openpi_idle "
+        "(1,000 websocket connections to the openpi port that never ask; the server has room for "
+        f"{HONEST + 4} robots)."),
         "",
         ("A row passes when the server is up at the end of the attack (alive, health SERVING), the "
         f"honest robots' starvation over the attack window is at most {cfg.tolerance_pp:g} pp above the "
         f"baseline's (same scheduler, same window), the server's RSS grew less than {cfg.rss_limit_mib:g} MiB (at the end of the attack and at its peak), "
         "the attacker saw no rule broken (violations), every honest robot ran, and the server still stops "
-        "on SIGTERM within 15 s. slot_squat and "
-        f"idle_sockets: starvation from each robot's first chunk, and all joined within "
-        f"{JOIN['slot_squat']:g} s / {JOIN['idle_sockets']:g} s. clock_step: the stepped robot from "
+        "on SIGTERM within 15 s. slot_squat, idle_sockets and openpi_idle: starvation from each "
+        "robot's first chunk, and all joined within "
+        f"{JOIN['slot_squat']:g} s / {JOIN['idle_sockets']:g} s / {JOIN['openpi_idle']:g} s. clock_step: the stepped robot from "
         f"{STEP_SETTLE_S:g} s after the step against its own baseline, the others from the step."),
         "",
         "## Results",

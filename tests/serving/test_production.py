@@ -29,6 +29,7 @@ from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.serving.security import AuthTokens
 from lerobot_armory.entrypoints.status import render
 from lerobot_armory.wire import FeatureSpec
+from lerobot_armory.serving.admission import AdmissionLimiter
 
 STATE_ONLY = [FeatureSpec("observation.state", "float32", (4,))]
 FEATURES = {"observation.state": ("float32", (4,))}
@@ -386,6 +387,9 @@ reports = st.builds(
 @pytest.fixture(scope="module")
 def fuzz_server():
     server = make_server()
+    # Hundreds of registrations a second from this host are the point of the fuzz, not a flood to
+    # cut (tests/serving/test_admission.py checks the limit): no limit here.
+    server.service.admission = AdmissionLimiter(peer_rate_hz=1e6, peer_burst=1e6)
     yield server
     server.stop(0.5)
 

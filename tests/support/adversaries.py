@@ -1056,6 +1056,67 @@ def garbage(
     return report
 
 
+# ---- 14. openpi_idle ---------------------------------------------------------------------------
+
+
+def openpi_idle(
+    address: str,
+    stop: threading.Event,
+    features: Features,
+    report: AttackReport | None = None,
+    *,
+    port: int,
+    count: int = 1000,
+) -> AttackReport:
+    """``count`` websocket connections to the openpi port (``port`` on ``address``'s host) that
+    complete the handshake and never send a request, held until stop. A server that makes each
+    connection a robot fills its slots with them; one that registers on the first request does not."""
+    report = report or AttackReport("openpi_idle")
+    limit = raise_fd_limit(count + 256)
+    host = address.rpartition(":")[0].strip("[]")
+    request = (
+        f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    ).encode()
+    socks = []
+    try:
+        for _ in range(min(count, max(0, limit - 128))):
+            if stop.is_set():
+                break
+            s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+            s.settimeout(2.0)
+            try:
+                s.connect((host, port))
+                s.sendall(request)
+                if b" 101 " not in s.recv(4096):
+                    raise OSError("no websocket upgrade")
+                socks.append(s)
+                report.add("websocket connections opened")
+            except OSError as exc:
+                s.close()
+                report.add("websocket connections failed")
+                report.event(f"connect failed: {exc}")
+        report.extra["connected"] = len(socks)
+        stop.wait()
+        closed = 0
+        for s in socks:
+            s.setblocking(False)
+            try:
+                while chunk := s.recv(65536):  # the metadata and, from a server that closes them, a close frame
+                    if b"no request within" in chunk or b"refused" in chunk:
+                        closed += 1
+                        break
+            except BlockingIOError:
+                pass
+            except OSError:
+                closed += 1
+        report.extra["told and closed by the server"] = closed
+    finally:
+        for s in socks:
+            s.close()
+    return report
+
+
 SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "clock_nan": clock_nan,
     "capture_absurd": capture_absurd,
@@ -1069,6 +1130,7 @@ SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "identity": identity,
     "idle_sockets": idle_sockets,
     "garbage": garbage,
+    "openpi_idle": openpi_idle,
 }
 
 
