@@ -71,7 +71,7 @@ SINGLE_PREFERENCE = ("lookahead", "edf", "rr")
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
 STEP_SETTLE_S = 1.0  # clock_step: the stepped robot is judged from this long after its step
-HONEST = 4
+HONEST = 4  # honest robots per run (--honest); main() sets it before planning, every function reads it
 CAP = 3
 
 
@@ -93,6 +93,10 @@ class Config:
     before: str | None = None  # results.json of an earlier run, shown beside each row in README.md
     server_nofile: int = 1024  # soft RLIMIT_NOFILE the server starts with (0: this process's)
     before_label: str | None = None  # what --before was run on, for README.md
+    # The baseline serves one more honest robot in the attacker's place (not measured): an attacker
+    # is compared with an honest robot that asks for the same service, not with no robot at all,
+    # which in a saturated fleet (--honest 8) would charge it with the load of any robot.
+    standin: bool = True
 
 
 @dataclass
@@ -272,6 +276,11 @@ def honest_specs(spec: RunSpec, cfg: Config) -> list[dict[str, Any]]:
             r["clock_step_s"] = spec.step_s
             r["clock_step_at_s"] = step_at(cfg)
         robots.append(r)
+    if spec.scenario == "baseline" and cfg.standin:
+        robots.append({
+            "robot_id": "standin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
+            "seed": 99, **({"token": spec.tokens["honest0"]} if spec.tokens else {}),
+        })  # fmt: skip
     return robots
 
 
@@ -657,7 +666,8 @@ def markdown(
         f"`--engine.emulate_profile=l40s-pi05`, `--max_batch_size={CAP}` unless the row says b=1), "
         f"{HONEST} honest `armory_sim` robots (20 fps, h_min 5, h_max 10, weight 1, emulated network "
         "3.75 ms median, libero jitter) in one process, and one attacker speaking the raw protocol "
-        "(`tests/support/adversaries.py`). Honest robots tick for "
+        "(`tests/support/adversaries.py`); each baseline serves one more honest robot in the attacker's place "
+        "(not measured), unless `--no_standin`. Honest robots tick for "
         f"{cfg.warmup_s:g} s + {cfg.duration_s:g} s; the attacker starts after the warm-up, or "
         f"{LEAD_S:g} s before the honest robots for slot_squat, identity, idle_sockets and openpi_idle "
         "(1,000 websocket connections to the openpi port that never ask; the server has room for "
@@ -704,6 +714,7 @@ def markdown(
 
 
 def parse(argv: list[str] | None) -> Config:
+    global HONEST
     p = argparse.ArgumentParser(prog="benchmarks/adversarial.py", description=__doc__.split("\n\n")[0])
     d = Config()
     p.add_argument("--scenarios", default=None, help=f"comma-separated (default: all: {','.join(ALL_SCENARIOS)})")
@@ -722,7 +733,14 @@ def parse(argv: list[str] | None) -> Config:
     p.add_argument("--server_nofile", type=int, default=d.server_nofile, help="soft fd limit the server starts with (default 1024, the usual default; 0: inherit)")
     p.add_argument("--before_label", default=None, help="what the --before run served (README.md), e.g. a commit")
     p.add_argument("--before", default=None, help="results.json of an earlier run: README.md shows its verdict beside each row")
+    p.add_argument("--no_standin", action="store_true", help="baselines without an honest robot in the attacker's place")
+    p.add_argument("--honest", type=int, default=HONEST,
+                   help=f"honest robots per run (default {HONEST}: a lightly loaded fleet; more saturate the device, so that "
+                        "what an attacker takes shows as honest starvation)")  # fmt: skip
     a = p.parse_args(argv)
+    if a.honest < 1:
+        p.error("--honest must be >= 1")
+    HONEST = a.honest
     q = a.quick
     return Config(
         scenarios=a.scenarios or d.scenarios,
@@ -741,6 +759,7 @@ def parse(argv: list[str] | None) -> Config:
         before=a.before,
         server_nofile=a.server_nofile,
         before_label=a.before_label,
+        standin=not a.no_standin,
     )
 
 
