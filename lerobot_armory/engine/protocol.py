@@ -65,4 +65,4 @@ class UnguidedEngine:
         noise_seeds: Sequence[int] | None,
         prefixes: Sequence[Any],
     ) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError(f"{type(self).__name__} does not guide chunks (its rtc is None)")
+        raise RuntimeError(f"{type(self).__name__} does not guide chunks (its rtc is None): the loop never asks it to")

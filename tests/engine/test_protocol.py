@@ -31,7 +31,7 @@ def test_every_engine_states_whether_it_guides_chunks(engine):
 def test_an_unguided_engine_says_why_it_cannot_guide():
     echo = EchoEngine()
     assert echo.rtc is None
-    with pytest.raises(NotImplementedError, match="EchoEngine does not guide chunks"):
+    with pytest.raises(RuntimeError, match="EchoEngine does not guide chunks"):
         echo.infer_guided([], [], None, [])
     assert isinstance(echo, UnguidedEngine)
 
