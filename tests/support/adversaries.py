@@ -908,6 +908,55 @@ def raise_fd_limit(need: int) -> int:
     return soft
 
 
+def _open_idle(
+    host: str, port: int, count: int, stop: threading.Event, report: AttackReport, greeting: bytes = b"", label: str = "idle sockets"
+) -> list[socket.socket]:
+    """Up to ``count`` TCP connections to ``host:port`` (each sends ``greeting`` and, if it sent
+    one, must get an HTTP 101 back), kept open and silent; stops early when ``stop`` is set."""
+    limit = raise_fd_limit(count + 256)
+    report.extra["fd limit"] = limit
+    socks = []
+    for _ in range(min(count, max(0, limit - 128))):
+        if stop.is_set():
+            break
+        s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+        s.settimeout(2.0)
+        try:
+            s.connect((host, port))
+            if greeting:
+                s.sendall(greeting)
+                if b" 101 " not in s.recv(4096):
+                    raise OSError("no websocket upgrade")
+            socks.append(s)
+            report.add(f"{label} connected")
+        except OSError as exc:
+            s.close()
+            report.add(f"{label} failed")
+            report.event(f"connect failed: {exc}")
+    report.extra["connected"] = len(socks)
+    return socks
+
+
+def _closed_by_server(socks: list[socket.socket], told: tuple[bytes, ...] = ()) -> int:
+    """How many of ``socks`` the server closed (with ``told``: sent a text containing one of them)."""
+    closed = 0
+    for s in socks:
+        s.setblocking(False)
+        try:
+            if not told:
+                closed += s.recv(1, socket.MSG_PEEK) == b""
+                continue
+            while chunk := s.recv(65536):
+                if any(marker in chunk for marker in told):
+                    closed += 1
+                    break
+        except BlockingIOError:
+            pass
+        except OSError:
+            closed += 1
+    return closed
+
+
 def idle_sockets(
     address: str,
     stop: threading.Event,
@@ -918,39 +967,12 @@ def idle_sockets(
 ) -> AttackReport:
     """``count`` TCP connections to the server's port that never send a byte, held until stop."""
     report = report or AttackReport("idle_sockets")
-    limit = raise_fd_limit(count + 256)
-    report.extra["fd limit"] = limit
     host, _, port = address.rpartition(":")
-    host = host.strip("[]")
-    socks = []
+    socks = _open_idle(host.strip("[]"), int(port), count, stop, report)
     try:
-        for _ in range(min(count, max(0, limit - 128))):
-            if stop.is_set():
-                break
-            s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
-            s.settimeout(2.0)
-            try:
-                s.connect((host, int(port)))
-                socks.append(s)
-                report.add("idle sockets connected")
-            except OSError as exc:
-                s.close()
-                report.add("socket connects failed")
-                report.event(f"connect failed: {exc}")
-        report.extra["connected"] = len(socks)
         stop.wait()
         # Which of them the server closed meanwhile (a handshake timeout is fine; it is not required).
-        closed = 0
-        for s in socks:
-            s.setblocking(False)
-            try:
-                if s.recv(1, socket.MSG_PEEK) == b"":
-                    closed += 1
-            except BlockingIOError:
-                pass
-            except OSError:
-                closed += 1
-        report.extra["closed by the server"] = closed
+        report.extra["closed by the server"] = _closed_by_server(socks)
     finally:
         for s in socks:
             s.close()
@@ -1072,45 +1094,16 @@ def openpi_idle(
     complete the handshake and never send a request, held until stop. A server that makes each
     connection a robot fills its slots with them; one that registers on the first request does not."""
     report = report or AttackReport("openpi_idle")
-    limit = raise_fd_limit(count + 256)
     host = address.rpartition(":")[0].strip("[]")
-    request = (
+    upgrade = (
         f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
         "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
     ).encode()
-    socks = []
+    socks = _open_idle(host, port, count, stop, report, upgrade, "websocket connections")
     try:
-        for _ in range(min(count, max(0, limit - 128))):
-            if stop.is_set():
-                break
-            s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
-            s.settimeout(2.0)
-            try:
-                s.connect((host, port))
-                s.sendall(request)
-                if b" 101 " not in s.recv(4096):
-                    raise OSError("no websocket upgrade")
-                socks.append(s)
-                report.add("websocket connections opened")
-            except OSError as exc:
-                s.close()
-                report.add("websocket connections failed")
-                report.event(f"connect failed: {exc}")
-        report.extra["connected"] = len(socks)
         stop.wait()
-        closed = 0
-        for s in socks:
-            s.setblocking(False)
-            try:
-                while chunk := s.recv(65536):  # the metadata and, from a server that closes them, a close frame
-                    if b"no request within" in chunk or b"refused" in chunk:
-                        closed += 1
-                        break
-            except BlockingIOError:
-                pass
-            except OSError:
-                closed += 1
-        report.extra["told and closed by the server"] = closed
+        # The server's text before it closes them: "no request within ..." or "... refused this client".
+        report.extra["told and closed by the server"] = _closed_by_server(socks, (b"no request within", b"refused this client"))
     finally:
         for s in socks:
             s.close()
