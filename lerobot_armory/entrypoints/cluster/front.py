@@ -25,7 +25,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import grpc
@@ -59,6 +59,9 @@ PENDING_S = 5.0
 # A moved robot is steered to its target for this long, and not moved again for MOVE_COOLDOWN_S.
 STEER_S = 10.0
 MOVE_COOLDOWN_S = 30.0
+# At most one move per this long across the cluster: a burst of joins and leaves (honest or not)
+# rebalances one robot at a time, each time against the load the replicas then report.
+MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
 
 
@@ -127,6 +130,8 @@ class ClusterFront(ArmoryServicer):
         self.steer: dict[str, tuple[str, float]] = {}  # robot -> (target replica, until)
         self.moved_at: dict[str, float] = {}
         self.moves: list[Move] = []
+        self.last_move_at = -1e9
+        self._rebalance_due = False  # a membership change whose move waited for MOVE_INTERVAL_S
         self._members: frozenset[tuple[str, str]] = frozenset()  # (robot, replica) pairs and ("", replica up)
         self.peer_log = ThrottledLog(log)
         self.admission = AdmissionLimiter()  # registrations per peer host, as on a replica
@@ -172,7 +177,7 @@ class ClusterFront(ArmoryServicer):
             members = frozenset((robot, rid) for rid, s in self.state.items() for robot in s.reported) | frozenset(
                 ("", rid) for rid, s in self.state.items() if s.view.healthy
             )
-            changed = members != self._members
+            changed = members != self._members or self._rebalance_due
             self._members = members
             self.steer = {k: v for k, v in self.steer.items() if v[1] > now}
             self.moved_at = {k: t for k, t in self.moved_at.items() if now - t < MOVE_COOLDOWN_S}
@@ -188,7 +193,12 @@ class ClusterFront(ArmoryServicer):
         state.view.robots = {**state.reported, **{k: spec for k, (spec, _) in state.pending.items()}}
 
     def _plan_move(self, now: float) -> Move | None:
-        views = [s.view for s in self.state.values()]
+        """The next move, planned on the robots that stream (as the replicas report them): a
+        registration that never streams counts for placement while pending, never for a move."""
+        self._rebalance_due = now - self.last_move_at < MOVE_INTERVAL_S
+        if self._rebalance_due:
+            return None
+        views = [replace(s.view, robots=dict(s.reported)) for s in self.state.values()]
         move = rebalance(views)
         if move is None or now - self.moved_at.get(move.robot_id, -1e9) < MOVE_COOLDOWN_S:
             return None
@@ -198,6 +208,7 @@ class ClusterFront(ArmoryServicer):
         with self.lock:
             self.steer[move.robot_id] = (move.target, now + STEER_S)
             self.moved_at[move.robot_id] = now
+            self.last_move_at = now
         try:
             released = self.replicas.release(move.source, move.robot_id, self.options.call_timeout_s)
         except ReplicaDown:

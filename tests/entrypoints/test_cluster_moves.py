@@ -1,0 +1,59 @@
+"""The front's rebalancing: planned on the robots that stream, one move per interval cluster-wide."""
+
+from __future__ import annotations
+
+from lerobot_armory.entrypoints.cluster.front import MOVE_INTERVAL_S, ClusterFront, FrontOptions
+from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.placement import Capacity
+
+
+class QuietReplicas:
+    """Two replicas the test sets the front's view of by hand (no load calls are made)."""
+
+    def ids(self) -> list[str]:
+        return ["a", "b"]
+
+    def load(self, replica_id, timeout):  # pragma: no cover - refresh is not called here
+        raise AssertionError("not used")
+
+    def release(self, replica_id, robot_id, timeout) -> bool:
+        return True
+
+
+def _front(now: list[float]) -> ClusterFront:
+    front = ClusterFront(QuietReplicas(), FrontOptions(), clock=lambda: now[0])
+    for state in front.state.values():
+        state.view.healthy = True
+        state.view.capacity = Capacity((0.05, 0.07, 0.09), 0.004)
+    return front
+
+
+def _robots(prefix: str, n: int) -> dict[str, RobotSpec]:
+    return {f"{prefix}{k}": RobotSpec(f"{prefix}{k}", 20.0, 10, 5, 10) for k in range(n)}
+
+
+def test_registrations_that_never_stream_do_not_move_anyone():
+    now = [100.0]
+    front = _front(now)
+    front.state["a"].pending = {rid: (spec, 1e9) for rid, spec in _robots("squat", 6).items()}  # placed, not streaming
+    front._rebuild(front.state["a"])
+    assert len(front.state["a"].view.robots) == 6
+    assert front._plan_move(now[0]) is None
+    front.state["a"].reported = _robots("r", 6)  # the same load, streaming: now it is worth a move
+    assert front._plan_move(now[0]) is not None
+
+
+def test_at_most_one_move_per_interval_and_the_next_is_not_forgotten():
+    now = [100.0]
+    front = _front(now)
+    front.state["a"].reported = _robots("r", 8)
+    first = front._plan_move(now[0])
+    assert first is not None and first.source == "a" and first.target == "b"
+    front._release(first, now[0])
+    front.state["a"].reported.pop(first.robot_id)
+    front.state["b"].reported = {first.robot_id: RobotSpec(first.robot_id, 20.0, 10, 5, 10)}
+    now[0] += MOVE_INTERVAL_S / 2
+    assert front._plan_move(now[0]) is None and front._rebalance_due  # too soon: remembered
+    now[0] += MOVE_INTERVAL_S
+    second = front._plan_move(now[0])
+    assert second is not None and second.robot_id != first.robot_id and not front._rebalance_due
