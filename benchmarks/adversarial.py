@@ -62,11 +62,11 @@ from lerobot_armory.sim.presets import get_preset
 
 ALL_SCENARIOS = (
     "clock_nan", "capture_absurd", "report_absurd", "fps_absurd", "priority_flood", "clock_ahead", "huge_report",
-    "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle",
+    "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage",
 )  # fmt: skip
 # Attacks on something every scheduler shares (memory, sockets, slots, credentials, parsing) run
 # once, under the first of these that is selected; the others run under every scheduler.
-ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle")
+ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage")
 SINGLE_PREFERENCE = ("lookahead", "edf", "rr")
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
@@ -529,6 +529,8 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
         notes.append(f"sent {extra['sent MiB']:.0f} MiB unread-answer bait")
     if spec.scenario == "idle_sockets":
         notes.append(f"{extra.get('connected', '?')} idle sockets")
+    if spec.scenario == "openpi_garbage":
+        notes.append(f"{extra.get('garbage frames', '?')} garbage frames")
     if spec.scenario == "openpi_idle":
         notes.append(f"{extra.get('connected', '?')} idle openpi connections, {extra.get('told and closed by the server', '?')} closed by the server")
     if record.get("attack", {}).get("extra", {}).get("attacker error"):
@@ -594,6 +596,10 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 base.server_args = [f"--max_robots={HONEST + 4}", f"--openpi.port={port}"]
                 base.attack_kwargs = {"port": port}
                 base.lead = True
+            if name == "openpi_garbage":
+                port = free_port()
+                base.server_args = [f"--openpi.port={port}"]
+                base.attack_kwargs = {"port": port, "seed": cfg.seed}
             if name == "identity":
                 path, auth = token_file(work)
                 base.server_args = [f"--auth_token_file={path}"]

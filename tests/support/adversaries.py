@@ -1110,6 +1110,89 @@ def openpi_idle(
     return report
 
 
+# ---- 15. openpi_garbage ------------------------------------------------------------------------
+
+
+def _ws_frame(payload: bytes, opcode: int = 2) -> bytes:
+    """One masked websocket frame from a client (opcode 2: binary, 1: text)."""
+    n = len(payload)
+    if n < 126:
+        length = bytes([0x80 | n])
+    elif n < 1 << 16:
+        length = bytes([0x80 | 126]) + struct.pack("!H", n)
+    else:
+        length = bytes([0x80 | 127]) + struct.pack("!Q", n)
+    mask = b"\x5a\xa5\x3c\xc3"
+    body = (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(mask, np.uint8), n)).tobytes() if n else b""
+    return bytes([0x80 | opcode]) + length + mask + body
+
+
+def openpi_payloads(rng: random.Random) -> list[tuple[int, bytes]]:
+    """(opcode, payload) frames an openpi endpoint must refuse, each for its own reason."""
+    import msgpack
+
+    def array(data: bytes, dtype: str, shape: list[int]) -> dict:
+        return {b"__ndarray__": True, b"data": data, b"dtype": dtype, b"shape": shape}
+
+    state = {"observation/state": array(b"\0" * 16, "<f8", [2])}
+    return [
+        (2, rng.randbytes(rng.randint(1, 4096))),  # not msgpack at all
+        (1, "not a binary frame " * 20),  # text
+        (2, msgpack.packb({"observation/state": array(b"\0" * 8, "<f8", [10**9])})),  # shape far beyond its bytes
+        (2, msgpack.packb({"observation/state": array(b"\0" * 8, "|O", [1])})),  # object dtype
+        (2, msgpack.packb({"observation/state": array(b"\0" * 8, ">f8", [1])})),  # big-endian
+        (2, msgpack.packb({"observation/state": array(b"\0" * 8, "<f8", [1] * 40)})),  # too many dims
+        (2, msgpack.packb({"observation/state": msgpack.ExtType(1, b"pickle?")})),  # extension type
+        (2, msgpack.packb([[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[0]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]]])),  # deep nesting
+        (2, msgpack.packb({str(k): k for k in range(5000)})),  # a map past the container bound
+        (2, msgpack.packb(state)),  # decodes, but is not the policy's observation (no image)
+    ]
+
+
+def openpi_garbage(
+    address: str,
+    stop: threading.Event,
+    features: Features,
+    report: AttackReport | None = None,
+    *,
+    port: int,
+    seed: int = 0,
+) -> AttackReport:
+    """One openpi connection that sends malformed frames as fast as the server takes them and
+    never reads a reply: every frame must be refused (a text frame each) and nobody else notice."""
+    report = report or AttackReport("openpi_garbage")
+    rng = random.Random(seed)
+    host = address.rpartition(":")[0].strip("[]")
+    upgrade = (
+        f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    ).encode()
+    socks = _open_idle(host, port, 1, stop, report, upgrade, "websocket connections")
+    if not socks:
+        return report
+    sock = socks[0]
+    sent = 0
+    try:
+        while not stop.is_set():
+            for opcode, payload in openpi_payloads(rng):
+                try:
+                    sock.sendall(_ws_frame(payload if isinstance(payload, bytes) else payload.encode(), opcode))
+                    sent += 1
+                    report.add("garbage frames sent")
+                except TimeoutError:
+                    report.add("sends blocked (the server stopped reading: it waits on its unread replies)")
+                except OSError as exc:
+                    report.event(f"connection ended: {exc}")
+                    report.extra["garbage frames"] = sent
+                    return report
+                if stop.is_set():
+                    break
+        report.extra["garbage frames"] = sent
+    finally:
+        sock.close()
+    return report
+
+
 SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "clock_nan": clock_nan,
     "capture_absurd": capture_absurd,
@@ -1124,6 +1207,7 @@ SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "idle_sockets": idle_sockets,
     "garbage": garbage,
     "openpi_idle": openpi_idle,
+    "openpi_garbage": openpi_garbage,
 }
 
 
