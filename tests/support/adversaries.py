@@ -1081,6 +1081,14 @@ def garbage(
 # ---- 14. openpi_idle ---------------------------------------------------------------------------
 
 
+def _ws_upgrade(host: str, port: int) -> bytes:
+    """A websocket client's opening handshake (HTTP upgrade request) to ``host:port``."""
+    return (
+        f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    ).encode()
+
+
 def openpi_idle(
     address: str,
     stop: threading.Event,
@@ -1095,10 +1103,7 @@ def openpi_idle(
     connection a robot fills its slots with them; one that registers on the first request does not."""
     report = report or AttackReport("openpi_idle")
     host = address.rpartition(":")[0].strip("[]")
-    upgrade = (
-        f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    ).encode()
+    upgrade = _ws_upgrade(host, port)
     socks = _open_idle(host, port, count, stop, report, upgrade, "websocket connections")
     try:
         stop.wait()
@@ -1163,10 +1168,7 @@ def openpi_garbage(
     report = report or AttackReport("openpi_garbage")
     rng = random.Random(seed)
     host = address.rpartition(":")[0].strip("[]")
-    upgrade = (
-        f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    ).encode()
+    upgrade = _ws_upgrade(host, port)
     socks = _open_idle(host, port, 1, stop, report, upgrade, "websocket connections")
     if not socks:
         return report
