@@ -63,11 +63,17 @@ from lerobot_armory.sim.presets import get_preset
 ALL_SCENARIOS = (
     "clock_nan", "capture_absurd", "report_absurd", "fps_absurd", "priority_flood", "clock_ahead", "huge_report",
     "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage",
+    "share_liar",
 )  # fmt: skip
 # Attacks on something every scheduler shares (memory, sockets, slots, credentials, parsing) run
 # once, under the first of these that is selected; the others run under every scheduler.
 ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage")
-SINGLE_PREFERENCE = ("lookahead", "edf", "rr")
+SINGLE_PREFERENCE = ("lookahead", "edf", "rr", "rollout")
+SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
+# share_liar: the liar's chunks/s may be at most this multiple of an honest robot's with the same
+# registration (the stand-in of its own baseline), under every scheduler; rollout is always added.
+SHARE_LIMIT = 1.15
+SHARE_REGISTRATION = (("h_min", 0),)
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
 STEP_SETTLE_S = 1.0  # clock_step: the stepped robot is judged from this long after its step
@@ -114,10 +120,16 @@ class RunSpec:
     step_s: float = 0.0
     tokens: dict[str, str] = field(default_factory=dict)  # honest robot id -> token
     duration_s: float | None = None  # attack window if not the config's (never_reads: until all is sent)
+    standin: tuple[tuple[str, Any], ...] = ()  # the baseline stand-in's registration, where it is not an honest robot's
+
+    @property
+    def baseline_key(self) -> tuple[str, int, tuple[tuple[str, Any], ...]]:
+        return (self.scheduler, self.cap, self.standin)
 
     @property
     def sched_label(self) -> str:
-        return self.scheduler if self.cap == CAP else f"{self.scheduler} b={self.cap}"
+        label = self.scheduler if self.cap == CAP else f"{self.scheduler} b={self.cap}"
+        return label + "".join(f", stand-in {k} {v}" for k, v in self.standin) if self.scenario == "baseline" else label
 
     @property
     def label(self) -> str:
@@ -279,7 +291,7 @@ def honest_specs(spec: RunSpec, cfg: Config) -> list[dict[str, Any]]:
     if spec.scenario == "baseline" and cfg.standin:
         robots.append({
             "robot_id": "standin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
-            "seed": 99, **({"token": spec.tokens["honest0"]} if spec.tokens else {}),
+            "seed": 99, **({"token": spec.tokens["honest0"]} if spec.tokens else {}), **dict(spec.standin),
         })  # fmt: skip
     return robots
 
@@ -523,6 +535,8 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     if record.get("machine_busy_pct", 0) > 90:
         notes.append(f"machine {record['machine_busy_pct']:.0f}% busy")
     extra = record.get("attack", {}).get("extra", {})
+    if spec.scenario == "share_liar":
+        share_row(row, extra, base_robots, cfg, failures, notes)
     if spec.scenario == "priority_flood" and "granted weight" in extra:
         notes.append(f"granted weight {extra['granted weight']:g}")
     if spec.scenario == "never_reads" and "sent MiB" in extra:
@@ -541,6 +555,26 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     row["attack_summary"] = record.get("attack_summary", "")
     row["machine_busy_pct"] = record.get("machine_busy_pct")
     return row
+
+
+def share_row(
+    row: dict[str, Any], extra: dict[str, Any], base_robots: list[dict[str, Any]], cfg: Config, failures: list[str], notes: list[str]
+) -> None:
+    """share_liar: the liar's chunks/s against its baseline's stand-in (same registration, honest)."""
+    liar = extra.get("chunks/s")
+    standin = next((r for r in base_robots if r["robot_id"] == "standin"), None)
+    honest = None
+    if standin is not None and standin.get("chunks_at_tick"):
+        tl = adv.Timeline(list(standin["tick_times"]), [int(c) for c in standin["executed"]], None, list(standin["chunks_at_tick"]))
+        honest = tl.chunks_per_s(cfg.warmup_s)
+    row["liar_chunks_per_s"], row["standin_chunks_per_s"] = liar, honest
+    row["share_ratio"] = liar / honest if (liar is not None and honest) else None
+    if row["share_ratio"] is None:
+        failures.append("share not measured (no stand-in in the baseline, or no chunks)")
+    elif row["share_ratio"] > SHARE_LIMIT:
+        failures.append(f"liar got {liar:.2f} chunks/s vs {honest:.2f} for an honest robot of the same registration ({row['share_ratio']:.2f}x > {SHARE_LIMIT:g}x)")
+    if row["share_ratio"] is not None:
+        notes.append(f"liar {liar:.2f} vs honest {honest:.2f} chunks/s ({row['share_ratio']:.2f}x)")
 
 
 # ---- planning and reporting ----------------------------------------------------------------------
@@ -569,14 +603,19 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
     if unknown:
         sys.exit(f"adversarial: unknown scenario(s) {', '.join(unknown)}; known: {', '.join(ALL_SCENARIOS)}")
     schedulers = [s.strip() for s in cfg.schedulers.split(",") if s.strip()]
-    bad = sorted(set(schedulers) - {"rr", "edf", "lookahead"})
+    bad = sorted(set(schedulers) - set(SCHEDULERS))
     if bad or not schedulers:
-        sys.exit(f"adversarial: unknown scheduler(s) {', '.join(bad) or '(none)'}; use rr, edf, lookahead")
+        sys.exit(f"adversarial: unknown scheduler(s) {', '.join(bad) or '(none)'}; use {', '.join(SCHEDULERS)}")
     single = next((s for s in SINGLE_PREFERENCE if s in schedulers), schedulers[0])
     runs: list[RunSpec] = []
     for name in scenarios:
-        for sched in [single] if name in ONCE else schedulers:
+        scheds = [single] if name in ONCE else schedulers
+        if name == "share_liar" and not cfg.quick:
+            scheds = [s for s in SCHEDULERS if s in schedulers or s == "rollout"]
+        for sched in scheds:
             base = RunSpec(name, sched, attack=None if name == "clock_step" else name)
+            if name == "share_liar":
+                base.standin = SHARE_REGISTRATION
             if name == "clock_step":
                 runs += [replace(base, variant="+1h", step_s=3600.0), replace(base, variant="-1h", step_s=-3600.0)]
                 continue
@@ -611,8 +650,9 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
             runs.append(base)
             if name == "clock_ahead" and sched == "edf":
                 runs.append(replace(base, cap=1))
-    needed = {(r.scheduler, r.cap) for r in runs}
-    baselines = [RunSpec("baseline", s, cap=c) for s, c in sorted(needed, key=lambda p: (schedulers.index(p[0]) if p[0] in schedulers else 9, -p[1]))]
+    needed = {r.baseline_key for r in runs}
+    order = {s: k for k, s in enumerate(schedulers)}
+    baselines = [RunSpec("baseline", s, cap=c, standin=st) for s, c, st in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2]))]
     return baselines + runs
 
 
@@ -724,7 +764,7 @@ def parse(argv: list[str] | None) -> Config:
     p = argparse.ArgumentParser(prog="benchmarks/adversarial.py", description=__doc__.split("\n\n")[0])
     d = Config()
     p.add_argument("--scenarios", default=None, help=f"comma-separated (default: all: {','.join(ALL_SCENARIOS)})")
-    p.add_argument("--schedulers", default=None, help="comma-separated of rr, edf, lookahead (default: all; --quick: lookahead)")
+    p.add_argument("--schedulers", default=None, help="comma-separated of rr, edf, lookahead, rollout (default: rr, edf, lookahead; share_liar adds rollout; --quick: lookahead)")
     p.add_argument("--duration_s", type=float, default=None, help=f"attack window per run (default {d.duration_s:g}; --quick 5)")
     p.add_argument("--warmup_s", type=float, default=None, help=f"honest robots run alone first (default {d.warmup_s:g}; --quick 1)")
     p.add_argument("--output_dir", default=None, help=f"README.md and results.json (default {d.output_dir}; --quick out/adversarial-quick)")
@@ -785,7 +825,7 @@ def main(argv: list[str] | None = None) -> int:
         f"schedulers {cfg.schedulers}; work dir {work}",
         flush=True,
     )
-    baselines: dict[tuple[str, int], dict[str, Any]] = {}
+    baselines: dict[tuple[str, int, tuple[tuple[str, Any], ...]], dict[str, Any]] = {}
     rows: list[dict[str, Any]] = []
     records: list[dict[str, Any]] = []
     for k, spec in enumerate(runs, start=1):
@@ -798,7 +838,7 @@ def main(argv: list[str] | None = None) -> int:
         records.append(record)
         took = time.monotonic() - t0
         if spec.scenario == "baseline":
-            baselines[(spec.scheduler, spec.cap)] = record
+            baselines[spec.baseline_key] = record
             pct = honest_starvation(record["robots"], {"from": cfg.warmup_s})
             errs = [r["error"] for r in record["robots"] if r.get("error")]
             print(
@@ -808,7 +848,7 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
             continue
-        row = judge(spec, record, baselines.get((spec.scheduler, spec.cap)), cfg)
+        row = judge(spec, record, baselines.get(spec.baseline_key), cfg)
         rows.append(row)
         print(
             f"[{k}/{len(runs)}] {spec.label}: {'pass' if row['passed'] else 'FAIL'} — up={'yes' if row['server_up'] else 'NO'}, "
@@ -827,7 +867,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     command = "benchmarks/adversarial.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    base_list = [{**b, "scheduler": f"{s}" if c == CAP else f"{s} b={c}"} for (s, c), b in baselines.items()]
+    base_list = [{**b, "scheduler": RunSpec("baseline", s, cap=c, standin=st).sched_label} for (s, c, st), b in baselines.items()]
     (out / "README.md").write_text(markdown(rows, base_list, cfg, command, elapsed, before))
     slim = [{k: v for k, v in r.items() if k != "robots"} | {"robots": [_slim(x) for x in r.get("robots", [])]} for r in records]
     (out / "results.json").write_text(json.dumps({"command": command, "config": cfg.__dict__, "rows": rows, "runs": slim}, indent=1, default=str) + "\n")

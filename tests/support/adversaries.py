@@ -701,6 +701,68 @@ def clock_ahead(
     return report
 
 
+# ---- 6b. share_liar ------------------------------------------------------------------------------
+
+
+def share_liar(
+    address: str,
+    stop: threading.Event,
+    features: Features,
+    report: AttackReport | None = None,
+    *,
+    rate_hz: float = 190.0,
+    fps: float = 20.0,
+    h_min: int = 0,
+    h_max: int = 10,
+    token: str = "",
+) -> AttackReport:
+    """Tries to buy service with lies the server cannot see directly: registers ``fps`` and
+    ``h_min`` like a robot that may be served at once, then sends ``rate_hz`` observations a
+    second (under the server's 200/s), each stamped now and claiming it has executed everything
+    it received (the index at the end of its newest chunk), and reports every chunk's arrival
+    truthfully so its delay estimate stays good. It executes nothing. ``report.extra`` gets its
+    chunks per second from its first chunk to the end (``chunks/s``), to compare with an honest
+    robot of the same registration."""
+    report = report or AttackReport("share_liar")
+    lock = threading.Lock()
+    state = {"end": 0, "first": None, "last": None, "n": 0}
+    arrivals: list[tuple[int, float]] = []
+
+    def on_message(msg: pb.ServerMessage) -> None:
+        if msg.WhichOneof("kind") != "chunk":
+            return
+        now = time.monotonic()
+        with lock:
+            state["end"] = max(state["end"], msg.chunk.i_start + h_max)
+            state["first"] = state["first"] if state["first"] is not None else now
+            state["last"], state["n"] = now, state["n"] + 1
+            arrivals.append((msg.chunk.chunk_id, now))
+
+    robot = Robot(address, features, report, "atk-share", fps=fps, h_min=h_min, h_max=h_max, token=token)
+    obs = Observations(features)
+    index = 0
+    start = time.monotonic()
+    for k in ticks(rate_hz, stop):
+        stream = robot.connect(stop, on_message=on_message)
+        if stream is None:
+            break
+        now = time.monotonic()
+        with lock:
+            index = max(index, state["end"])
+            fresh, arrivals[:] = list(arrivals), []
+        stream.send(obs(index, now))
+        if fresh or k % 20 == 0:
+            receipts = [pb.ChunkReceipt(chunk_id=cid, arrival_time=t, first_executed_index=0) for cid, t in fresh]
+            stream.send(pb.RobotMessage(report=pb.ExecutionReport(report_time=now, index=index, executed_steps=index, chunks=receipts)))
+    robot.close()
+    end = time.monotonic()
+    with lock:
+        report.extra["chunks"] = state["n"]
+        report.extra["chunks/s"] = state["n"] / max(1e-9, end - start)
+        report.extra["claimed index"] = index
+    return report
+
+
 # ---- 7. huge_report ------------------------------------------------------------------------------
 
 
@@ -1202,6 +1264,7 @@ SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "fps_absurd": fps_absurd,
     "priority_flood": priority_flood,
     "clock_ahead": clock_ahead,
+    "share_liar": share_liar,
     "huge_report": huge_report,
     "never_reads": never_reads,
     "slot_squat": slot_squat,
@@ -1235,6 +1298,14 @@ class Timeline:
     times: list[float] = field(default_factory=list)
     executed: list[int] = field(default_factory=list)
     first_chunk_s: float | None = None
+    chunks: list[int] = field(default_factory=list)  # chunks received so far, at each tick
+
+    def chunks_per_s(self, start: float = 0.0, end: float = math.inf) -> float | None:
+        """Chunks received per second between the first and the last tick inside ``[start, end)``."""
+        inside = [(t, c) for t, c in zip(self.times, self.chunks, strict=True) if start <= t < end]
+        if len(inside) < 2 or inside[-1][0] <= inside[0][0]:
+            return None
+        return (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
 
     def starvation_pct(self, start: float = 0.0, end: float = math.inf) -> float | None:
         """Starved ticks / ticks inside ``[start, end)``, in % (None: no tick there)."""
@@ -1268,6 +1339,7 @@ def run_ticks(client: Any, duration_s: float, timeline: Timeline | None = None, 
             continue
         timeline.times.append(round(now - start, 4))
         timeline.executed.append(1 if client.step() else 0)
+        timeline.chunks.append(client.chunks_received)
         if timeline.first_chunk_s is None and client.chunks_received:
             timeline.first_chunk_s = round(now - start, 4)
         if now - last_report >= report_every_s:
@@ -1322,6 +1394,7 @@ def run_honest_robot(spec: dict[str, Any], group: dict[str, Any], address: str, 
     stats["first_chunk_s"] = timeline.first_chunk_s
     stats["tick_times"] = timeline.times
     stats["executed"] = "".join(map(str, timeline.executed))
+    stats["chunks_at_tick"] = timeline.chunks
     stats["error"] = f"{type(client.fatal).__name__}: {client.fatal}" if client.fatal is not None else None
     stats["notices"] = Counter(client.notices).most_common(5)
     return stats
