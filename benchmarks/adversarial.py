@@ -70,8 +70,8 @@ ALL_SCENARIOS = (
 ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage")
 SINGLE_PREFERENCE = ("lookahead", "edf", "rr", "rollout")
 SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
-# share_liar: the liar's chunks/s may be at most this multiple of an honest robot's with the same
-# registration (the stand-in of its own baseline), under every scheduler; rollout is always added.
+# share_liar: the liar's chunks/s may be at most this multiple of its honest twin's (a robot with the
+# same registration in the same run), under every scheduler; rollout is always added.
 SHARE_LIMIT = 1.15
 SHARE_REGISTRATION = (("h_min", 0),)
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
@@ -288,6 +288,11 @@ def honest_specs(spec: RunSpec, cfg: Config) -> list[dict[str, Any]]:
             r["clock_step_s"] = spec.step_s
             r["clock_step_at_s"] = step_at(cfg)
         robots.append(r)
+    if spec.standin:  # an honest twin of the attacker's registration, in the attacked run and its baseline
+        robots.append({
+            "robot_id": "twin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
+            "seed": 98, **dict(spec.standin),
+        })  # fmt: skip
     if spec.scenario == "baseline" and cfg.standin:
         robots.append({
             "robot_id": "standin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
@@ -536,7 +541,7 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
         notes.append(f"machine {record['machine_busy_pct']:.0f}% busy")
     extra = record.get("attack", {}).get("extra", {})
     if spec.scenario == "share_liar":
-        share_row(row, extra, base_robots, cfg, failures, notes)
+        share_row(row, extra, robots, base_robots, cfg, failures, notes)
     if spec.scenario == "priority_flood" and "granted weight" in extra:
         notes.append(f"granted weight {extra['granted weight']:g}")
     if spec.scenario == "never_reads" and "sent MiB" in extra:
@@ -557,24 +562,32 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     return row
 
 
+def chunks_per_s(robots: list[dict[str, Any]], robot_id: str, start: float) -> float | None:
+    """One robot's chunks per second from ``start`` (seconds after the honest robots started)."""
+    r = next((r for r in robots if r["robot_id"] == robot_id), None)
+    if r is None or not r.get("chunks_at_tick"):
+        return None
+    return adv.Timeline(list(r["tick_times"]), [int(c) for c in r["executed"]], None, list(r["chunks_at_tick"])).chunks_per_s(start)
+
+
 def share_row(
-    row: dict[str, Any], extra: dict[str, Any], base_robots: list[dict[str, Any]], cfg: Config, failures: list[str], notes: list[str]
+    row: dict[str, Any], extra: dict[str, Any], robots: list[dict[str, Any]], base_robots: list[dict[str, Any]], cfg: Config,
+    failures: list[str], notes: list[str],
 ) -> None:
-    """share_liar: the liar's chunks/s against its baseline's stand-in (same registration, honest)."""
+    """share_liar: the liar's chunks/s against its honest twin's in the same run (same registration),
+    and the baseline's stand-in for reference."""
     liar = extra.get("chunks/s")
-    standin = next((r for r in base_robots if r["robot_id"] == "standin"), None)
-    honest = None
-    if standin is not None and standin.get("chunks_at_tick"):
-        tl = adv.Timeline(list(standin["tick_times"]), [int(c) for c in standin["executed"]], None, list(standin["chunks_at_tick"]))
-        honest = tl.chunks_per_s(cfg.warmup_s)
-    row["liar_chunks_per_s"], row["standin_chunks_per_s"] = liar, honest
-    row["share_ratio"] = liar / honest if (liar is not None and honest) else None
+    twin = chunks_per_s(robots, "twin", cfg.warmup_s)
+    standin = chunks_per_s(base_robots, "standin", cfg.warmup_s)
+    row["liar_chunks_per_s"], row["twin_chunks_per_s"], row["standin_chunks_per_s"] = liar, twin, standin
+    row["share_ratio"] = liar / twin if (liar is not None and twin) else None
     if row["share_ratio"] is None:
-        failures.append("share not measured (no stand-in in the baseline, or no chunks)")
-    elif row["share_ratio"] > SHARE_LIMIT:
-        failures.append(f"liar got {liar:.2f} chunks/s vs {honest:.2f} for an honest robot of the same registration ({row['share_ratio']:.2f}x > {SHARE_LIMIT:g}x)")
-    if row["share_ratio"] is not None:
-        notes.append(f"liar {liar:.2f} vs honest {honest:.2f} chunks/s ({row['share_ratio']:.2f}x)")
+        failures.append("share not measured (no chunks for the liar or its twin)")
+        return
+    if row["share_ratio"] > SHARE_LIMIT:
+        failures.append(f"liar got {liar:.2f} chunks/s vs {twin:.2f} for its honest twin ({row['share_ratio']:.2f}x > {SHARE_LIMIT:g}x)")
+    ref = f", stand-in in the baseline {standin:.2f}" if standin is not None else ""
+    notes.append(f"liar {liar:.2f} vs honest twin {twin:.2f} chunks/s ({row['share_ratio']:.2f}x){ref}")
 
 
 # ---- planning and reporting ----------------------------------------------------------------------
@@ -616,6 +629,7 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
             base = RunSpec(name, sched, attack=None if name == "clock_step" else name)
             if name == "share_liar":
                 base.standin = SHARE_REGISTRATION
+                base.duration_s = 2 * cfg.duration_s  # ~50 chunks a robot: a ratio worth reading
             if name == "clock_step":
                 runs += [replace(base, variant="+1h", step_s=3600.0), replace(base, variant="-1h", step_s=-3600.0)]
                 continue
@@ -652,7 +666,10 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 runs.append(replace(base, cap=1))
     needed = {r.baseline_key for r in runs}
     order = {s: k for k, s in enumerate(schedulers)}
-    baselines = [RunSpec("baseline", s, cap=c, standin=st) for s, c, st in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2]))]
+    baselines = [
+        RunSpec("baseline", s, cap=c, standin=st, duration_s=2 * cfg.duration_s if st else None)
+        for s, c, st in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2]))
+    ]
     return baselines + runs
 
 

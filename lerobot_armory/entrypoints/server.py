@@ -76,6 +76,8 @@ class ArmoryServer:
     ) -> None:
         self.policy = policy
         self.profile = profile
+        fleet_policy = fleet_policy or FleetPolicy.builtin()
+        fleet_policy.batch_s = profile.latency_s(1)
         self.scheduler_config = scheduler
         self.scheduler = scheduler.make(profile, max_batch_size)
         self.fleet = Fleet(clock, max_robots)

@@ -36,6 +36,11 @@ class FleetCollector(Collector):
         starved = CounterMetricFamily("armory_robot_starved_steps", "Ticks the robot starved (reported)", labels=labels)
         served = CounterMetricFamily("armory_robot_chunks_served", "Chunks sent to the robot", labels=labels)
         rejected = CounterMetricFamily("armory_robot_observations_rejected", "Observations refused (malformed, rate)", labels=labels)
+        clamped = CounterMetricFamily(
+            "armory_robot_index_claims_cut",
+            "Observations whose action index ran ahead of what the robot can have executed (cut to the bound)",
+            labels=labels,
+        )
         obs_age = GaugeMetricFamily("armory_robot_observation_age_seconds", "Age of the latest observation held for the robot", labels=labels)
         chunk_age = GaugeMetricFamily("armory_robot_last_chunk_age_seconds", "Time since the robot's last chunk was sent", labels=labels)
         # Timestamp exchanges measure the round trip only; how it splits into uplink and downlink
@@ -62,6 +67,7 @@ class FleetCollector(Collector):
                 starved.add_metric(lv, s.counters.reported_starved)
                 served.add_metric(lv, s.counters.chunks_sent)
                 rejected.add_metric(lv, s.counters.rejected)
+                clamped.add_metric(lv, s.mirror.clamped_indices)
                 obs_age.add_metric(lv, now - s.mirror.obs_recv if s.mirror.obs_index is not None else float("nan"))
                 chunk_age.add_metric(lv, now - s.counters.last_chunk_time if s.counters.last_chunk_time is not None else float("nan"))
                 round_trip.add_metric(lv, s.mirror.estimator.round_trip_s)
@@ -69,7 +75,7 @@ class FleetCollector(Collector):
                 weight.add_metric(lv, s.spec.weight)
             connected = len(sessions)
             evicted = self.fleet.evicted_idle
-        yield from (starvation, executed, starved, served, rejected, obs_age, chunk_age, round_trip, one_way, weight)
+        yield from (starvation, executed, starved, served, rejected, clamped, obs_age, chunk_age, round_trip, one_way, weight)
         yield GaugeMetricFamily("armory_robots_connected", "Robots with an open stream", value=connected)
         yield CounterMetricFamily(
             "armory_sessions_evicted_idle", "Streaming sessions that sent nothing and gave their slot to a newcomer", value=evicted

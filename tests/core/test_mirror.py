@@ -32,7 +32,7 @@ from lerobot_armory.mirror import (
 )
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
-from tests.support.mirrors import consistent_chunks, mirror, naive_run, spec
+from tests.support.mirrors import consistent_chunks, mirror, naive_run, served, spec
 
 
 def record_uses(index, chunks, n_ticks):
@@ -486,7 +486,7 @@ class TestUsefulness:
         assert not m.is_useful()  # no observation yet
         assert m.on_observation(0, 0.0, 0.0)
         assert m.is_useful()  # never served
-        m.on_dispatch(0.1)
+        served(m, 0.1)
         assert m.last_served_index == 0
         assert not m.is_useful()  # same observation as the last served one
         m.on_observation(0, 0.1, 0.1)  # robot starved: same index, newer observation
@@ -499,7 +499,7 @@ class TestUsefulness:
     def test_h_min_zero_still_needs_a_new_index(self):
         m = mirror(h_min=0, h_max=5)
         m.on_observation(4, 0.0, 0.0)
-        m.on_dispatch(0.1)
+        served(m, 0.1)
         m.on_observation(4, 0.1, 0.1)
         assert not m.is_useful()
         m.on_observation(5, 0.2, 0.2)
@@ -531,7 +531,7 @@ class TestObservations:
     def test_observation_prunes_chunks_that_ended(self):
         m = mirror(h_max=5)
         m.on_observation(0, 0.0, 0.0)
-        m.on_dispatch(0.0)
+        served(m, 0.0)
         m.on_observation(4, 0.4, 0.4)
         assert len(m.queue) == 1
         m.on_observation(5, 0.5, 0.5)
@@ -562,7 +562,7 @@ class TestPredictionsWithZeroDelays:
 
     def test_deadline_and_predicted_index(self):
         m = self.make()
-        m.on_dispatch(0.25)  # chunk (0..4) at t=0.25 -> first usable tick 3 (t=0.3)
+        served(m, 0.25)  # chunk (0..4) at t=0.25 -> first usable tick 3 (t=0.3)
         # Ticks 3..7 execute indices 0..4; tick 8 (t=0.8) is the first starving tick.
         assert m.deadline() == pytest.approx(0.8)
         assert m.predicted_index(0.0) == 0
@@ -574,14 +574,14 @@ class TestPredictionsWithZeroDelays:
 
     def test_later_observation_reanchors_the_prediction(self):
         m = self.make()
-        m.on_dispatch(0.25)
+        served(m, 0.25)
         m.on_observation(2, 0.5, 0.5)  # index 2 at tick 5 (robot started at tick 3)
         assert m.deadline() == pytest.approx(0.8)
         assert m.predicted_index(0.61) == 4
 
     def test_window_view(self):
         m = self.make()
-        m.on_dispatch(0.25)
+        served(m, 0.25)
         view = m.window_view(0.45, 1.0)
         # First tick at or after 0.45 is tick 5 (t=0.5); index there is 2; window ticks 5..14.
         assert view.index == 2
@@ -716,3 +716,25 @@ def test_reward_is_weighted_executed_seconds():
     assert reward(specs, [0, 0]) == 0.0
     with pytest.raises(ValueError):
         reward(specs, [1])
+
+
+@pytest.mark.parametrize("scheduler", ["edf", "lookahead"])
+def test_simulated_honest_robots_are_never_clamped(scheduler, monkeypatch):
+    """The progress bound never cuts an honest robot's index, under heavy network jitter
+    (reordered observations, late chunks) and a saturated device."""
+    import lerobot_armory.sim.simulator as simulator
+
+    made: list[RobotMirror] = []
+
+    class Counted(RobotMirror):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(simulator, "RobotMirror", Counted)
+    specs = fleet_specs(get_preset("libero"), "half-fast", 12)
+    sched = make_scheduler_config(scheduler).build(load_profile("l40s-pi05"), 3)
+    net = LogNormalDelay(0.03, 0.8)
+    result = FleetSimulator(specs, sched, 20.0, net, net, seed=5).run()
+    assert len(made) == 12 and sum(r.chunks_received for r in result.robots) > 100
+    assert [m.clamped_indices for m in made] == [0] * 12

@@ -24,7 +24,7 @@ from lerobot_armory.schedulers import (
 )
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
 from lerobot_armory.sim.cli import main as sim_main
-from tests.support.mirrors import mirror
+from tests.support.mirrors import mirror, served
 
 PROFILE = load_profile("l40s-pi05")  # 73.0, 109.8, 142.4 ms for b = 1, 2, 3
 
@@ -58,8 +58,8 @@ class TestRoundRobin:
 
     def test_skips_robots_that_are_not_useful(self):
         robots = fresh(5)
-        robots[2].on_dispatch(0.1)
-        robots[3].on_dispatch(0.1)
+        served(robots[2], 0.1)
+        served(robots[3], 0.1)
         assert not robots[2].is_useful() and not robots[3].is_useful()
         rr = RoundRobinScheduler(PROFILE, 2)
         assert [ids(rr.select(robots, 0.0)) for _ in range(4)] == [
@@ -75,10 +75,10 @@ class TestRoundRobin:
         batch = rr.select(robots, 0.0)
         assert ids(batch) == ["r0", "r1", "r2"]
         for r in batch:
-            r.on_dispatch(0.1)
+            served(r, 0.1)
         # Only r3 is useful now: a short batch, not padded with stale requests.
         assert ids(rr.select(robots, 0.1)) == ["r3"]
-        robots[3].on_dispatch(0.2)
+        served(robots[3], 0.2)
         for k, r in enumerate(robots):
             r.on_observation(1, 0.3, 0.3)
         # The pointer is past r3: the next batch starts again at r0.
@@ -113,7 +113,7 @@ def with_chunk(robot_id: str, h_max: int, h_min: int = 1, t0: float = 0.0) -> Ro
     observed index 1 at t0 + 0.1. Its deadline is t0 + 0.1 + (h_max - 1) / 10."""
     m = mirror(robot_id, fps=10.0, h_max=h_max, h_min=h_min)
     m.on_observation(0, t0, t0)
-    m.on_dispatch(t0)
+    served(m, t0)
     m.on_observation(1, t0 + 0.1, t0 + 0.1)
     return m
 
@@ -151,7 +151,7 @@ class TestEarliestDeadline:
     def test_in_flight_chunk_counts_for_the_deadline(self):
         # Same state, but one robot's next chunk is still in inference: its deadline is later.
         a, b = with_chunk("a", 4), with_chunk("b", 4)
-        b.on_dispatch(0.15)  # chunk (1..4) arrives at 0.15, in time to extend the run by one step
+        served(b, 0.15)  # chunk (1..4) arrives at 0.15, in time to extend the run by one step
         b.on_observation(2, 0.2, 0.2)
         assert b.deadline() == pytest.approx(0.5)
         assert a.deadline() == pytest.approx(0.4)
@@ -172,7 +172,7 @@ NOW = 0.2
 def covered(robot_id: str, weight: float = 1.0) -> RobotMirror:
     m = mirror(robot_id, fps=5.0, chunk_size=10, h_max=10, weight=weight)
     m.on_observation(0, 0.0, 0.0)
-    m.on_dispatch(0.0)
+    served(m, 0.0)
     m.on_observation(1, NOW, NOW)
     assert m.is_useful()
     return m
@@ -217,7 +217,7 @@ class TestLookahead:
         # "full" gains 4 ticks at weight 1: 0.8 s.
         partial = mirror("partial", fps=5.0, chunk_size=10, h_max=3, weight=5.0)
         partial.on_observation(0, 0.0, 0.0)
-        partial.on_dispatch(0.0)
+        served(partial, 0.0)
         partial.on_observation(1, NOW, NOW)
         pv = partial.window_view(NOW, 1.0)
         assert pv.executed() == 2 and pv.executed([(1, 4, 1)]) == 3
@@ -271,7 +271,7 @@ class TestLookahead:
 class TestCheckBatch:
     def robots(self):
         rs = fresh(3)
-        rs[2].on_dispatch(0.1)  # not useful any more
+        served(rs[2], 0.1)  # not useful any more
         return rs
 
     def test_accepts_a_valid_batch(self):
@@ -294,7 +294,7 @@ class TestCheckBatch:
 
 def test_useful_filters_in_order():
     rs = fresh(4)
-    rs[1].on_dispatch(0.1)
+    served(rs[1], 0.1)
     assert ids(useful(rs)) == ["r0", "r2", "r3"]
 
 

@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import (
     CLOCK_FAULTS_FOR_STEP,
+    FPS_TOLERANCE,
     MAX_UPLINK_S,
-    PROGRESS_SLACK_S,
+    PROGRESS_SLACK_STEPS,
     DelayEstimator,
     RobotMirror,
     RobotSpec,
@@ -108,29 +109,71 @@ def test_a_clock_lie_moves_the_deadline_by_at_most_the_uplink_window():
 
 def test_an_index_that_runs_ahead_is_capped_by_chunks_sent_and_elapsed_time():
     m = RobotMirror(SPEC)
+    rate = SPEC.fps * (1 + FPS_TOLERANCE)
     assert m.on_observation(0, 0.0, 0.0)
     assert m.on_observation(500, 0.01, 0.01) and m.obs_index == 0  # no chunk sent: cannot have moved
-    m.on_dispatch(0.05)  # a chunk for [0, 10)
-    m.on_observation(10_000, 0.1, 0.1)
+    first = m.on_dispatch(0.05)  # a chunk for [0, 10)
+    m.on_observation(10_000, 0.04, 0.04)
+    assert m.obs_index == 0  # still being computed: nothing of it can have been executed
+    m.on_complete(first, 0.05)
+    m.on_observation(10_000, 2.0, 2.0)
     assert m.obs_index == 10  # at most the end of what was sent
-    m.on_dispatch(0.15)  # [10, 20)
-    m.on_observation(10_001, 0.16, 0.16)  # 0.06 s later: elapsed time at 20 fps + slack caps it
-    assert m.obs_index <= 10 + math.ceil((0.06 + PROGRESS_SLACK_S) * SPEC.fps) + 1
-    assert m.clamped_indices >= 3
+    second = m.on_dispatch(2.05)  # [10, 20)
+    m.on_complete(second, 2.05)
+    m.on_observation(10_001, 2.11, 2.11)  # 0.06 s after sending: the robot's rate + one tick caps it
+    assert m.obs_index == 10 + math.floor(0.06 * rate + PROGRESS_SLACK_STEPS)
+    for k in range(1, 20):  # claiming again and again buys nothing: the bound runs on the server's clock
+        m.on_observation(10_001 + k, 2.11 + 0.001 * k, 2.11 + 0.001 * k)
+    assert m.obs_index == 10 + math.floor(0.079 * rate + PROGRESS_SLACK_STEPS)
+    m.on_observation(10_100, 2.6, 2.6)
+    assert m.obs_index == 20 and m.clamped_indices >= 24
 
 
-@settings(max_examples=100, deadline=None)
-@given(steps=st.lists(st.tuples(st.integers(0, 3), st.floats(0.04, 0.06)), min_size=1, max_size=60))
-def test_an_honest_index_is_never_clamped(steps):
-    """A robot that executes at most one step per tick, from chunks it was sent, keeps its index."""
+def test_claims_cannot_save_up_time_for_a_chunk_just_sent():
+    """A robot that claims it executed all it holds looks like one with no network delay that
+    executed all it could: seconds of waiting buy nothing on a chunk sent 10 ms ago."""
     m = RobotMirror(SPEC)
-    t, index = 0.0, 0
-    m.on_observation(0, t, t)
-    for executed, dt in steps:
-        m.on_dispatch(t)
-        t += dt
-        index = min(index + min(executed, 1), m.queue[-1].end)
-        assert m.on_observation(index, t, t + 0.003) and m.obs_index == index
+    m.on_observation(0, 0.0, 0.0)
+    m.on_complete(m.on_dispatch(0.1), 0.1)
+    m.on_observation(10, 5.0, 5.0)  # ran dry seconds ago
+    m.on_complete(m.on_dispatch(5.05), 5.05)
+    m.on_observation(1_000, 5.06, 5.06)
+    rate = SPEC.fps * (1 + FPS_TOLERANCE)
+    assert m.obs_index == 10 + math.floor(0.01 * rate + PROGRESS_SLACK_STEPS)
+    m.on_observation(1_000, 5.16, 5.16)  # and then at the robot's rate
+    assert m.obs_index == 10 + math.floor(0.11 * rate + PROGRESS_SLACK_STEPS)
+    assert m.progress_bound(5.16) == pytest.approx(10 + 0.11 * rate)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    fps=st.sampled_from([10.0, 20.0, 30.0, 50.0]),
+    phase=st.floats(0.0, 0.1),
+    up=st.floats(0.0, 0.2),
+    serves=st.lists(st.tuples(st.booleans(), st.floats(0.0, 0.3), st.floats(0.0, 0.2)), min_size=5, max_size=80),
+)
+def test_an_honest_index_is_never_clamped(fps, phase, up, serves):
+    """A robot that ticks at its fps and executes one action a tick from chunks that reached it
+    (each computed for a while, then on the network for a while) keeps every index it reports."""
+    spec = RobotSpec("r", fps=fps, chunk_size=10, h_min=0, h_max=10)
+    m = RobotMirror(spec)
+    flying: list[tuple[float, object]] = []  # (t_done, chunk) on the server
+    held: list[tuple[float, int, int]] = []  # (arrival, start, end) at the robot
+    index = 0
+    for k, (serve, infer_s, down_s) in enumerate(serves):
+        tick = phase + k / fps
+        recv = tick + up
+        for t_done, chunk in [f for f in flying if f[0] <= recv]:
+            m.on_complete(chunk, t_done)
+            flying.remove((t_done, chunk))
+        assert m.on_observation(index, tick, recv) and m.obs_index == index
+        if serve and m.is_useful():
+            t_done = recv + infer_s
+            chunk = m.on_dispatch(t_done)
+            flying.append((t_done, chunk))
+            held.append((t_done + down_s, chunk.i_start, chunk.end))
+        if any(a <= tick and s <= index < e for a, s, e in held):
+            index += 1
     assert m.clamped_indices == 0
 
 
@@ -138,17 +181,18 @@ def test_a_clock_stepped_back_is_detected_and_the_robot_served_again():
     m = RobotMirror(SPEC)
     m.estimator.add_exchange(0.0, 0.005, 0.005, 0.01)
     t = 0.0
+    # Served at every tick; the robot executes one action a tick from the tick after the first chunk.
     for k in range(10):
-        m.on_dispatch(t) if m.is_useful() else None
-        m.on_observation(k, t, t + 0.005)
+        m.on_complete(m.on_dispatch(t), t) if m.is_useful() else None
+        m.on_observation(max(0, k - 1), t, t + 0.005)
         t += 0.05
     accepted = []
     for k in range(10, 20):  # the robot's clock jumps back one hour; it keeps executing
-        m.on_dispatch(t) if m.is_useful() else None
-        accepted.append(m.on_observation(k, t - 3600.0, t + 0.005))
+        m.on_complete(m.on_dispatch(t), t) if m.is_useful() else None
+        accepted.append(m.on_observation(k - 1, t - 3600.0, t + 0.005))
         t += 0.05
-    assert m.needs_sync and not all(accepted) and accepted[-1]
-    assert m.obs_index == 19 and abs(m.obs_anchor - (t - 0.05)) < 0.05
+    assert m.needs_sync and not all(accepted) and accepted[-1] and m.clamped_indices == 0
+    assert m.obs_index == 18 and abs(m.obs_anchor - (t - 0.05)) < 0.05
 
 
 @pytest.mark.parametrize("config", [RoundRobinConfig(), EarliestDeadlineConfig(), LookaheadConfig()], ids=["rr", "edf", "la"])
@@ -190,6 +234,24 @@ def test_policy_rules_by_robot_and_token(tmp_path):
     assert (g.weight, g.tier, g.max_device_share, g.rule) == (2.0, "slow", 0.25, "token:lab-b")
     g, problems = policy.grant(GrantRequest("x", 200.0, 4, 1, 1.0, "slow"))
     assert g is None and any("fps 200" in p for p in problems) and any("h_min 4" in p for p in problems)
+
+
+def test_a_horizon_shorter_than_a_batch_of_one_is_refused_with_the_numbers():
+    policy = FleetPolicy.builtin()
+    policy.batch_s = 0.073  # what the server sets: d_infer(1)
+    g, problems = policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"))
+    assert g is None and problems == [
+        "h_max 4 at 60 fps is 67 ms of actions, shorter than 73 ms (the inference time of a batch of one here): "
+        "it would run dry before any chunk could reach it; ask for h_max >= 5"
+    ]
+    assert policy.grant(GrantRequest("ok", 60.0, 0, 5, 1.0, "fast"))[0] is not None
+    assert policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"), check_horizon=False)[0] is not None  # openpi
+    strict = FleetPolicy.from_dict({"default": {"min_horizon_s": 0.2}, "robots": {"lab": {"min_horizon_s": 0}}})
+    strict.batch_s = 0.073
+    g, problems = strict.grant(GrantRequest("x", 20.0, 0, 3, 1.0, "fast"))
+    assert g is None and "min_horizon_s" in problems[0] and "ask for h_max >= 4" in problems[0]
+    assert strict.grant(GrantRequest("lab", 60.0, 0, 1, 1.0, "fast"))[0] is not None  # 0: no floor
+    assert "horizon >= 200 ms" in strict.describe()
 
 
 @pytest.mark.parametrize(

@@ -79,6 +79,7 @@ def test_prometheus_metrics_and_status_table():
         'armory_robot_starvation_ratio{robot_id="m0",tier="slow"}',
         "armory_robot_executed_steps_total",
         "armory_robot_chunks_served_total",
+        "armory_robot_index_claims_cut_total",
         "armory_robot_observation_age_seconds",
         "armory_robot_round_trip_seconds",
         "armory_robot_one_way_delay_seconds",

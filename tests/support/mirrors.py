@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from lerobot_armory.mirror import DelayEstimator, RobotMirror, RobotSpec, TickChunk
+from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, TickChunk
 
 
 def spec(
@@ -22,6 +22,14 @@ def spec(
 def mirror(robot_id: str = "r", **kwargs) -> RobotMirror:
     """A mirror with a zero-delay estimator (server clock == robot clock, no network delay)."""
     return RobotMirror(spec(robot_id, **kwargs), DelayEstimator())
+
+
+def served(m: RobotMirror, t_done: float) -> Chunk:
+    """Dispatch the robot's latest observation in a batch that finishes (the chunk is sent) at
+    ``t_done``: what the dispatcher's ``plan`` then ``complete`` do to one robot."""
+    chunk = m.on_dispatch(t_done)
+    m.on_complete(chunk, t_done)
+    return chunk
 
 
 def naive_run(index: int, chunks: Sequence[TickChunk], n_ticks: int):
