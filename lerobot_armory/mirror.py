@@ -751,6 +751,20 @@ class RobotMirror:
         self._bound, self._bound_t = u, now
         return u
 
+    def progress_wait_s(self, index: int, now: float) -> float:
+        """Seconds from ``now`` until :meth:`progress_bound` allows ``index``: 0 if it does now,
+        ``inf`` if the chunks sent do not reach it. For a server-side model of a robot that asks
+        for its next chunk after a fixed number of actions (openpi's clients)."""
+        if self._bound is None:
+            return 0.0
+        u = self.progress_bound(now)
+        floor = math.floor(u + _EPS)
+        if index <= floor:
+            return 0.0
+        if index > reach(floor, self._held, 0):
+            return math.inf
+        return (index - u) / (self.spec.fps * (1.0 + FPS_TOLERANCE))
+
     def on_dispatch(self, t_done: float) -> Chunk:
         """The robot's latest observation goes into a batch predicted to finish at ``t_done``.
 

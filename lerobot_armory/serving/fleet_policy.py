@@ -203,7 +203,7 @@ class FleetPolicy:
             problems.append(
                 f"h_max {h_max} at {request.fps:g} fps is {1000 * h_max / request.fps:.0f} ms of actions, shorter than "
                 f"{1000 * floor_s:.0f} ms ({why}): it would run dry before any chunk could reach it; "
-                f"ask for h_max >= {need}"
+                f"ask for h_max >= {need}" + (" (or the operator sets min_horizon_s in --fleet.policy)" if rule.min_horizon_s is None else "")
             )
         h_min = min(max(request.h_min, rule.h_min[0]), rule.h_min[1])
         if h_min > h_max:

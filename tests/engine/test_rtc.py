@@ -180,6 +180,7 @@ def _book(m, index: int, t: float, arrival: float):
     predicted to arrive at ``arrival``."""
     assert m.on_observation(index, t, t)
     chunk = m.on_dispatch(t)
+    m.on_complete(chunk, t)
     chunk.t_arrival = arrival
     return chunk
 

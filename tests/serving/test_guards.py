@@ -242,7 +242,7 @@ def test_a_horizon_shorter_than_a_batch_of_one_is_refused_with_the_numbers():
     g, problems = policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"))
     assert g is None and problems == [
         "h_max 4 at 60 fps is 67 ms of actions, shorter than 73 ms (the inference time of a batch of one here): "
-        "it would run dry before any chunk could reach it; ask for h_max >= 5"
+        "it would run dry before any chunk could reach it; ask for h_max >= 5 (or the operator sets min_horizon_s in --fleet.policy)"
     ]
     assert policy.grant(GrantRequest("ok", 60.0, 0, 5, 1.0, "fast"))[0] is not None
     assert policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"), check_horizon=False)[0] is not None  # openpi

@@ -316,7 +316,7 @@ def test_sigterm_during_a_batch_delivers_it_and_exits(demo_policy_dir, tmp_path)
         if "listening on" in line:
             address = line.split("listening on")[1].strip()
     conn = Connection(address)
-    conn.register("last", {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}, fps=10, h_min=1, h_max=5)
+    conn.register("last", {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}, fps=2, h_min=1, h_max=5)
     chunks, notices = [], []
     conn.open_stream(chunks.append, notices.append)
     conn.send_observation(0, {"observation.state": np.zeros(2, np.float32), "observation.images.front": np.zeros((32, 32, 3), np.uint8)})

@@ -50,6 +50,8 @@ CHUNK_TIMEOUT_S = 30.0  # a chunk not served in this long is an error frame, not
 # openpi's client sends its first observation as soon as its policy runs.
 FIRST_REQUEST_S = 10.0
 MAX_WAITING = 64
+# Longest a request is held for the progress bound (replan actions at the lowest sane fps).
+MAX_PACE_S = 10.0
 
 
 class OpenpiSession:
@@ -69,6 +71,7 @@ class OpenpiSession:
         """One request: the observation in, the chunk out (WireError / RuntimeError on failure)."""
         start = time.perf_counter()
         arrays, task = self.keymap.apply(obs)
+        self._pace()
         now = self.fleet.clock()
         if self.last_chunk is not None:
             chunk_id, sent = self.last_chunk
@@ -104,6 +107,17 @@ class OpenpiSession:
             timing["prev_total_ms"] = self.last_total_s * 1000.0
         self.last_total_s = total
         return {"actions": actions, "server_timing": timing}
+
+
+    def _pace(self) -> None:
+        """Hold a request that comes sooner than ``replan`` actions at ``--openpi.fps`` after its
+        chunk left the server (a simulation faster than real time, or a client asking in a loop):
+        the index it stands for is the mirror's progress bound's to allow, as for any robot, and a
+        client cannot buy chunks by asking faster."""
+        with self.fleet.cond:
+            wait = self.session.mirror.progress_wait_s(self.index, self.fleet.clock())
+        if 0.0 < wait <= MAX_PACE_S:
+            time.sleep(wait)
 
 
 class OpenpiEndpoint:
