@@ -100,9 +100,10 @@ def test_a_malformed_request_gets_an_error_frame_and_the_others_continue(server,
 def test_openpi_and_grpc_robots_share_batches(server, openpi_env, tmp_path):
     first = len(server.batch_log)
     robot = sim_robot(f"127.0.0.1:{server.port}", "grpc-robot", fast=False, seed=3)
-    robot.start(6.0)
+    # The robot outlives the clients: 20 requests each, paced at replan (5) actions / 20 fps = 0.25 s.
+    robot.start(12.0)
     assert wait_for(lambda: any("grpc-robot" in b.robots for b in server.batch_log[first:]), timeout=10)
-    run_clients(openpi_env, server.openpi.port, tmp_path, "infer", 3, 30)
+    run_clients(openpi_env, server.openpi.port, tmp_path, "infer", 3, 20)
     robot.join()
     mixed = [b for b in server.batch_log[first:] if "grpc-robot" in b.robots and any(r.startswith("openpi-") for r in b.robots)]
     assert mixed, "no batch held both an openpi client and a gRPC robot"
