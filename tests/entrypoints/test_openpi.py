@@ -58,8 +58,10 @@ def server(tmp_path_factory):
     server.stop()
 
 
-def run_clients(python: str, port: int, out: Path, mode: str, n: int, requests: int, duration_s: float = 0.0) -> dict:
-    args = [python, str(CLIENTS), str(port), str(out), mode, str(n), str(requests), str(duration_s)]
+def run_clients(
+    python: str, port: int, out: Path, mode: str, n: int, requests: int, duration_s: float = 0.0, pace_s: float = 0.0
+) -> dict:
+    args = [python, str(CLIENTS), str(port), str(out), mode, str(n), str(requests), str(duration_s), str(pace_s)]
     done = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads((out / "results.json").read_text())
@@ -100,10 +102,13 @@ def test_a_malformed_request_gets_an_error_frame_and_the_others_continue(server,
 def test_openpi_and_grpc_robots_share_batches(server, openpi_env, tmp_path):
     first = len(server.batch_log)
     robot = sim_robot(f"127.0.0.1:{server.port}", "grpc-robot", fast=False, seed=3)
-    # The robot outlives the clients: 20 requests each, paced at replan (5) actions / 20 fps = 0.25 s.
-    robot.start(12.0)
+    # The robot outlives the clients: 20 requests each, paced at replan (5) actions / 20 fps = 0.25 s
+    # by the server, or a random 0-0.6 s wait of their own if longer. Without it, clients answered in one batch
+    # are released together by the pacing, in a fixed phase with the robot's ticks, and (the robot's
+    # batch being shorter than its period) no batch could hold both.
+    robot.start(16.0)
     assert wait_for(lambda: any("grpc-robot" in b.robots for b in server.batch_log[first:]), timeout=10)
-    run_clients(openpi_env, server.openpi.port, tmp_path, "infer", 3, 20)
+    run_clients(openpi_env, server.openpi.port, tmp_path, "staggered", 3, 20, pace_s=0.6)
     robot.join()
     mixed = [b for b in server.batch_log[first:] if "grpc-robot" in b.robots and any(r.startswith("openpi-") for r in b.robots)]
     assert mixed, "no batch held both an openpi client and a gRPC robot"

@@ -9,6 +9,8 @@ MODE:
 - ``bad``: N - 1 good clients as in ``infer`` while one more sends garbage and a wrong observation.
 - ``bench``: N clients calling ``infer`` for DURATION_S seconds, each waiting PACE_S after every
   reply (the time its robot takes to execute the chunk's first actions); latencies to JSON.
+- ``staggered``: as ``infer``, each client waiting a random 0..PACE_S (seeded by k) after every
+  reply, so that clients answered in one batch do not ask again in lockstep.
 
 Only openpi_client, numpy and websockets are imported here: nothing of lerobot-armory.
 """
@@ -37,10 +39,18 @@ def observation(seed: int) -> dict:
 
 
 def good_client(
-    port: int, out: Path, k: int, requests: int, results: dict, duration_s: float = 0.0, pace_s: float = 0.0
+    port: int,
+    out: Path,
+    k: int,
+    requests: int,
+    results: dict,
+    duration_s: float = 0.0,
+    pace_s: float = 0.0,
+    stagger: bool = False,
 ) -> None:
     policy = websocket_client_policy.WebsocketClientPolicy(host="127.0.0.1", port=port)
     latencies = []
+    rng = np.random.default_rng(k)
     first = None
     n = 0
     start = time.perf_counter()
@@ -53,7 +63,7 @@ def good_client(
             first = (obs, reply["actions"])
         n += 1
         if pace_s:
-            time.sleep(pace_s)
+            time.sleep(rng.uniform(0.0, pace_s) if stagger else pace_s)
     elapsed = time.perf_counter() - start
     assert first is not None
     np.savez(out / f"client{k}.npz", image=first[0]["observation/image"], state=first[0]["observation/state"], actions=first[1])
@@ -97,7 +107,7 @@ def main() -> None:
         threads = []
         good = n - 1 if mode == "bad" else n
         for k in range(good):
-            args = (port, out, k, requests, results, duration_s if mode == "bench" else 0.0, pace_s)
+            args = (port, out, k, requests, results, duration_s if mode == "bench" else 0.0, pace_s, mode == "staggered")
             threads.append(threading.Thread(target=good_client, args=args))
         if mode == "bad":
             threads.append(threading.Thread(target=bad_client, args=(port, results)))
