@@ -38,11 +38,20 @@ class EmulatedLatencyEngine:
         """The wrapped engine's RTC processor (None: no real-time chunking)."""
         return self.engine.rtc
 
+    @property
+    def history_steps(self) -> int:
+        """The wrapped engine's observations per row."""
+        return self.engine.history_steps
+
     def infer(
-        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None = None,
+        history: Sequence[Sequence[dict[str, np.ndarray]]] | None = None,
     ) -> np.ndarray:
         start = self.clock()
-        out = self.engine.infer(observations, tasks, noise_seeds)
+        out = self.engine.infer(observations, tasks, noise_seeds, history)
         self._hold(start, len(observations))
         return out
 

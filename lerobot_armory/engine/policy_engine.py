@@ -45,6 +45,8 @@ import numpy as np
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
+from lerobot_armory.engine import history as history_mod
+from lerobot_armory.engine import policy_kinds
 from lerobot_armory.engine import rtc as rtc_mod
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
@@ -103,7 +105,17 @@ class PolicyEngine:
         # autograd graph through the model.
         for param in self.policy.parameters():
             param.requires_grad_(False)
+        self.kind = policy_kinds.kind_of(self.config)
+        # Observations per row: the serving core keeps each robot's last ones (1: the current).
+        self.history_steps = max(1, self.kind.history(self.config))
         self.rtc_options = rtc if rtc is not None and rtc.enabled else None
+        if self.rtc_options is not None and self.kind.inputs != "current":
+            raise ConfigError("rtc.enabled", f"{self.config.type}: real-time chunking needs a flow-matching policy (π0, π0.5, SmolVLA)")
+        if not self.kind.known:
+            log.warning(
+                "%s is not a policy type lerobot-armory has checked: served as stateless (its chunks as if alone is not verified)",
+                self.config.type,
+            )
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
@@ -115,7 +127,10 @@ class PolicyEngine:
         self.action_dim = int(action.shape[0])
         self.action_names = _action_names(options.path, self.action_dim)
         self.wire_features = expected_wire_features(self.input_features)
-        self.noise_shape = _noise_shape(self.policy)
+        if self.kind.noise is not None:
+            self.noise_shape = self.kind.noise(self.config)
+        else:
+            self.noise_shape = None if self.kind.known else _noise_shape(self.policy)
         # Pinned host buffers for asynchronous copies, one per (feature, batch size); reused
         # because every batch ends with a synchronisation (its actions come back to the host).
         self._pinned = torch.device(self.device).type == "cuda"
@@ -271,13 +286,17 @@ class PolicyEngine:
         observations: Sequence[dict[str, np.ndarray]],
         tasks: Sequence[str],
         noise_seeds: Sequence[int] | None = None,
+        history: Sequence[Sequence[dict[str, np.ndarray]]] | None = None,
     ) -> np.ndarray:
         """One batched forward pass. Returns float32 ``(B, H, action_dim)`` on the CPU.
 
         ``tasks[k]`` is row k's prompt. ``noise_seeds[k]`` fixes row k's initial noise for a
-        flow-matching policy (default: 0..B-1); other policies ignore it.
+        policy that takes one (default: 0..B-1); other policies ignore it. With
+        ``history_steps > 1``, ``history[k]`` is row k's last ``history_steps`` observations,
+        oldest first, the last one ``observations[k]`` (None: the current one repeated, as
+        LeRobot fills a fresh episode's queue).
         """
-        return self.on_device(self._infer, observations, tasks, noise_seeds)[0]
+        return self.on_device(self._infer, observations, tasks, noise_seeds, None, history)[0]
 
     def infer_guided(
         self,
@@ -311,13 +330,16 @@ class PolicyEngine:
         tasks: Sequence[str],
         noise_seeds: Sequence[int] | None,
         prefixes: Sequence[rtc_mod.Prefix | None] | None = None,
+        history: Sequence[Sequence[dict[str, np.ndarray]]] | None = None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         import torch
 
         self._set_thread_count()
         try:
-            batch = self.to_batch(observations)
-            batch["task"] = list(tasks)
+            steps = self.history_steps if self.kind.inputs != "current" else 1
+            rows = self._history_rows(observations, history, steps)
+            batch = self.to_batch([obs for row in rows for obs in row])
+            batch["task"] = [task for task in tasks for _ in range(steps)]
             kwargs: dict[str, Any] = {}
             if self.noise_shape is not None:
                 seeds = range(len(observations)) if noise_seeds is None else noise_seeds
@@ -332,7 +354,10 @@ class PolicyEngine:
             # The static sampler's guidance is closed-form.
             with torch.no_grad() if guided and self.sampler is None else torch.inference_mode():
                 processed = self.preprocessor(batch)
-                model_actions = self.forward(processed, kwargs)
+                if self.kind.inputs == "current":
+                    model_actions = self.forward(processed, kwargs)
+                else:
+                    model_actions = history_mod.predict(self.policy, self.kind, processed, len(rows), steps, kwargs)
                 actions = self.postprocessor(model_actions.clone() if guided else model_actions)
             # The one synchronisation of the batch (a no-op copy on the CPU).
             out = actions.detach().to("cpu", torch.float32).numpy()
@@ -342,6 +367,22 @@ class PolicyEngine:
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
                     torch.cuda.synchronize(self.device)
             raise
+
+    def _history_rows(
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        history: Sequence[Sequence[dict[str, np.ndarray]]] | None,
+        steps: int,
+    ) -> list[list[dict[str, np.ndarray]]]:
+        """Each row's observations, oldest first: its history when the policy takes one (the
+        current observation repeated where none is given), else the current one alone."""
+        if steps == 1:
+            return [[obs] for obs in observations]
+        if history is None:
+            return [[obs] * steps for obs in observations]
+        if len(history) != len(observations) or any(len(row) != steps for row in history):
+            raise ValueError(f"history must hold {steps} observations for each of the {len(observations)} rows")
+        return [list(row) for row in history]
 
     def forward(self, processed: dict[str, Any], kwargs: dict[str, Any]) -> Any:
         """The model alone on a pre-processed batch: ``(B, H, action_dim)`` in the policy's action
@@ -567,6 +608,9 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
     try:
         config = _parse_config(PreTrainedConfig, path, list(overrides))
         config.device = device
+        why = policy_kinds.refusal(config)
+        if why is not None:  # before building it: a refusal costs no model construction
+            raise ConfigError("policy.path", f"{path}: a {config.type} policy cannot be served batched per robot: {why}")
         # A SmolVLA demo directory carries its stand-in VLM in DIR/vlm; its config.json can only
         # name it by absolute path (LeRobot resolves a relative one against the working
         # directory), so point it there wherever the directory now is, unless the user chose one.

@@ -29,15 +29,23 @@ class Engine(Protocol):
     Attributes:
         rtc: the real-time chunking processor (:mod:`lerobot_armory.engine.rtc`), or None when
             the engine does not guide chunks by what each robot executes meanwhile.
+        history_steps: consecutive observations the policy needs per row (its ``n_obs_steps``);
+            above 1 the loop passes each robot's last ones as ``history``.
     """
 
     rtc: Any
+    history_steps: int
 
     def infer(
-        self, observations: Sequence[dict[str, np.ndarray]], tasks: Sequence[str], noise_seeds: Sequence[int] | None = None
+        self,
+        observations: Sequence[dict[str, np.ndarray]],
+        tasks: Sequence[str],
+        noise_seeds: Sequence[int] | None = None,
+        history: Sequence[Sequence[dict[str, np.ndarray]]] | None = None,
     ) -> np.ndarray:
         """``(B, H, A)`` float32 chunks for ``B`` observations; ``noise_seeds`` (one per row, None:
-        the engine's own) make a stochastic policy's chunk depend on its robot and chunk only."""
+        the engine's own) make a stochastic policy's chunk depend on its robot and chunk only;
+        ``history[k]`` (only with ``history_steps > 1``) is row k's last observations, oldest first."""
         ...
 
     def infer_guided(
@@ -57,6 +65,7 @@ class UnguidedEngine:
     :meth:`Engine.infer` and inherit ``rtc = None``."""
 
     rtc: Any = None
+    history_steps: int = 1
 
     def infer_guided(
         self,

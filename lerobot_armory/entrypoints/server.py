@@ -80,7 +80,7 @@ class ArmoryServer:
         fleet_policy.batch_s = profile.latency_s(1)
         self.scheduler_config = scheduler
         self.scheduler = scheduler.make(profile, max_batch_size)
-        self.fleet = Fleet(clock, max_robots)
+        self.fleet = Fleet(clock, max_robots, history_steps=engine.history_steps)
         self.batch_log: list[BatchRecord] = []
         self.batch_listeners: list[Callable[[BatchRecord], None]] = [self._keep_recent]
         # Built even when not learning: it then reports the fixed table (drift 0) to metrics.
@@ -135,7 +135,18 @@ class ArmoryServer:
         return bound
 
     def serve_openpi(self, options: OpenpiOptions, keymap: str | None = None) -> int:
-        """Start the openpi-compatible websocket endpoint on the gRPC host; returns its port."""
+        """Start the openpi-compatible websocket endpoint on the gRPC host; returns its port.
+
+        Raises:
+            ConfigError: the policy reads an observation history: an openpi client sends one
+                observation per request, not one per control tick.
+        """
+        if self.fleet.history_steps > 1:
+            raise ConfigError(
+                "openpi.port",
+                f"the policy reads the last {self.fleet.history_steps} observations of each robot (n_obs_steps), and an "
+                "openpi client sends one per request, not one per control tick; serve it to lerobot-armory-client robots",
+            )
         self.openpi = OpenpiEndpoint(
             self.fleet, KeyMap.load(self.policy.wire_features, keymap), options, self.policy.chunk_size,
             {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,

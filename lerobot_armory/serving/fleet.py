@@ -8,6 +8,8 @@ inference after, the lock.
 
 from __future__ import annotations
 
+import collections
+
 import hmac
 import math
 import threading
@@ -58,8 +60,11 @@ class Fleet:
         max_robots: int = 64,
         stale_session_s: float = STALE_SESSION_S,
         idle_session_s: float = IDLE_SESSION_S,
+        history_steps: int = 1,
     ) -> None:
         self.clock = clock
+        # Observations each session keeps (the engine's ``history_steps``; 1: the latest only).
+        self.history_steps = history_steps
         self.max_robots = max_robots
         self.stale_session_s = stale_session_s
         self.idle_session_s = idle_session_s
@@ -103,6 +108,8 @@ class Fleet:
                 self._make_room(now)
             link = Link(credential=credential, grant=grant)
             session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, link=link)
+            if self.history_steps > 1:
+                session.recent = collections.deque(maxlen=self.history_steps)
             session.clock.register_stamps = (now if register_recv is None else register_recv, now)
             self.sessions[session.session_id] = session
             return session
@@ -213,6 +220,8 @@ class Fleet:
             if not mirror.on_observation(index, capture_robot, recv):
                 return False
             session.latest = arrays
+            if session.recent is not None:
+                session.remember(index, arrays)
             session.counters.observations += 1
             if mirror.is_useful():
                 self.cond.notify_all()

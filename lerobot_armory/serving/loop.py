@@ -50,6 +50,7 @@ class Batch:
     sessions: list[RobotSession]
     observations: list[dict[str, np.ndarray]]
     prefixes: list[Prefix | None] | None = None  # with RTC: what each robot executes meanwhile
+    history: list[list[dict[str, np.ndarray]]] | None = None  # with history_steps > 1: each robot's last observations
 
 
 @dataclass
@@ -188,7 +189,9 @@ class ServingLoop:
             chosen = [by_id[r.robot_id] for r in plan.requests]
             fleet.in_flight = {s.session_id for s in chosen}
             prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if self.rtc else None
-            return Batch(plan, chosen, [s.latest for s in chosen], prefixes)
+            steps = self.engine.history_steps
+            history = [s.history(steps) for s in chosen] if steps > 1 else None
+            return Batch(plan, chosen, [s.latest for s in chosen], prefixes, history)
 
     def _serve(self, batch: Batch) -> None:
         fleet = self.fleet
@@ -201,7 +204,7 @@ class ServingLoop:
             if batch.prefixes is not None:
                 actions, model_actions = self.engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)
             else:
-                actions = self.engine.infer(batch.observations, tasks, seeds)
+                actions = self.engine.infer(batch.observations, tasks, seeds, batch.history)
             if actions.shape[0] != plan.size:
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {plan.size}")
         except Exception as exc:

@@ -94,6 +94,9 @@ class RobotSession:
     registered_at: float
     outbox: Outbox = field(default_factory=Outbox)
     latest: dict[str, np.ndarray] | None = None
+    # With a policy that reads an observation history: the last observations by index (the
+    # latest included), enough for one row (None: the policy needs the latest alone).
+    recent: collections.deque[tuple[int, dict[str, np.ndarray]]] | None = None
     link: Link = field(default_factory=Link)
     clock: ClockExchanges = field(default_factory=ClockExchanges)
     counters: SessionCounters = field(default_factory=SessionCounters)
@@ -108,3 +111,30 @@ class RobotSession:
     @property
     def robot_id(self) -> str:
         return self.spec.robot_id
+
+    def remember(self, index: int, arrays: dict[str, np.ndarray]) -> None:
+        """Keep an observation for the history, one per index (a resent index replaces its own,
+        so that repeats cannot push the earlier ticks out)."""
+        assert self.recent is not None
+        if self.recent and self.recent[-1][0] == index:
+            self.recent[-1] = (index, arrays)
+        else:
+            self.recent.append((index, arrays))
+
+    def history(self, steps: int) -> list[dict[str, np.ndarray]]:
+        """The observations of the ``steps`` control ticks ending at the latest, oldest first.
+
+        A tick the robot sent nothing for (dropped, or before its first) takes the observation
+        held then, or the first one: LeRobot fills a fresh episode's history the same way.
+        """
+        if self.latest is None:
+            raise ValueError(f"{self.robot_id}: no observation yet")
+        held = list(self.recent) if self.recent else []
+        if not held:
+            return [self.latest] * steps
+        last = held[-1][0]
+        out = []
+        for tick in range(last - steps + 1, last + 1):
+            at = [obs for index, obs in held if index <= tick]
+            out.append(at[-1] if at else held[0][1])
+        return out

@@ -20,7 +20,7 @@ class FakeEngine(UnguidedEngine):
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
 
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         time.sleep(self.seconds)
         return np.zeros((len(observations), 4, 2), np.float32)
 

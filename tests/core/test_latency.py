@@ -391,7 +391,7 @@ class TimedEngine(UnguidedEngine):
     def __init__(self, horizon: int, action_dim: int, base_s: float = 0.020, per_robot_s: float = 0.005) -> None:
         self.horizon, self.action_dim, self.base_s, self.per_robot_s = horizon, action_dim, base_s, per_robot_s
 
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         time.sleep(self.base_s + self.per_robot_s * len(observations))
         return np.zeros((len(observations), self.horizon, self.action_dim), np.float32)
 

@@ -28,6 +28,13 @@ def test_every_engine_states_whether_it_guides_chunks(engine):
         assert instance.rtc is None, type(instance).__name__  # none of these was built with --rtc.enabled
 
 
+def test_every_engine_states_how_many_observations_a_row_needs(engine):
+    """``history_steps`` is part of the protocol too: the fleet keeps that many per robot."""
+    profile = LatencyProfile("p", (1.0,))
+    for instance in (engine, EchoEngine(), EmulatedLatencyEngine(EchoEngine(), profile), EmulatedLatencyEngine(engine, profile)):
+        assert instance.history_steps == 1, type(instance).__name__  # none of these reads a history
+
+
 def test_an_unguided_engine_says_why_it_cannot_guide():
     echo = EchoEngine()
     assert echo.rtc is None
@@ -40,7 +47,7 @@ def test_the_emulated_engine_passes_seeds_and_rtc_through():
     seen = []
 
     class Seeded(UnguidedEngine):
-        def infer(self, observations, tasks, noise_seeds=None):
+        def infer(self, observations, tasks, noise_seeds=None, history=None):
             seen.append(list(noise_seeds))
             return np.zeros((len(observations), 2, 1), np.float32)
 

@@ -229,11 +229,13 @@ def test_no_prefix_for_a_first_chunk_and_none_taken_late():
 class _Recording:
     """The guided engine, recording every guided batch (the loop only sees ``rtc`` and the calls)."""
 
+    history_steps = 1
+
     def __init__(self, engine: PolicyEngine) -> None:
         self.engine, self.rtc, self.batches = engine, engine.rtc, []
 
-    def infer(self, observations, tasks, noise_seeds=None):
-        return self.engine.infer(observations, tasks, noise_seeds)
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
+        return self.engine.infer(observations, tasks, noise_seeds, history)
 
     def infer_guided(self, observations, tasks, noise_seeds, prefixes):
         out = self.engine.infer_guided(observations, tasks, noise_seeds, prefixes)

@@ -115,7 +115,7 @@ class ConstEngine(UnguidedEngine):
     def __init__(self, value: float, delay_s: float = 0.0, horizon: int = 10) -> None:
         self.value, self.delay_s, self.horizon = value, delay_s, horizon
 
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         if self.delay_s:
             time.sleep(self.delay_s)
         return np.full((len(observations), self.horizon, 2), self.value, np.float32)

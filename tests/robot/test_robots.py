@@ -384,7 +384,7 @@ def test_so101_runs_the_client_loop_and_its_motors_get_the_chunks_in_order(
 class SevenDimEngine(UnguidedEngine):
     """A policy for so101's observations whose actions have 7 dims."""
 
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         return np.zeros((len(observations), 10, 7), np.float32)
 
 

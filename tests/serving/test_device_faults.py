@@ -42,7 +42,7 @@ class OutOfMemoryAbove(EchoEngine):
         self.limit = limit
         self.sizes: list[int] = []
 
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         self.sizes.append(len(observations))
         if len(observations) >= self.limit:
             raise torch.OutOfMemoryError(f"CUDA out of memory at a batch of {len(observations)}")
@@ -50,7 +50,7 @@ class OutOfMemoryAbove(EchoEngine):
 
 
 class LostDevice(EchoEngine):
-    def infer(self, observations, tasks, noise_seeds=None):
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
         raise RuntimeError("CUDA error: an illegal memory access was encountered")
 
 

@@ -29,7 +29,7 @@ class EchoEngine(UnguidedEngine):
     def __init__(self, delay_s: float = 0.0) -> None:
         self.delay_s = delay_s
 
-    def infer(self, observations, tasks, noise_seeds=None) -> np.ndarray:
+    def infer(self, observations, tasks, noise_seeds=None, history=None) -> np.ndarray:
         if self.delay_s:
             time.sleep(self.delay_s)
         first = np.array([o["observation.state"][0] for o in observations], np.float32)
