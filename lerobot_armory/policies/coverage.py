@@ -155,6 +155,10 @@ def _saved_type(path: str) -> str:
 # LeRobot 0.6.1's chunking types that cannot be built here without their pretrained backbone
 # (read from their constructors and tried with no hub access; research/policy_survey has the runs).
 NOT_BUILT_OFFLINE: dict[str, str] = {
+    "pi0_fast": (
+        "loads the FAST action tokenizer (lerobot/fast-action-tokenizer, remote code) and PaliGemma's tokenizer from the hub "
+        "in the constructor; with stand-in tokenizers every chunk decodes to zeros"
+    ),
     "groot": "builds GR00T N1.7 from its pretrained checkpoint and Cosmos-Reason2-2B in the constructor; no config-only path",
     "wall_x": "loads x-square-robot/wall-oss-flow (Qwen2.5-VL MoE), its processor and a FAST tokenizer in the constructor",
     "eo1": "its config reads Qwen/Qwen2.5-VL-3B-Instruct's config from the hub",
@@ -176,14 +180,14 @@ ALONE_TOLERANCE = 1e-5  # float32 on the CPU: a batch may sum in another order t
 def table_row(check: PolicyCheck, built: str) -> list[str]:
     """One row of the coverage table for a policy that was built (``built``: how)."""
     if check.refusal is not None:
-        return [check.type, built, f"refused: {check.refusal.split(': ', 2)[-1]}", *["—"] * 7]
+        return [check.type, built, f"refused: {check.refusal.split('per robot: ', 1)[-1]}", *["—"] * 7]
     if check.max_diff is None:
         raise ValueError(f"{check.type}: nothing measured")
     alone = ("yes" if check.max_diff <= ALONE_TOLERANCE else f"NO (max diff {check.max_diff:.1e})") + (
         " (chance frozen)" if check.frozen else ""
     )
     history = "current observation" if check.history == 1 else f"last {check.history}, kept per robot"
-    ms = " / ".join(f"{check.cpu_ms[b]:.0f}" for b in (1, 4)) if check.cpu_ms else "—"
+    ms = " / ".join(f"{check.cpu_ms[b]:.1f}" if check.cpu_ms[b] < 10 else f"{check.cpu_ms[b]:.0f}" for b in (1, 4)) if check.cpu_ms else "—"
     rtc = "yes" if check.rtc == "yes" else "no"
     return [check.type, built, "yes", alone, check.randomness, history, check.prompts, rtc, check.static_sampler, ms]
 
