@@ -74,6 +74,10 @@ SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
 # same registration in the same run), under every scheduler; rollout is always added.
 SHARE_LIMIT = 1.15
 SHARE_REGISTRATION = (("h_min", 0),)
+# clock_ahead registers h_min 1 (served as often as it likes): its stand-in and twin register so
+# too, so that the row measures the clock lie, not the registration (the fleet policy's h_min
+# floor governs that; docs/security.md gives what a greedy registration costs the others).
+CLOCK_AHEAD_REGISTRATION = (("h_min", 1),)
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
 STEP_SETTLE_S = 1.0  # clock_step: the stepped robot is judged from this long after its step
@@ -630,6 +634,8 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
             if name == "share_liar":
                 base.standin = SHARE_REGISTRATION
                 base.duration_s = 2 * cfg.duration_s  # ~50 chunks a robot: a ratio worth reading
+            if name == "clock_ahead":
+                base.standin = CLOCK_AHEAD_REGISTRATION
             if name == "clock_step":
                 runs += [replace(base, variant="+1h", step_s=3600.0), replace(base, variant="-1h", step_s=-3600.0)]
                 continue
