@@ -48,7 +48,7 @@ from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.engine import rtc as rtc_mod
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
-from lerobot_armory.policies.layout import SIDECAR, TOKENIZER_DIR, VLM_DIR
+from lerobot_armory.policies.layout import CLIP_DIR, SIDECAR, TOKENIZER_DIR, VLM_DIR
 from lerobot_armory.feature_spec import FeatureSpec
 
 log = logging.getLogger(__name__)
@@ -576,6 +576,7 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
             and not any(o.removeprefix("--").removeprefix("policy.").startswith("vlm_model_name=") for o in overrides)
         ):
             config.vlm_model_name = str((local / VLM_DIR).resolve())
+        _point_at_own_clip(config, local, overrides)
         policy = _from_pretrained(get_policy_class(config.type), path, config, device)
         policy.to(device)
         policy.eval()
@@ -682,6 +683,18 @@ def _register_variants(saved: dict[str, Any], path: str) -> None:
             pi05_variants.register()
         except ImportError as exc:
             raise ConfigError("policy.path", f"{path}: {name} needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
+
+
+def _point_at_own_clip(config: Any, local: Path, overrides: Sequence[str]) -> None:
+    """A Multi-Task DiT demo directory carries its stand-in CLIP in DIR/clip, named by absolute
+    path in its config.json (as SmolVLA's DIR/vlm): point the image and text encoders there
+    wherever the directory now is, unless the user chose them."""
+    if not (local / CLIP_DIR / "config.json").is_file():
+        return
+    chosen = {o.removeprefix("--").removeprefix("policy.").partition("=")[0] for o in overrides}
+    for field in ("vision_encoder_name", "text_encoder_name"):
+        if isinstance(getattr(config, field, None), str) and field not in chosen:
+            setattr(config, field, str((local / CLIP_DIR).resolve()))
 
 
 def _parse_config(base: Any, path: str, overrides: list[str]) -> Any:
