@@ -50,7 +50,7 @@ from lerobot_armory.engine import policy_kinds
 from lerobot_armory.engine import rtc as rtc_mod
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
-from lerobot_armory.policies.layout import SIDECAR, TOKENIZER_DIR, VLM_DIR
+from lerobot_armory.policies.layout import CLIP_DIR, SIDECAR, TOKENIZER_DIR, VLM_DIR
 from lerobot_armory.feature_spec import FeatureSpec
 
 log = logging.getLogger(__name__)
@@ -620,6 +620,7 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
             and not any(o.removeprefix("--").removeprefix("policy.").startswith("vlm_model_name=") for o in overrides)
         ):
             config.vlm_model_name = str((local / VLM_DIR).resolve())
+        _point_at_own_clip(config, local, overrides)
         policy = _from_pretrained(get_policy_class(config.type), path, config, device)
         policy.to(device)
         policy.eval()
@@ -717,14 +718,27 @@ def _read_local_config(local: Path) -> dict[str, Any]:
 
 
 def _register_variants(saved: dict[str, Any], path: str) -> None:
-    """A π0.5 directory of ours names a model size LeRobot does not ship: register it first."""
+    """A π0.5 or π0 directory of ours names a model size LeRobot does not ship: register it first."""
     from lerobot_armory.policies import pi05_variants
 
-    if saved.get("type") == "pi05" and pi05_variants.uses_variant(saved):
+    if saved.get("type") in pi05_variants.PATCHED_TYPES and pi05_variants.uses_variant(saved):
+        name = {"pi05": "π0.5", "pi0": "π0"}.get(saved["type"], saved["type"])
         try:
             pi05_variants.register()
         except ImportError as exc:
-            raise ConfigError("policy.path", f"{path}: π0.5 needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
+            raise ConfigError("policy.path", f"{path}: {name} needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
+
+
+def _point_at_own_clip(config: Any, local: Path, overrides: Sequence[str]) -> None:
+    """A Multi-Task DiT demo directory carries its stand-in CLIP in DIR/clip, named by absolute
+    path in its config.json (as SmolVLA's DIR/vlm): point the image and text encoders there
+    wherever the directory now is, unless the user chose them."""
+    if not (local / CLIP_DIR / "config.json").is_file():
+        return
+    chosen = {o.removeprefix("--").removeprefix("policy.").partition("=")[0] for o in overrides}
+    for field in ("vision_encoder_name", "text_encoder_name"):
+        if isinstance(getattr(config, field, None), str) and field not in chosen:
+            setattr(config, field, str((local / CLIP_DIR).resolve()))
 
 
 def _parse_config(base: Any, path: str, overrides: list[str]) -> Any:

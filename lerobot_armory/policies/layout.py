@@ -10,3 +10,6 @@ SIDECAR = "armory.json"
 # saved pre-processor names, wherever the directory has been moved to.
 TOKENIZER_DIR = "tokenizer"
 VLM_DIR = "vlm"  # a stand-in VLM inside the directory (the SmolVLA demo's)
+# A stand-in CLIP inside the directory (the Multi-Task DiT demo's image and text encoders); the
+# name must contain "clip" (LeRobot checks it).
+CLIP_DIR = "clip"

@@ -1,19 +1,22 @@
-"""A tiny Gemma size for LeRobot's own π0.5 classes (``paligemma_variant="armory_tiny"``).
+"""Tiny Gemma sizes for LeRobot's own π0.5 and π0 classes (``paligemma_variant="armory_tiny"``).
 
-LeRobot 0.6 sizes π0.5 by *named* Gemma variants only (``gemma_300m``, ``gemma_2b``:
-``modeling_pi05.get_gemma_config``, checked in ``PI05Config.__post_init__``), and the PaliGemma
-wrapper hard-codes the SigLIP vision tower (≈ 400 M parameters) and the 257 152-token vocabulary.
-Nothing of that size runs a batch on a laptop CPU in seconds, which the tests and the offline demo
-need. :func:`register` adds one more named variant, ``armory_tiny``, to the *same* classes
-(``PI05Config``, ``PI05Policy``, ``PI05Pytorch``, ``PaliGemmaWithExpertModel``): the same code path
-runs — prefix encoding, KV cache, 10 flow-matching steps, the action expert, RTC hooks — only
-the widths, depths, the vision tower and the vocabulary are small.
+LeRobot 0.6 sizes π0.5 and π0 by *named* Gemma variants only (``gemma_300m``, ``gemma_2b``:
+``modeling_pi05.get_gemma_config`` / ``modeling_pi0.get_gemma_config``, checked in
+``PI05Config.__post_init__`` / ``PI0Config.__post_init__``), and the PaliGemma wrapper hard-codes
+the SigLIP vision tower (≈ 400 M parameters) and the 257 152-token vocabulary. Nothing of that
+size runs a batch on a laptop CPU in seconds, which the tests and the offline demo need.
+:func:`register` adds more named variants, ``armory_tiny`` and ``armory_narrow``, to the *same*
+classes (``PI05Config``, ``PI05Policy``, ``PI05Pytorch``, ``PaliGemmaWithExpertModel``, and their
+π0 twins ``PI0Config``, ``PI0Policy``, ``PI0Pytorch``): the same code path runs — prefix encoding,
+KV cache, 10 flow-matching steps, the action expert, RTC hooks — only the widths, depths, the
+vision tower and the vocabulary are small.
 
-How: four narrow patches of ``lerobot.policies.pi05``, each a no-op unless a variant of ours is
-being built (a ``ContextVar`` set while ``PI05Pytorch.__init__`` runs), so the real variants and
-hub checkpoints load exactly as LeRobot loads them:
+How: four narrow patches of each of ``lerobot.policies.pi05`` and ``lerobot.policies.pi0`` (the
+two modules name these functions and classes alike), each a no-op unless a variant of ours is
+being built (a ``ContextVar`` set while ``PI05Pytorch.__init__`` / ``PI0Pytorch.__init__`` runs),
+so the real variants and hub checkpoints load exactly as LeRobot loads them:
 
-- ``PI05Config.__post_init__`` accepts the variant names of :data:`VARIANTS`;
+- ``PI05Config.__post_init__`` / ``PI0Config.__post_init__`` accept the variant names of :data:`VARIANTS`;
 - ``get_gemma_config`` returns their Gemma sizes;
 - the PaliGemma and expert constructors get a small SigLIP config (projection to the text width)
   and a small vocabulary (:data:`TINY_VOCAB`; the stand-in tokenizer's ids all fit in it).
@@ -79,13 +82,21 @@ VARIANTS: dict[str, Variant] = {
 }  # fmt: skip
 
 # The variant whose model is being built in this thread (None: a LeRobot variant, untouched).
-_building: contextvars.ContextVar[Variant | None] = contextvars.ContextVar("armory_pi05_variant", default=None)
+_building: contextvars.ContextVar[Variant | None] = contextvars.ContextVar("armory_pi_variant", default=None)
 _lock = threading.Lock()
 _registered = False
 
 
+# LeRobot policy types whose modules are patched: type -> (modeling module, config module and
+# class, core model class), all named alike in both.
+PATCHED_TYPES = {
+    "pi05": ("lerobot.policies.pi05.modeling_pi05", "lerobot.policies.pi05.configuration_pi05", "PI05Config", "PI05Pytorch"),
+    "pi0": ("lerobot.policies.pi0.modeling_pi0", "lerobot.policies.pi0.configuration_pi0", "PI0Config", "PI0Pytorch"),
+}
+
+
 def register() -> None:
-    """Make LeRobot's π0.5 accept the variants of :data:`VARIANTS` (idempotent, thread-safe).
+    """Make LeRobot's π0.5 and π0 accept the variants of :data:`VARIANTS` (idempotent, thread-safe).
 
     Raises:
         ImportError: ``transformers`` (LeRobot's ``pi`` extra) is not installed.
@@ -94,13 +105,17 @@ def register() -> None:
     with _lock:
         if _registered:
             return
-        from lerobot.policies.pi05 import modeling_pi05
-        from lerobot.policies.pi05.configuration_pi05 import PI05Config
+        import importlib
 
-        if modeling_pi05.PaliGemmaForConditionalGenerationWithPiGemma is None:
-            raise ImportError("π0.5 needs transformers: pip install 'lerobot-armory[pi]'")
-        _patch_config(PI05Config)
-        _patch_model(modeling_pi05)
+        modules = []
+        for modeling, configuration, config_cls, model_cls in PATCHED_TYPES.values():
+            m = importlib.import_module(modeling)
+            if m.PaliGemmaForConditionalGenerationWithPiGemma is None:
+                raise ImportError("π0 and π0.5 need transformers: pip install 'lerobot-armory[pi]'")
+            modules.append((m, getattr(importlib.import_module(configuration), config_cls), getattr(m, model_cls)))
+        for m, config_cls, model_cls in modules:  # all importable: patch them all or none
+            _patch_config(config_cls)
+            _patch_model(m, model_cls)
         _registered = True
 
 
@@ -123,11 +138,11 @@ def _patch_config(config_cls: Any) -> None:
     config_cls.__post_init__ = __post_init__
 
 
-def _patch_model(m: Any) -> None:
+def _patch_model(m: Any, model_cls: Any) -> None:
     get_config = m.get_gemma_config
     build_vlm = m.PaliGemmaForConditionalGenerationWithPiGemma
     build_expert = m.PiGemmaForCausalLM
-    init_model = m.PI05Pytorch.__init__
+    init_model = model_cls.__init__
 
     def get_gemma_config(variant: str) -> Any:
         v = VARIANTS.get(variant)
@@ -172,7 +187,7 @@ def _patch_model(m: Any) -> None:
     m.get_gemma_config = get_gemma_config
     m.PaliGemmaForConditionalGenerationWithPiGemma = vlm
     m.PiGemmaForCausalLM = expert
-    m.PI05Pytorch.__init__ = __init__
+    model_cls.__init__ = __init__
 
 
 def uses_variant(config_json: dict[str, Any]) -> bool:

@@ -42,3 +42,24 @@ def policy_features(
 def write_sidecar(out: Path, action_dim: int, extra: dict) -> None:
     names = {"action_names": [f"action_{k}" for k in range(action_dim)], "made_by": "lerobot-armory-make-demo-policy"}
     (out / SIDECAR).write_text(json.dumps({**names, **extra}, indent=2) + "\n")
+
+
+def unit_stats(inputs: dict[str, Any], outputs: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Dataset statistics for every feature of ``inputs`` and ``outputs``, whatever normalisation
+    the policy applies: vectors in [-1, 1] (armory_sim's positions; mean 0, std 1, min/max and
+    quantiles ±1), images in [0, 1] (mean 0.5, std 0.25 per channel, min 0, max 1)."""
+    import torch
+    from lerobot.configs.types import FeatureType
+
+    stats: dict[str, dict[str, Any]] = {}
+    for key, feature in {**inputs, **outputs}.items():
+        if feature.type == FeatureType.VISUAL:
+            c = feature.shape[0]
+            stats[key] = {
+                "mean": torch.full((c, 1, 1), 0.5), "std": torch.full((c, 1, 1), 0.25),
+                "min": torch.zeros(c, 1, 1), "max": torch.ones(c, 1, 1),
+            }  # fmt: skip
+        else:
+            ones = torch.ones(feature.shape[0])
+            stats[key] = {"mean": 0 * ones, "std": ones, "min": -ones, "max": ones, "q01": -ones, "q99": ones}
+    return stats

@@ -12,22 +12,30 @@ class DemoPolicyConfig:
     Attributes:
         output: directory to write (created).
         kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights),
-            ``smolvla`` (LeRobot's SmolVLA, tiny, random weights) or ``planner`` (the analytic
-            ``armory_planner`` that solves the ``armory_sim`` tasks when served on time; one
-            camera, 2-D state).
-        size: π0.5 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU), ``narrow``
-            (the real depths at tiny widths: ``armory_narrow``) or
+            ``pi0`` (LeRobot's π0, random weights), ``smolvla`` (LeRobot's SmolVLA, tiny, random
+            weights), ``diffusion`` (Diffusion Policy, tiny, DDIM), ``vqbet`` (VQ-BeT, tiny; one
+            camera), ``multi_task_dit`` (Multi-Task DiT, tiny, a stand-in CLIP inside),
+            ``xvla`` (X-VLA, tiny Florence-2, a stand-in tokenizer inside) or ``planner`` (the
+            analytic ``armory_planner`` that solves the ``armory_sim`` tasks when served on time;
+            one camera, 2-D state). Every LeRobot kind but ``planner`` has random weights and is
+            built offline; ``diffusion`` and ``multi_task_dit`` need LeRobot's ``diffusion`` /
+            ``multi-task-dit`` extra (diffusers).
+        size: π0.5 and π0 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU),
+            ``narrow`` (the real depths at tiny widths: ``armory_narrow``) or
             ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
-        dtype: π0.5 only: ``float32`` or ``bfloat16`` weights.
+        dtype: π0.5 and π0 only: ``float32`` or ``bfloat16`` weights.
         chunk_size: H, actions per chunk.
         state_dim: length of ``observation.state``.
         action_dim: length of each action (default: state_dim).
         cameras: comma-separated camera names (features ``observation.images.<name>``).
         image_size: square image side in pixels.
-        dim_model: transformer width (small keeps CPU inference fast).
-        n_encoder_layers: transformer encoder layers.
+        dim_model: ACT only: transformer width (small keeps CPU inference fast).
+        n_encoder_layers: ACT only: transformer encoder layers.
+        n_obs_steps: diffusion, vqbet and multi_task_dit only: observations per prediction (the
+            current one and the ``n_obs_steps - 1`` before it; LeRobot's default is 2 for
+            diffusion and multi_task_dit, 5 for vqbet).
         seed: torch seed for the random weights.
-        device: π0.5 only: where the random weights are created (``cuda``: seconds instead of
+        device: π0.5 and π0 only: where the random weights are created (``cuda``: seconds instead of
             minutes for the full size); the directory is the same either way.
     """
 
@@ -42,5 +50,6 @@ class DemoPolicyConfig:
     image_size: int = 64
     dim_model: int = 128
     n_encoder_layers: int = 2
+    n_obs_steps: int = 2
     seed: int = 0
     device: str = "cpu"
