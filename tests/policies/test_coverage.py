@@ -42,7 +42,7 @@ def checks(tmp_path_factory) -> dict[str, tuple[coverage.PolicyCheck, str]]:
     out: dict[str, tuple[coverage.PolicyCheck, str]] = {}
     root = tmp_path_factory.mktemp("coverage")
     for kind, lerobot_type in BUILT.items():
-        cfg = DemoPolicyConfig(output=str(root / kind), kind=kind, chunk_size=10, state_dim=2, image_size=32 if kind != "planner" else 64)
+        cfg = DemoPolicyConfig(output=str(root / kind), kind=kind, chunk_size=10, state_dim=2, image_size=64)
         path = make_demo_policy(cfg)
         out[lerobot_type] = (coverage.check_policy(str(path), timing=WRITE), f"yes: `--kind={kind}`")
     for kind, build in REFUSED.items():
