@@ -1,8 +1,11 @@
-"""A policy that reads an observation history (diffusion, ``n_obs_steps = 2``) served live to
-several robots sharing batches: every chunk is the one its robot's own last two observations give
-alone; and the openpi endpoint, whose clients send one observation per request, refuses it."""
+"""Policies that read an observation history (``n_obs_steps = 2``: diffusion through its input,
+VQ-BeT and multi-task DiT through their queues) served live to several robots sharing batches:
+every chunk is the one its robot's own last two observations give alone; and the openpi
+endpoint, whose clients send one observation per request, refuses them."""
 
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 import pytest
@@ -11,17 +14,22 @@ from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.policies.coverage import frozen_chance
 from lerobot_armory.policies.demo.build import make_demo_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.serving.config import OpenpiOptions
 from tests.support.vla import TASKS, observation, serve_prompt_robots
 
 
-@pytest.fixture(scope="module")
-def engine(tmp_path_factory):
-    out = tmp_path_factory.mktemp("diffusion") / "policy"
-    make_demo_policy(DemoPolicyConfig(output=str(out), kind="diffusion", chunk_size=10, state_dim=2, image_size=64))
-    return PolicyEngine(PolicyOptions(str(out), "cpu"))
+@pytest.fixture(scope="module", params=["diffusion", "vqbet", "multi_task_dit"])
+def engine(request, tmp_path_factory):
+    """The policy, with chance frozen while it serves when it draws for the whole batch (VQ-BeT,
+    multi-task DiT): the check is then of each row's history alone."""
+    out = tmp_path_factory.mktemp(request.param) / "policy"
+    make_demo_policy(DemoPolicyConfig(output=str(out), kind=request.param, chunk_size=10, state_dim=2, image_size=64))
+    engine = PolicyEngine(PolicyOptions(str(out), "cpu"))
+    with frozen_chance() if engine.kind.randomness(engine.config).startswith("drawn per batch") else contextlib.nullcontext():
+        yield engine
 
 
 def history(k: int, index: int) -> list[dict[str, np.ndarray]]:
