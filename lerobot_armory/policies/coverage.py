@@ -202,6 +202,19 @@ def unbuilt_row(kind: str) -> list[str]:
     return [kind, f"no: {NOT_BUILT_OFFLINE[kind]}", served, "—", info.randomness(None) if not why else "—", *["—"] * 5]
 
 
+def installed_plugins() -> list[str]:
+    """``lerobot_policy_*`` distributions installed here (LeRobot's third-party policy plugins)."""
+    from importlib import metadata
+
+    names = {(d.metadata["Name"] or "").replace("-", "_").lower() for d in metadata.distributions()}
+    return sorted(n for n in names if n.startswith("lerobot_policy_"))
+
+
+def plugin_row(name: str) -> list[str]:
+    """A plugin's row: its types are registered when the server loads, and served as unknown types."""
+    return [name, "plugin (not built here)", "as an unknown type: stateless, refused with n_obs_steps > 1", "not checked", *["—"] * 6]
+
+
 def markdown(rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in row) + " |" for row in rows]

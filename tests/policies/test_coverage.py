@@ -87,7 +87,10 @@ def test_the_coverage_table_says_what_the_policies_do(checks):
     rows = [coverage.table_row(check, built) for check, built in checks.values()]
     rows += [coverage.unbuilt_row(kind) for kind in coverage.NOT_BUILT_OFFLINE if kind not in checks]
     rows.sort(key=lambda row: row[0])
-    text = HEADER + coverage.markdown(rows)
+    plugins = coverage.installed_plugins()
+    rows += [coverage.plugin_row(name) for name in plugins]
+    found = f"Plugins (`lerobot_policy_*`) installed: {', '.join(plugins)}." if plugins else "No `lerobot_policy_*` plugin is installed here."
+    text = HEADER + found + "\n\n" + coverage.markdown(rows)
     if WRITE:
         TABLE.parent.mkdir(parents=True, exist_ok=True)
         TABLE.write_text(text)
