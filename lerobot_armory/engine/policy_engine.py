@@ -674,11 +674,11 @@ def _read_local_config(local: Path) -> dict[str, Any]:
 
 
 def _register_variants(saved: dict[str, Any], path: str) -> None:
-    """A π0.5 or π0 directory of ours names a model size LeRobot does not ship: register it first."""
+    """A π0.5, π0 or π0-FAST directory of ours names a model size LeRobot does not ship: register it first."""
     from lerobot_armory.policies import pi05_variants
 
     if saved.get("type") in pi05_variants.PATCHED_TYPES and pi05_variants.uses_variant(saved):
-        name = {"pi05": "π0.5", "pi0": "π0"}.get(saved["type"], saved["type"])
+        name = {"pi05": "π0.5", "pi0": "π0", "pi0_fast": "π0-FAST"}.get(saved["type"], saved["type"])
         try:
             pi05_variants.register()
         except ImportError as exc:
