@@ -10,8 +10,9 @@ constructor and pre-processor load two tokenizers from the hub, ``google/paligem
 (gated) and ``lerobot/fast-action-tokenizer`` (remote code); both names are config fields, so
 this module writes local stand-ins and names them:
 
-- ``DIR/tokenizer``: the stand-in PaliGemma tokenizer (:mod:`.standin_tokenizer`); the model's
-  vocabulary is the tokenizer's (``pi05_variants`` sizes it so for π0-FAST, as PaliGemma's);
+- ``DIR/tokenizer``: the stand-in PaliGemma tokenizer (:mod:`.standin_tokenizer`, with ``|``,
+  the end-of-action marker, as one token like PaliGemma's); the model's vocabulary is the
+  tokenizer's (``pi05_variants`` sizes it so for π0-FAST, as PaliGemma's);
 - ``DIR/fast``: a FAST tokenizer trained here in a fraction of a second on random smooth chunks
   of this policy's size, with exactly as many BPE tokens as the text vocabulary, and the processor
   class (:mod:`.processing_action_tokenizer`, loaded with ``trust_remote_code`` as the hub's is).
@@ -62,7 +63,10 @@ def make_pi0_fast_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
         raise ConfigError("kind", f"π0-FAST needs LeRobot's pi extra (pip install 'lerobot-armory[pi]'): {exc}") from None
     out = Path(cfg.output)
     out.mkdir(parents=True, exist_ok=True)
-    text = build_standin_tokenizer(out / TOKENIZER_DIR, max_id=pi05_variants.TINY_VOCAB)
+    # "|" is π0-FAST's end-of-action marker, one token in PaliGemma's vocabulary: decoding cuts a
+    # sequence there (and stops when every row has emitted it), so a row's chunk is the same
+    # batched or alone.
+    text = build_standin_tokenizer(out / TOKENIZER_DIR, max_id=pi05_variants.TINY_VOCAB, symbols=("|",))
     vocab = AutoTokenizer.from_pretrained(text).vocab_size
     action_dim = outputs["action"].shape[0]
     fast = build_standin_fast(out / FAST_DIR, vocab, cfg.chunk_size, action_dim, cfg.seed)
