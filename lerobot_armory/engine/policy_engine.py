@@ -50,7 +50,7 @@ from lerobot_armory.engine import policy_kinds
 from lerobot_armory.engine import rtc as rtc_mod
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 
-from lerobot_armory.policies.layout import CLIP_DIR, SIDECAR, TOKENIZER_DIR, VLM_DIR
+from lerobot_armory.policies.layout import CLIP_DIR, FAST_DIR, SIDECAR, TOKENIZER_DIR, VLM_DIR
 from lerobot_armory.feature_spec import FeatureSpec
 
 log = logging.getLogger(__name__)
@@ -621,6 +621,7 @@ def _load(path: str, device: str, overrides: Sequence[str] = ()):
         ):
             config.vlm_model_name = str((local / VLM_DIR).resolve())
         _point_at_own_clip(config, local, overrides)
+        _point_at_own_fast(config, local, overrides, pre_overrides)
         policy = _from_pretrained(get_policy_class(config.type), path, config, device)
         policy.to(device)
         policy.eval()
@@ -718,11 +719,11 @@ def _read_local_config(local: Path) -> dict[str, Any]:
 
 
 def _register_variants(saved: dict[str, Any], path: str) -> None:
-    """A π0.5 or π0 directory of ours names a model size LeRobot does not ship: register it first."""
+    """A π0.5, π0 or π0-FAST directory of ours names a model size LeRobot does not ship: register it first."""
     from lerobot_armory.policies import pi05_variants
 
     if saved.get("type") in pi05_variants.PATCHED_TYPES and pi05_variants.uses_variant(saved):
-        name = {"pi05": "π0.5", "pi0": "π0"}.get(saved["type"], saved["type"])
+        name = {"pi05": "π0.5", "pi0": "π0", "pi0_fast": "π0-FAST"}.get(saved["type"], saved["type"])
         try:
             pi05_variants.register()
         except ImportError as exc:
@@ -739,6 +740,24 @@ def _point_at_own_clip(config: Any, local: Path, overrides: Sequence[str]) -> No
     for field in ("vision_encoder_name", "text_encoder_name"):
         if isinstance(getattr(config, field, None), str) and field not in chosen:
             setattr(config, field, str((local / CLIP_DIR).resolve()))
+
+
+def _point_at_own_fast(config: Any, local: Path, overrides: Sequence[str], pre_overrides: dict[str, dict[str, Any]]) -> None:
+    """A π0-FAST demo directory carries its stand-in FAST tokenizer in DIR/fast and its text
+    tokenizer in DIR/tokenizer, both named by absolute path in its config.json: point the config
+    and the pre-processor's ``action_tokenizer_processor`` step there wherever the directory now
+    is, unless the user chose them. (LeRobot does not save that step's ``paligemma_tokenizer_name``:
+    left alone it would load the gated hub tokenizer.)"""
+    if not (local / FAST_DIR / "processor_config.json").is_file() or not hasattr(config, "action_tokenizer_name"):
+        return
+    chosen = {o.removeprefix("--").removeprefix("policy.").partition("=")[0] for o in overrides}
+    if "action_tokenizer_name" not in chosen:
+        config.action_tokenizer_name = str((local / FAST_DIR).resolve())
+    if (local / TOKENIZER_DIR).is_dir() and "text_tokenizer_name" not in chosen:
+        config.text_tokenizer_name = str((local / TOKENIZER_DIR).resolve())
+    pre_overrides["action_tokenizer_processor"] = {
+        "action_tokenizer_name": config.action_tokenizer_name, "paligemma_tokenizer_name": config.text_tokenizer_name,
+    }  # fmt: skip
 
 
 def _parse_config(base: Any, path: str, overrides: list[str]) -> Any:

@@ -13,3 +13,5 @@ VLM_DIR = "vlm"  # a stand-in VLM inside the directory (the SmolVLA demo's)
 # A stand-in CLIP inside the directory (the Multi-Task DiT demo's image and text encoders); the
 # name must contain "clip" (LeRobot checks it).
 CLIP_DIR = "clip"
+# A stand-in FAST action tokenizer inside the directory (the π0-FAST demo's).
+FAST_DIR = "fast"

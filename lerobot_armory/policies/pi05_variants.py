@@ -1,25 +1,29 @@
-"""Tiny Gemma sizes for LeRobot's own π0.5 and π0 classes (``paligemma_variant="armory_tiny"``).
+"""Tiny Gemma sizes for LeRobot's own π0.5, π0 and π0-FAST classes (``paligemma_variant="armory_tiny"``).
 
-LeRobot 0.6 sizes π0.5 and π0 by *named* Gemma variants only (``gemma_300m``, ``gemma_2b``:
+LeRobot 0.6 sizes π0.5, π0 and π0-FAST by *named* Gemma variants only (``gemma_300m``, ``gemma_2b``:
 ``modeling_pi05.get_gemma_config`` / ``modeling_pi0.get_gemma_config``, checked in
 ``PI05Config.__post_init__`` / ``PI0Config.__post_init__``), and the PaliGemma wrapper hard-codes
 the SigLIP vision tower (≈ 400 M parameters) and the 257 152-token vocabulary. Nothing of that
 size runs a batch on a laptop CPU in seconds, which the tests and the offline demo need.
 :func:`register` adds more named variants, ``armory_tiny`` and ``armory_narrow``, to the *same*
-classes (``PI05Config``, ``PI05Policy``, ``PI05Pytorch``, ``PaliGemmaWithExpertModel``, and their
-π0 twins ``PI0Config``, ``PI0Policy``, ``PI0Pytorch``): the same code path runs — prefix encoding,
-KV cache, 10 flow-matching steps, the action expert, RTC hooks — only the widths, depths, the
-vision tower and the vocabulary are small.
+classes (``PI05Config``, ``PI05Policy``, ``PI05Pytorch``, ``PaliGemmaWithExpertModel``, their
+π0 twins ``PI0Config``, ``PI0Policy``, ``PI0Pytorch`` and π0-FAST's ``PI0FastConfig``,
+``PI0FastPolicy``, ``PI0FastPytorch``): the same code path runs — prefix encoding, KV cache,
+10 flow-matching steps, the action expert, RTC hooks (π0-FAST: autoregressive decoding) — only
+the widths, depths, the vision tower and the vocabulary are small.
 
-How: four narrow patches of each of ``lerobot.policies.pi05`` and ``lerobot.policies.pi0`` (the
-two modules name these functions and classes alike), each a no-op unless a variant of ours is
-being built (a ``ContextVar`` set while ``PI05Pytorch.__init__`` / ``PI0Pytorch.__init__`` runs),
+How: narrow patches of each of ``lerobot.policies.pi05``, ``lerobot.policies.pi0`` and
+``lerobot.policies.pi0_fast`` (the modules name these functions and classes alike), each a no-op
+unless a variant of ours is being built (a ``ContextVar`` set while ``PI05Pytorch.__init__``,
+``PI0Pytorch.__init__`` or ``PI0FastPytorch.__init__`` runs),
 so the real variants and hub checkpoints load exactly as LeRobot loads them:
 
-- ``PI05Config.__post_init__`` / ``PI0Config.__post_init__`` accept the variant names of :data:`VARIANTS`;
+- the configs' ``__post_init__`` accept the variant names of :data:`VARIANTS`;
 - ``get_gemma_config`` returns their Gemma sizes;
-- the PaliGemma and expert constructors get a small SigLIP config (projection to the text width)
-  and a small vocabulary (:data:`TINY_VOCAB`; the stand-in tokenizer's ids all fit in it).
+- the PaliGemma and expert constructors get a small SigLIP config (projection to the text width,
+  images of ``image_resolution``) and a small vocabulary (:data:`TINY_VOCAB`; the stand-in
+  tokenizer's ids all fit in it; π0-FAST's is its text tokenizer's, whose top ids are its action
+  tokens).
 
 A process that loads such a policy directory must call :func:`register` first; the server does
 (``engine/policy_engine.py``), and so must any plain LeRobot script that loads one
@@ -81,22 +85,35 @@ VARIANTS: dict[str, Variant] = {
     ),
 }  # fmt: skip
 
-# The variant whose model is being built in this thread (None: a LeRobot variant, untouched).
-_building: contextvars.ContextVar[Variant | None] = contextvars.ContextVar("armory_pi_variant", default=None)
+@dataclass(frozen=True)
+class _Build:
+    """What the patched constructors need while a model of ours is being built."""
+
+    variant: Variant
+    image_size: int  # the config's image_resolution (π0-FAST would leave SigLIP at its 224 default)
+    vocab_size: int  # the variant's; π0-FAST's text tokenizer's (its action ids count down from the top)
+
+
+# The model of ours being built in this thread (None: a LeRobot variant, untouched).
+_building: contextvars.ContextVar[_Build | None] = contextvars.ContextVar("armory_pi_variant", default=None)
 _lock = threading.Lock()
 _registered = False
 
 
 # LeRobot policy types whose modules are patched: type -> (modeling module, config module and
-# class, core model class), all named alike in both.
+# class, core model class), all named alike.
 PATCHED_TYPES = {
     "pi05": ("lerobot.policies.pi05.modeling_pi05", "lerobot.policies.pi05.configuration_pi05", "PI05Config", "PI05Pytorch"),
     "pi0": ("lerobot.policies.pi0.modeling_pi0", "lerobot.policies.pi0.configuration_pi0", "PI0Config", "PI0Pytorch"),
-}
+    "pi0_fast": (
+        "lerobot.policies.pi0_fast.modeling_pi0_fast", "lerobot.policies.pi0_fast.configuration_pi0_fast",
+        "PI0FastConfig", "PI0FastPytorch",
+    ),
+}  # fmt: skip
 
 
 def register() -> None:
-    """Make LeRobot's π0.5 and π0 accept the variants of :data:`VARIANTS` (idempotent, thread-safe).
+    """Make LeRobot's π0.5, π0 and π0-FAST accept the variants of :data:`VARIANTS` (idempotent, thread-safe).
 
     Raises:
         ImportError: ``transformers`` (LeRobot's ``pi`` extra) is not installed.
@@ -111,7 +128,7 @@ def register() -> None:
         for modeling, configuration, config_cls, model_cls in PATCHED_TYPES.values():
             m = importlib.import_module(modeling)
             if m.PaliGemmaForConditionalGenerationWithPiGemma is None:
-                raise ImportError("π0 and π0.5 need transformers: pip install 'lerobot-armory[pi]'")
+                raise ImportError("π0, π0.5 and π0-FAST need transformers: pip install 'lerobot-armory[pi]'")
             modules.append((m, getattr(importlib.import_module(configuration), config_cls), getattr(m, model_cls)))
         for m, config_cls, model_cls in modules:  # all importable: patch them all or none
             _patch_config(config_cls)
@@ -126,7 +143,7 @@ def _patch_config(config_cls: Any) -> None:
     def __post_init__(self: Any) -> None:  # noqa: N807 - replaces the dataclass hook
         # LeRobot validates against a literal list of its own names; let ours through that one
         # check and restore them right after, so everything else it validates still runs.
-        ours = {f: getattr(self, f) for f in fields if getattr(self, f) in VARIANTS}
+        ours = {f: getattr(self, f) for f in fields if getattr(self, f, None) in VARIANTS}
         for f in ours:
             setattr(self, f, "gemma_300m")
         try:
@@ -141,7 +158,7 @@ def _patch_config(config_cls: Any) -> None:
 def _patch_model(m: Any, model_cls: Any) -> None:
     get_config = m.get_gemma_config
     build_vlm = m.PaliGemmaForConditionalGenerationWithPiGemma
-    build_expert = m.PiGemmaForCausalLM
+    build_expert = getattr(m, "PiGemmaForCausalLM", None)  # π0-FAST has no action expert
     init_model = model_cls.__init__
 
     def get_gemma_config(variant: str) -> Any:
@@ -151,24 +168,26 @@ def _patch_model(m: Any, model_cls: Any) -> None:
         return m.GemmaConfig(v.width, v.depth, v.mlp_dim, v.num_heads, v.num_kv_heads, v.head_dim)
 
     def vlm(config: Any) -> Any:
-        v = _building.get()
-        if v is not None:
+        b = _building.get()
+        if b is not None:
+            v = b.variant
             vis = config.vision_config
             vis.hidden_size = v.vision.hidden_size
             vis.num_hidden_layers = v.vision.num_hidden_layers
             vis.num_attention_heads = v.vision.num_attention_heads
             vis.intermediate_size = v.vision.intermediate_size
             vis.patch_size = v.vision.patch_size
+            vis.image_size = b.image_size
             # Image tokens join the text sequence: project to the text width (LeRobot fixes
             # 2048, the width of gemma_2b, the only PaliGemma size it ships).
             vis.projection_dim = config.text_config.hidden_size
-            config.text_config.vocab_size = v.vocab_size
+            config.text_config.vocab_size = b.vocab_size
         return build_vlm(config=config)
 
     def expert(config: Any) -> Any:
-        v = _building.get()
-        if v is not None:
-            config.vocab_size = v.vocab_size  # the expert's embedding is dropped; its lm_head is unused
+        b = _building.get()
+        if b is not None:
+            config.vocab_size = b.vocab_size  # the expert's embedding is dropped; its lm_head is unused
         return build_expert(config=config)
 
     def __init__(self: Any, config: Any, *args: Any, **kwargs: Any) -> None:  # noqa: N807
@@ -178,7 +197,15 @@ def _patch_model(m: Any, model_cls: Any) -> None:
                 f"image_resolution {config.image_resolution} must be a multiple of the {config.paligemma_variant} "
                 f"patch size {v.vision.patch_size}"
             )
-        token = _building.set(v)
+        build = None
+        if v is not None:
+            # π0-FAST maps its action tokens from the top of the text tokenizer's vocabulary
+            # (``vocab_size - 1 - fast_skip_tokens - token``), so its model's vocabulary is the
+            # tokenizer's, as PaliGemma's is.
+            tokenizer = kwargs.get("paligemma_tokenizer")
+            vocab = v.vocab_size if tokenizer is None else tokenizer.vocab_size
+            build = _Build(v, config.image_resolution[0], vocab)
+        token = _building.set(build)
         try:
             init_model(self, config, *args, **kwargs)
         finally:
@@ -186,7 +213,8 @@ def _patch_model(m: Any, model_cls: Any) -> None:
 
     m.get_gemma_config = get_gemma_config
     m.PaliGemmaForConditionalGenerationWithPiGemma = vlm
-    m.PiGemmaForCausalLM = expert
+    if build_expert is not None:
+        m.PiGemmaForCausalLM = expert
     model_cls.__init__ = __init__
 
 

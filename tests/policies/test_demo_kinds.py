@@ -1,9 +1,9 @@
 """``lerobot-armory-make-demo-policy --kind=<type>`` for more of LeRobot's chunking policy types:
-diffusion, pi0, vqbet, multi_task_dit and xvla, each LeRobot's own classes at a tiny size with
-random weights, built with no network and loaded back in a fresh process as ``--policy.path``
-loads them.
+diffusion, pi0, pi0_fast, vqbet, multi_task_dit and xvla, each LeRobot's own classes at a tiny
+size with random weights, built with no network and loaded back in a fresh process as
+``--policy.path`` loads them.
 
-pi0 and xvla load through the engine (``PolicyEngine(PolicyOptions(DIR, "cpu"))``). diffusion,
+pi0, pi0_fast and xvla load through the engine (``PolicyEngine(PolicyOptions(DIR, "cpu"))``). diffusion,
 vqbet and multi_task_dit read an observation history (and vqbet and multi_task_dit read it from
 the policy's own queues), which the engine does not feed them yet: they load through LeRobot's own
 API (``PreTrainedConfig`` + the policy class's ``from_pretrained`` + ``make_pre_post_processors``),
@@ -26,9 +26,9 @@ from lerobot_armory.errors import ConfigError
 
 pytest.importorskip("diffusers", reason="diffusion and multi_task_dit need lerobot[diffusion,multi-task-dit]")
 
-KINDS = ("diffusion", "pi0", "vqbet", "multi_task_dit", "xvla")
+KINDS = ("diffusion", "pi0", "pi0_fast", "vqbet", "multi_task_dit", "xvla")
 CHUNK, STATE, N_OBS = 10, 2, 2
-ENGINE_KINDS = ("pi0", "xvla")  # served by today's engine (one observation, no queues)
+ENGINE_KINDS = ("pi0", "pi0_fast", "xvla")  # served by today's engine (one observation, no queues)
 
 # Run in a fresh interpreter: load DIR as a user would, predict a chunk for a batch of two, and
 # print one JSON line. Every socket connection is refused (nothing may come from the hub).
@@ -50,7 +50,7 @@ def timed(fn, reps=5):
         t = time.perf_counter(); fn(); times.append(time.perf_counter() - t)
     return 1000 * statistics.median(times)
 
-if kind in ("pi0", "xvla"):
+if kind in ("pi0", "pi0_fast", "xvla"):
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.options import PolicyOptions
     engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
@@ -61,7 +61,7 @@ if kind in ("pi0", "xvla"):
     c = engine.infer(obs, tasks, [3, 4])
     out.update(type=engine.config.type, policy=type(engine.policy).__name__, shape=list(a.shape),
                same_noise_equal=bool((a == b).all()), other_noise_differs=bool((a != c).any()),
-               finite=bool(torch.isfinite(torch.as_tensor(a)).all()),
+               finite=bool(torch.isfinite(torch.as_tensor(a)).all()), rows_nonzero=bool((a != 0).any(axis=(1, 2)).all()),
                ms_b1=timed(lambda: engine.infer(obs[:1], tasks[:1], [1])))
 else:
     from lerobot.configs.policies import PreTrainedConfig
@@ -99,6 +99,7 @@ else:
     a, b = chunk(steps, **kw), chunk(steps, **kw)
     out.update(type=config.type, policy=type(policy).__name__, shape=list(a.shape),
                same_noise_equal=bool((a == b).all()), finite=bool(torch.isfinite(a).all()),
+               rows_nonzero=bool((a != 0).any(dim=2).any(dim=1).all()),
                ms_b1=timed(lambda: chunk(one, **kw1)))
     if kind == "diffusion":
         c = chunk(steps, noise=torch.randn(kw["noise"].shape, generator=g))
@@ -150,9 +151,11 @@ def test_kind_builds_offline_and_loads_in_a_fresh_process(kind, build):
     res = _fresh_check(kind, path)
     print(f"{kind}: built in {build.seconds[kind]:.2f} s, {res['ms_b1']:.1f} ms per chunk at b=1 (fresh process)")
     assert res["type"] == kind
-    assert res["shape"] == [2, CHUNK, STATE] and res["finite"]
+    assert res["shape"] == [2, CHUNK, STATE] and res["finite"] and res["rows_nonzero"]
     if kind in ("diffusion", "pi0"):  # the initial noise fixes the chunk
         assert res["same_noise_equal"] and res["other_noise_differs"]
+    if kind == "pi0_fast":  # greedy decoding: no noise, the same chunk every time
+        assert res["same_noise_equal"] and not res["other_noise_differs"]
 
 
 def test_diffusion_is_deterministic_given_the_noise_with_a_horizon_the_unet_takes(build):
@@ -169,21 +172,26 @@ def test_pi0_uses_the_registered_tiny_variant_and_the_stand_in_tokenizer(build):
     assert (path / "tokenizer" / "tokenizer.json").is_file()
 
 
-def test_multi_task_dit_moved_loads_its_own_clip(build, tmp_path):
-    """The engine's loader points both CLIP encoders (and the tokenizer) at the moved
-    directory's own ``clip``, as it does SmolVLA's ``vlm``."""
+@pytest.mark.parametrize("kind", ["multi_task_dit", "pi0_fast"])
+def test_a_moved_directory_loads_its_own_stand_ins(kind, tmp_path, monkeypatch):
+    """Built in one place and moved (the old place gone): the engine's loader points the saved
+    absolute names at the directory's own ``clip`` (multi_task_dit's CLIP encoders) or ``fast``
+    and ``tokenizer`` (pi0_fast's config and pre-processor steps), as it does SmolVLA's ``vlm``."""
     from lerobot_armory.engine.policy_engine import _load
+    from lerobot_armory.policies.demo.build import main
 
-    moved = tmp_path / "elsewhere" / "mtdit"
-    shutil.copytree(build("multi_task_dit"), moved)
-    config_file = moved / "config.json"
-    saved = json.loads(config_file.read_text())
-    assert saved["vision_encoder_name"] == saved["text_encoder_name"] == str((build("multi_task_dit") / "clip").resolve())
-    gone = str(tmp_path / "gone" / "clip")  # as if the original directory had been deleted
-    config_file.write_text(json.dumps({**saved, "vision_encoder_name": gone, "text_encoder_name": gone}))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    built, moved = tmp_path / "built", tmp_path / "elsewhere" / "moved"
+    main([f"--kind={kind}", f"--output={built}", f"--chunk_size={CHUNK}", f"--state_dim={STATE}"])
+    moved.parent.mkdir()
+    shutil.move(built, moved)
     config, policy, pre, post = _load(str(moved), "cpu")
-    assert config.vision_encoder_name == config.text_encoder_name == str((moved / "clip").resolve())
-    assert type(policy).__name__ == "MultiTaskDiTPolicy"
+    assert type(policy).__name__ == {"multi_task_dit": "MultiTaskDiTPolicy", "pi0_fast": "PI0FastPolicy"}[kind]
+    if kind == "multi_task_dit":
+        assert config.vision_encoder_name == config.text_encoder_name == str((moved / "clip").resolve())
+    else:
+        assert config.action_tokenizer_name == str((moved / "fast").resolve())
+        assert config.text_tokenizer_name == str((moved / "tokenizer").resolve())
 
 
 def test_multi_task_dit_stand_in_clip_pools_the_prompt(build):

@@ -7,6 +7,8 @@ very same code path as a hub policy. Kinds, each LeRobot's own classes at a tiny
   at inference);
 - ``pi05`` and ``pi0`` at ``--size=tiny|narrow|full`` (a registered tiny Gemma size and a stand-in
   tokenizer inside DIR: :mod:`.pi05`, :mod:`.pi0`);
+- ``pi0_fast`` (stand-in text and FAST action tokenizers inside DIR, so that every generated
+  token decodes: :mod:`.pi0_fast`);
 - ``smolvla`` (a stand-in VLM config and tokenizer inside DIR: :mod:`.smolvla`);
 - ``diffusion`` (DDIM, so the initial noise fixes the chunk; ``--n_obs_steps``: :mod:`.diffusion`);
 - ``vqbet`` (one camera; ``--n_obs_steps``: :mod:`.vqbet`);
@@ -14,8 +16,7 @@ very same code path as a hub policy. Kinds, each LeRobot's own classes at a tiny
 - ``xvla`` (Florence-2 from its config, a stand-in tokenizer inside DIR: :mod:`.xvla`);
 - ``planner``: the analytic planner (:mod:`.planner`).
 
-Each kind is one builder in :data:`BUILDERS`. Not built: ``pi0_fast`` — a random model's tokens
-are no valid FAST (DCT) sequences, so LeRobot decodes every chunk to zeros.
+Each kind is one builder in :data:`BUILDERS`.
 
     lerobot-armory-make-demo-policy --output=out/demo-policy
     lerobot-armory-make-demo-policy --kind=pi05 --size=tiny --output=out/pi05-tiny
@@ -60,6 +61,12 @@ def _build_pi0(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     )
     write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "pi0", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
     return out
+
+
+def _build_pi0_fast(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
+    from lerobot_armory.policies.demo.pi0_fast import make_pi0_fast_policy
+
+    return make_pi0_fast_policy(cfg, cameras)
 
 
 def _build_smolvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
@@ -108,6 +115,7 @@ BUILDERS: dict[str, Callable[[DemoPolicyConfig, list[str]], Path]] = {
     "act": _build_act,
     "pi05": _build_pi05,
     "pi0": _build_pi0,
+    "pi0_fast": _build_pi0_fast,
     "smolvla": _build_smolvla,
     "diffusion": _build_diffusion,
     "vqbet": _build_vqbet,
@@ -142,6 +150,7 @@ def _run(cfg: DemoPolicyConfig) -> None:
         "act": "ACT policy (random weights)",
         "pi05": f"π0.5 {cfg.size} policy (random weights, stand-in tokenizer)",
         "pi0": f"π0 {cfg.size} policy (random weights, stand-in tokenizer)",
+        "pi0_fast": "π0-FAST tiny policy (random weights, stand-in text and FAST tokenizers)",
         "smolvla": "SmolVLA tiny policy (random weights, stand-in VLM config and tokenizer)",
         "diffusion": f"Diffusion Policy tiny (random weights, DDIM, n_obs_steps={cfg.n_obs_steps})",
         "vqbet": f"VQ-BeT tiny policy (random weights, n_obs_steps={cfg.n_obs_steps})",

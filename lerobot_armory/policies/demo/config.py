@@ -12,7 +12,8 @@ class DemoPolicyConfig:
     Attributes:
         output: directory to write (created).
         kind: ``act`` (small random-weight ACT), ``pi05`` (LeRobot's π0.5, random weights),
-            ``pi0`` (LeRobot's π0, random weights), ``smolvla`` (LeRobot's SmolVLA, tiny, random
+            ``pi0`` (LeRobot's π0, random weights), ``pi0_fast`` (LeRobot's π0-FAST, tiny,
+            stand-in text and FAST tokenizers inside), ``smolvla`` (LeRobot's SmolVLA, tiny, random
             weights), ``diffusion`` (Diffusion Policy, tiny, DDIM), ``vqbet`` (VQ-BeT, tiny; one
             camera), ``multi_task_dit`` (Multi-Task DiT, tiny, a stand-in CLIP inside),
             ``xvla`` (X-VLA, tiny Florence-2, a stand-in tokenizer inside) or ``planner`` (the

@@ -35,13 +35,17 @@ _CORPUS = [
 ]
 
 
-def build_standin_tokenizer(output: str | Path, vocab_size: int = 400, max_id: int | None = None) -> Path:
+def build_standin_tokenizer(
+    output: str | Path, vocab_size: int = 400, max_id: int | None = None, symbols: tuple[str, ...] = ()
+) -> Path:
     """Train and save the stand-in tokenizer in ``output`` (created); returns ``output``.
 
     Args:
         output: directory to write (``tokenizer.json``, ``tokenizer_config.json``).
         vocab_size: SentencePiece pieces, special tokens and 256 byte-fallback pieces included.
         max_id: if given, every id must be below it (the model's vocabulary size).
+        symbols: more strings that are one piece each (as ``"\n"`` is), e.g. π0-FAST's
+            end-of-action marker ``"|"``, which PaliGemma's tokenizer has as a token.
 
     Raises:
         ImportError: ``sentencepiece`` or ``transformers`` is missing (LeRobot's ``pi`` extra).
@@ -65,7 +69,7 @@ def build_standin_tokenizer(output: str | Path, vocab_size: int = 400, max_id: i
         character_coverage=1.0,
         pad_id=0, eos_id=1, bos_id=2, unk_id=3,
         pad_piece="<pad>", eos_piece="<eos>", bos_piece="<bos>", unk_piece="<unk>",
-        user_defined_symbols=["\n"],  # π0.5's template has a newline; keep it one token
+        user_defined_symbols=["\n", *symbols],  # π0.5's template has a newline; keep it one token
         add_dummy_prefix=False,
         remove_extra_whitespaces=False,
         normalization_rule_name="identity",
