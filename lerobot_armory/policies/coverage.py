@@ -155,10 +155,6 @@ def _saved_type(path: str) -> str:
 # LeRobot 0.6.1's chunking types that cannot be built here without their pretrained backbone
 # (read from their constructors and tried with no hub access; research/policy_survey has the runs).
 NOT_BUILT_OFFLINE: dict[str, str] = {
-    "pi0_fast": (
-        "loads the FAST action tokenizer (lerobot/fast-action-tokenizer, remote code) and PaliGemma's tokenizer from the hub "
-        "in the constructor; with stand-in tokenizers every chunk decodes to zeros"
-    ),
     "groot": "builds GR00T N1.7 from its pretrained checkpoint and Cosmos-Reason2-2B in the constructor; no config-only path",
     "wall_x": "loads x-square-robot/wall-oss-flow (Qwen2.5-VL MoE), its processor and a FAST tokenizer in the constructor",
     "eo1": "its config reads Qwen/Qwen2.5-VL-3B-Instruct's config from the hub",
