@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from lerobot_armory.engine.policy_kinds import KINDS
-from lerobot_armory.policies import coverage
+from lerobot_armory.engine import coverage
 from lerobot_armory.policies.demo.build import BUILDERS, make_demo_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from tests.support.refused_policies import REFUSED

@@ -14,7 +14,7 @@ from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.coverage import frozen_chance
+from lerobot_armory.engine.coverage import frozen_chance
 from lerobot_armory.policies.demo.build import make_demo_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.serving.config import OpenpiOptions
