@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
-from lerobot_armory.policies.demo.common import policy_features, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, save_policy
 
 
 def make_act_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
@@ -14,7 +14,6 @@ def make_act_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     from lerobot.configs.types import NormalizationMode
     from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
 
     inputs, outputs = policy_features("ACT", cfg.chunk_size, cfg.state_dim, cfg.action_dim, cameras, cfg.image_size)
     action_dim = outputs["action"].shape[0]
@@ -43,11 +42,4 @@ def make_act_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     }
     for cam in cameras:
         stats[f"observation.images.{cam}"] = {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)}
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    out = Path(cfg.output)
-    out.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
-    write_sidecar(out, action_dim, {"kind": "act", "random_weights": True, "seed": cfg.seed})
-    return out
+    return save_policy(Path(cfg.output), policy, config, stats, {"kind": "act", "random_weights": True, "seed": cfg.seed})

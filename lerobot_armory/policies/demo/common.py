@@ -63,3 +63,17 @@ def unit_stats(inputs: dict[str, Any], outputs: dict[str, Any]) -> dict[str, dic
             ones = torch.ones(feature.shape[0])
             stats[key] = {"mean": 0 * ones, "std": ones, "min": -ones, "max": ones, "q01": -ones, "q99": ones}
     return stats
+
+
+def save_policy(out: Path, policy: Any, config: Any, stats: dict[str, Any], sidecar: dict) -> Path:
+    """Save a built policy as ``--policy.path`` loads it: the weights, LeRobot's pre/post-processors
+    made with ``stats``, and our sidecar (the action names and how it was built)."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    write_sidecar(out, config.output_features["action"].shape[0], sidecar)
+    return out

@@ -27,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 
 DOWN_DIMS = (32, 64)
@@ -41,7 +41,6 @@ def make_diffusion_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     try:
         from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
         from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
-        from lerobot.policies.factory import make_pre_post_processors
         from lerobot.utils.import_utils import require_package
 
         require_package("diffusers", extra="diffusion")
@@ -69,12 +68,5 @@ def make_diffusion_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     )
     torch.manual_seed(cfg.seed)
     policy = DiffusionPolicy(config)
-    pre, post = make_pre_post_processors(config, dataset_stats=unit_stats(inputs, outputs))
-    out = Path(cfg.output)
-    out.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
     extra = {"kind": "diffusion", "random_weights": True, "seed": cfg.seed, "n_obs_steps": cfg.n_obs_steps}
-    write_sidecar(out, outputs["action"].shape[0], extra)
-    return out
+    return save_policy(Path(cfg.output), policy, config, unit_stats(inputs, outputs), extra)

@@ -35,7 +35,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import CLIP_DIR, TOKENIZER_DIR  # where the loader looks for them
 
@@ -52,7 +52,6 @@ def make_multi_task_dit_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Pat
     import torch
 
     try:
-        from lerobot.policies.factory import make_pre_post_processors
         from lerobot.policies.multi_task_dit.configuration_multi_task_dit import MultiTaskDiTConfig
         from lerobot.policies.multi_task_dit.modeling_multi_task_dit import MultiTaskDiTPolicy
         from lerobot.utils.import_utils import require_package
@@ -97,13 +96,8 @@ def make_multi_task_dit_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Pat
         for param in policy.parameters():
             if param.ndim > 1 and not param.any():
                 param.normal_(0.0, 0.05)
-    pre, post = make_pre_post_processors(config, dataset_stats=unit_stats(inputs, outputs))
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
     extra = {"kind": "multi_task_dit", "random_weights": True, "seed": cfg.seed, "n_obs_steps": cfg.n_obs_steps}
-    write_sidecar(out, outputs["action"].shape[0], extra)
-    return out
+    return save_policy(out, policy, config, unit_stats(inputs, outputs), extra)
 
 
 def build_standin_clip(output: Path, tokenizer_output: Path | None = None) -> Path:

@@ -37,7 +37,7 @@ import shutil
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import FAST_DIR, TOKENIZER_DIR  # where the loader looks for them
 
@@ -56,7 +56,6 @@ def make_pi0_fast_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     inputs, outputs = policy_features("π0-FAST", cfg.chunk_size, cfg.state_dim, cfg.action_dim, cameras, cfg.image_size, max_dim=32)
     try:
         pi05_variants.register()
-        from lerobot.policies.factory import make_pre_post_processors
         from lerobot.policies.pi0_fast.configuration_pi0_fast import PI0FastConfig
         from lerobot.policies.pi0_fast.modeling_pi0_fast import PI0FastPolicy
     except ImportError as exc:
@@ -90,12 +89,7 @@ def make_pi0_fast_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     )
     torch.manual_seed(cfg.seed)
     policy = PI0FastPolicy(config)
-    pre, post = make_pre_post_processors(config, dataset_stats=unit_stats(inputs, outputs))
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
-    write_sidecar(out, action_dim, {"kind": "pi0_fast", "size": "tiny", "random_weights": True, "seed": cfg.seed})
-    return out
+    return save_policy(out, policy, config, unit_stats(inputs, outputs), {"kind": "pi0_fast", "size": "tiny", "random_weights": True, "seed": cfg.seed})
 
 
 def build_standin_fast(output: Path, vocab_size: int, chunk_size: int, action_dim: int, seed: int = 0) -> Path:

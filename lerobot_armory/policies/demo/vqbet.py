@@ -23,14 +23,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 
 
 def make_vqbet_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     """Build and save the tiny VQ-BeT of ``cfg``; returns its directory."""
     import torch
-    from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.vqbet.configuration_vqbet import VQBeTConfig
     from lerobot.policies.vqbet.modeling_vqbet import VQBeTPolicy
 
@@ -65,12 +64,5 @@ def make_vqbet_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     torch.manual_seed(cfg.seed)
     policy = VQBeTPolicy(config)
     policy.vqbet.action_head.vqvae_model.discretized.fill_(True)
-    pre, post = make_pre_post_processors(config, dataset_stats=unit_stats(inputs, outputs))
-    out = Path(cfg.output)
-    out.mkdir(parents=True, exist_ok=True)
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
     extra = {"kind": "vqbet", "random_weights": True, "seed": cfg.seed, "n_obs_steps": cfg.n_obs_steps}
-    write_sidecar(out, outputs["action"].shape[0], extra)
-    return out
+    return save_policy(Path(cfg.output), policy, config, unit_stats(inputs, outputs), extra)

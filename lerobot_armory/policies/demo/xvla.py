@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, write_sidecar
+from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
 from lerobot_armory.policies.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import TOKENIZER_DIR  # where the loader looks for it
 
@@ -47,7 +47,6 @@ MAX_DIM = 20  # LeRobot's max_action_dim; the state is padded to it too
 def make_xvla_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     """Build and save the tiny X-VLA of ``cfg``; returns its directory."""
     import torch
-    from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.xvla.configuration_xvla import XVLAConfig
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
 
@@ -78,9 +77,4 @@ def make_xvla_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     )
     torch.manual_seed(cfg.seed)
     policy = XVLAPolicy(config)
-    pre, post = make_pre_post_processors(config, dataset_stats=unit_stats(inputs, outputs))
-    policy.save_pretrained(out)
-    pre.save_pretrained(out)
-    post.save_pretrained(out)
-    write_sidecar(out, outputs["action"].shape[0], {"kind": "xvla", "random_weights": True, "seed": cfg.seed})
-    return out
+    return save_policy(out, policy, config, unit_stats(inputs, outputs), {"kind": "xvla", "random_weights": True, "seed": cfg.seed})
