@@ -265,11 +265,11 @@ def test_engine_failure_hits_one_batch_only(server, engine, monkeypatch):
     real = engine.infer
     calls = {"n": 0}
 
-    def flaky(obs, tasks, noise_seeds=None):
+    def flaky(obs, tasks, noise_seeds=None, history=None):
         calls["n"] += 1
         if calls["n"] == 1:
             raise RuntimeError("simulated CUDA error")
-        return real(obs, tasks, noise_seeds)
+        return real(obs, tasks, noise_seeds, history)
 
     monkeypatch.setattr(server.loop.engine, "infer", flaky)
     assert wait_for(lambda: any(n.kind == pb.Notice.INFERENCE_FAILED for n in robot.notices))
@@ -375,7 +375,7 @@ def test_an_engine_that_always_fails_stops_the_loop_instead_of_failing_forever(s
     loop stops with an error (the server process then exits 1), robots are told each time."""
     from lerobot_armory.serving.loop import MAX_CONSECUTIVE_FAILURES
 
-    def broken(obs, tasks, noise_seeds=None):
+    def broken(obs, tasks, noise_seeds=None, history=None):
         raise RuntimeError("the model's weights were unloaded")
 
     monkeypatch.setattr(server.loop.engine, "infer", broken)
