@@ -14,11 +14,13 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
+from prometheus_client import generate_latest
 
 from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.entrypoints.server import ArmoryServer, policy_loader
+from lerobot_armory.entrypoints.status import render
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
@@ -141,6 +143,8 @@ def test_live_swap_under_a_streaming_fleet(engine, new_engine, demo_policy_dir, 
     text = server.metrics.registry.get_sample_value("armory_policy_swaps_total", {"result": "ok"})
     assert text == 1.0
     assert server.metrics.registry.get_sample_value("armory_policy_info", {"path": str(new_dir)}) == 1.0
+    view = render(generate_latest(server.metrics.registry).decode())
+    assert f"policy {new_dir}; swaps ok 1, refused 0, failed 0, last took" in view
 
 
 def test_admin_calls_without_the_operator_token_are_refused(engine, new_dir):
