@@ -244,6 +244,13 @@ class OnlineLatency:
         self._table_ms = self.startup_ms  # published; replaced whole, never mutated
         self._measured: frozenset[int] = frozenset()
 
+    def restart(self, profile: LatencyProfile) -> None:
+        """Start over from ``profile`` (a new policy was swapped in: the old samples say nothing)."""
+        self.__init__(  # type: ignore[misc]
+            profile, self.max_batch_size, self._window[0].maxlen or 21, self.min_samples, self.outlier_factor, self.confirm,
+            self.stale_after, self.tolerance,
+        )  # fmt: skip
+
     @property
     def observed(self) -> int:
         """Batches fed so far."""

@@ -40,7 +40,10 @@ from lerobot_armory.serving.loop import BatchRecord, ServingLoop
 from lerobot_armory.serving.metrics import ServerMetrics, status_line
 from lerobot_armory.entrypoints.openpi.endpoint import OpenpiEndpoint
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
-from lerobot_armory.serving.security import AuthTokens, read_tls
+from lerobot_armory.serving.security import AuthTokens, OperatorTokens, read_tls
+from lerobot_armory.serving.swap import LoadedPolicy, Loader, PolicyShape, PolicySwapper, SwapRefused
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions, RTCOptions
+from lerobot_armory.entrypoints.grpc.admin import AdminService
 from lerobot_armory.entrypoints.grpc.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
 log = logging.getLogger("lerobot_armory.server")
@@ -73,6 +76,9 @@ class ArmoryServer:
         max_obs_rate_hz: float = 0.0,
         learn_latency: bool = False,
         fleet_policy: FleetPolicy | None = None,
+        operators: OperatorTokens | None = None,
+        loader: Loader | None = None,
+        policy_options: PolicyOptions | None = None,
     ) -> None:
         self.policy = policy
         self.profile = profile
@@ -94,6 +100,17 @@ class ArmoryServer:
         self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy, self.admission)
         self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
         self.batch_listeners.append(self.metrics.on_batch)
+        # Live checkpoint swaps (lerobot-armory-admin swap): refused unless operator tokens are set.
+        options = policy_options or PolicyOptions(
+            getattr(engine, "path", ""), getattr(engine, "device", None), getattr(engine, "cpu_threads", None),
+            list(getattr(engine, "overrides", [])),
+        )  # fmt: skip
+        shape = PolicyShape(tuple(policy.wire_features), len(policy.action_names), policy.chunk_size, engine.history_steps)
+        current = LoadedPolicy(options, engine, shape, None, policy.description)
+        self.swapper = PolicySwapper(self.loop, current, loader or policy_loader(max_batch_size), self._swapped)
+        self.swapper.listeners.append(self.metrics.on_swap)
+        self.metrics.set_policy(options.path)
+        self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None
         self._auth, self._fleet_policy = auth, fleet_policy
@@ -112,6 +129,13 @@ class ArmoryServer:
     @property
     def address(self) -> str:
         return f"{self._host}:{self.port}"
+
+    def _swapped(self, new: LoadedPolicy) -> None:
+        """After a swap: registrations describe the new policy; the shortest horizon follows its d_infer."""
+        self.policy = dataclasses.replace(self.policy, description=new.description)
+        self.service.policy = self.policy
+        if new.d_infer:
+            self._fleet_policy.batch_s = new.d_infer[0]
 
     def _on_batch(self, record: BatchRecord) -> None:
         for listener in self.batch_listeners:
@@ -157,7 +181,9 @@ class ArmoryServer:
 
     def start(self) -> ArmoryServer:
         self.loop.start()
-        self.grpc = start_grpc_server(self.service, self._host, self._port, self._max_robots, self._max_message_bytes, self._tls)
+        self.grpc = start_grpc_server(
+            self.service, self._host, self._port, self._max_robots, self._max_message_bytes, self._tls, admin=self.admin
+        )
         return self
 
     def stop(self, grace_s: float = 2.0) -> None:
@@ -179,8 +205,12 @@ class ArmoryServer:
             self._stop_metrics()
 
     def status_line(self) -> str:
-        """One line of fleet status (logged every second)."""
-        return status_line(self.fleet, self.loop.stats, self.latency if self.learn_latency else None)
+        """One line of fleet status (logged every second); after a swap, the policy served and the swaps."""
+        line = status_line(self.fleet, self.loop.stats, self.latency if self.learn_latency else None)
+        counts = self.swapper.counts.by_result
+        if any(counts.values()):
+            line += f" policy={self.swapper.current.path} swaps=ok:{counts['ok']},refused:{counts['refused']},failed:{counts['failed']}"
+        return line
 
 
 def tune_process() -> None:
@@ -203,6 +233,57 @@ def on_startup_device(what: str, fn: Callable[..., T], *args: object) -> T:
     except Exception as exc:
         first = (str(exc).strip().splitlines() or [""])[0]
         raise ConfigError("max_batch_size", f"{what} failed: {type(exc).__name__}: {first}") from None
+
+
+def policy_loader(
+    max_batch_size: int,
+    rtc: RTCOptions | None = None,
+    engine_options: EngineOptions | None = None,
+    profile_reps: int = 5,
+    emulate_profile: str | None = None,
+) -> Loader:
+    """What a swap loads a checkpoint with: the engine, warmed up and profiled for b = 1..cap
+    (or wrapped in the emulated profile), as start-up does."""
+
+    def load(options: PolicyOptions, drain: bool) -> LoadedPolicy:
+        if not drain:
+            check_room_beside(options)
+        engine = PolicyEngine(options, rtc, dataclasses.replace(engine_options) if engine_options else None)
+        engine.warmup(max_batch_size, log_progress=False)
+        serving: Engine = engine
+        if emulate_profile:
+            profile = load_profile(emulate_profile)
+            serving = EmulatedLatencyEngine(engine, profile)
+        else:
+            profile = engine.profile(max_batch_size, 0, profile_reps, log_progress=False)
+        shape = PolicyShape(tuple(engine.wire_features), len(engine.action_names), engine.chunk_size, engine.history_steps)
+        d_infer = [profile.latency_s(b) for b in range(1, max_batch_size + 1)]
+        return LoadedPolicy(options, serving, shape, d_infer, engine.description)
+
+    return load
+
+
+def check_room_beside(options: PolicyOptions) -> None:
+    """On a CUDA device, refuse a checkpoint whose weights (the size of its safetensors files, an
+    estimate: activations and workspaces come on top) exceed the free device memory, beside the
+    policy being served. Untested here (no GPU on the development machine); kept simple.
+
+    Raises:
+        SwapRefused: with the numbers, and the way out (a drain).
+    """
+    import torch
+
+    device = options.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if not device.startswith("cuda") or not Path(options.path).is_dir():
+        return
+    need = sum(p.stat().st_size for p in Path(options.path).glob("*.safetensors"))
+    free, total = torch.cuda.mem_get_info(torch.device(device))
+    if need > free:
+        gib = 1 << 30
+        raise SwapRefused(
+            f"{options.path} needs about {need / gib:.2f} GiB (its safetensors) and {device} has {free / gib:.2f} GiB free "
+            f"of {total / gib:.2f} GiB beside the policy served; swap with --drain=true to release it first"
+        )
 
 
 def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
@@ -263,6 +344,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         profile = resolve_profile(cfg, engine)
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
+    operators = OperatorTokens.load(cfg.operator_token_file, auth) if cfg.operator_token_file else None
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
     if auth is not None and tls is None:
         log.warning(
@@ -272,7 +354,9 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     server = ArmoryServer(
         serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
         int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
-        learn_latency=learn, fleet_policy=fleet_policy,
+        learn_latency=learn, fleet_policy=fleet_policy, operators=operators,
+        loader=policy_loader(cfg.max_batch_size, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile),
+        policy_options=cfg.policy,
     )  # fmt: skip
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
@@ -287,6 +371,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         f"  actions: {len(engine.action_names)} dims ({', '.join(engine.action_names)}), chunk size H={engine.chunk_size}\n"
         f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
         f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
+        f"{'operator token (admin calls on)' if operators else 'no operator token (admin calls off)'}, "
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
         f"  fleet policy: {fleet_policy.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"

@@ -4,7 +4,7 @@
 
 One row per robot: tier, weight, starvation, estimated network round trip (what the server
 measures; each direction is taken as half of it), age of its latest observation and of its last
-chunk; then device figures.
+chunk; then device figures, and the policy served with its live swaps (``lerobot-armory-admin``).
 """
 
 from __future__ import annotations
@@ -50,10 +50,16 @@ def render(text: str) -> str:
     robots: dict[str, dict[str, float | str]] = defaultdict(dict)
     fleet: dict[str, float] = {}
     batch_sum = batch_count = 0.0
+    policy_path: str | None = None
+    swaps: dict[str, int] = {}
     for family in text_string_to_metric_families(text):
         for sample in family.samples:
             rid = sample.labels.get("robot_id")
-            if rid is not None:
+            if sample.name == "armory_policy_info" and sample.value == 1:
+                policy_path = sample.labels.get("path")
+            elif sample.name == "armory_policy_swaps_total":
+                swaps[sample.labels.get("result", "?")] = int(sample.value)
+            elif rid is not None:
                 row = robots[rid]
                 row["tier"] = sample.labels.get("tier", "")
                 row[sample.name] = sample.value
@@ -83,6 +89,12 @@ def render(text: str) -> str:
         f"device busy {fleet.get('armory_device_busy_seconds_total', 0):.1f} s, "
         f"idle with work waiting {1000 * fleet.get('armory_device_idle_with_work_seconds_total', 0):.0f} ms"
     )
+    if policy_path is not None:
+        last = fleet.get("armory_policy_swap_seconds")
+        lines.append(
+            f"policy {policy_path}; swaps ok {swaps.get('ok', 0)}, refused {swaps.get('refused', 0)}, failed {swaps.get('failed', 0)}"
+            + (f", last took {last:.2f} s" if last else "")
+        )
     return "\n".join(lines)
 
 

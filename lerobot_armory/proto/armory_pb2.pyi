@@ -223,3 +223,51 @@ class ServerMessage(_message.Message):
     notice: Notice
     sync_request: ClockSyncRequest
     def __init__(self, chunk: _Optional[_Union[ActionChunk, _Mapping]] = ..., notice: _Optional[_Union[Notice, _Mapping]] = ..., sync_request: _Optional[_Union[ClockSyncRequest, _Mapping]] = ...) -> None: ...
+
+class SwapRequest(_message.Message):
+    __slots__ = ("policy_path", "overrides", "drain", "policy_name")
+    POLICY_PATH_FIELD_NUMBER: _ClassVar[int]
+    OVERRIDES_FIELD_NUMBER: _ClassVar[int]
+    DRAIN_FIELD_NUMBER: _ClassVar[int]
+    POLICY_NAME_FIELD_NUMBER: _ClassVar[int]
+    policy_path: str
+    overrides: _containers.RepeatedScalarFieldContainer[str]
+    drain: bool
+    policy_name: str
+    def __init__(self, policy_path: _Optional[str] = ..., overrides: _Optional[_Iterable[str]] = ..., drain: _Optional[bool] = ..., policy_name: _Optional[str] = ...) -> None: ...
+
+class SwapResponse(_message.Message):
+    __slots__ = ("result", "message", "old_path", "new_path", "seconds")
+    RESULT_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    OLD_PATH_FIELD_NUMBER: _ClassVar[int]
+    NEW_PATH_FIELD_NUMBER: _ClassVar[int]
+    SECONDS_FIELD_NUMBER: _ClassVar[int]
+    result: str
+    message: str
+    old_path: str
+    new_path: str
+    seconds: float
+    def __init__(self, result: _Optional[str] = ..., message: _Optional[str] = ..., old_path: _Optional[str] = ..., new_path: _Optional[str] = ..., seconds: _Optional[float] = ...) -> None: ...
+
+class AdminStatusRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class AdminStatusResponse(_message.Message):
+    __slots__ = ("policy_path", "policy", "robots", "swaps_ok", "swaps_refused", "swaps_failed", "status_line")
+    POLICY_PATH_FIELD_NUMBER: _ClassVar[int]
+    POLICY_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_OK_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_REFUSED_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_FAILED_FIELD_NUMBER: _ClassVar[int]
+    STATUS_LINE_FIELD_NUMBER: _ClassVar[int]
+    policy_path: str
+    policy: str
+    robots: int
+    swaps_ok: int
+    swaps_refused: int
+    swaps_failed: int
+    status_line: str
+    def __init__(self, policy_path: _Optional[str] = ..., policy: _Optional[str] = ..., robots: _Optional[int] = ..., swaps_ok: _Optional[int] = ..., swaps_refused: _Optional[int] = ..., swaps_failed: _Optional[int] = ..., status_line: _Optional[str] = ...) -> None: ...

@@ -138,3 +138,118 @@ class Armory:
             timeout,
             metadata,
             _registered_method=True)
+
+
+class ArmoryAdminStub:
+    """Missing associated documentation comment in .proto file."""
+
+    def __init__(self, channel):
+        """Constructor.
+
+        Args:
+            channel: A grpc.Channel.
+        """
+        self.SwapPolicy = channel.unary_unary(
+                '/lerobot_armory.v1.ArmoryAdmin/SwapPolicy',
+                request_serializer=lerobot__armory_dot_proto_dot_armory__pb2.SwapRequest.SerializeToString,
+                response_deserializer=lerobot__armory_dot_proto_dot_armory__pb2.SwapResponse.FromString,
+                _registered_method=True)
+        self.Status = channel.unary_unary(
+                '/lerobot_armory.v1.ArmoryAdmin/Status',
+                request_serializer=lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusRequest.SerializeToString,
+                response_deserializer=lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusResponse.FromString,
+                _registered_method=True)
+
+
+class ArmoryAdminServicer:
+    """Missing associated documentation comment in .proto file."""
+
+    def SwapPolicy(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Status(self, request, context):
+        """Missing associated documentation comment in .proto file."""
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+
+def add_ArmoryAdminServicer_to_server(servicer, server):
+    rpc_method_handlers = {
+            'SwapPolicy': grpc.unary_unary_rpc_method_handler(
+                    servicer.SwapPolicy,
+                    request_deserializer=lerobot__armory_dot_proto_dot_armory__pb2.SwapRequest.FromString,
+                    response_serializer=lerobot__armory_dot_proto_dot_armory__pb2.SwapResponse.SerializeToString,
+            ),
+            'Status': grpc.unary_unary_rpc_method_handler(
+                    servicer.Status,
+                    request_deserializer=lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusRequest.FromString,
+                    response_serializer=lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusResponse.SerializeToString,
+            ),
+    }
+    generic_handler = grpc.method_handlers_generic_handler(
+            'lerobot_armory.v1.ArmoryAdmin', rpc_method_handlers)
+    server.add_generic_rpc_handlers((generic_handler,))
+    server.add_registered_method_handlers('lerobot_armory.v1.ArmoryAdmin', rpc_method_handlers)
+
+
+ # This class is part of an EXPERIMENTAL API.
+class ArmoryAdmin:
+    """Missing associated documentation comment in .proto file."""
+
+    @staticmethod
+    def SwapPolicy(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/lerobot_armory.v1.ArmoryAdmin/SwapPolicy',
+            lerobot__armory_dot_proto_dot_armory__pb2.SwapRequest.SerializeToString,
+            lerobot__armory_dot_proto_dot_armory__pb2.SwapResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Status(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/lerobot_armory.v1.ArmoryAdmin/Status',
+            lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusRequest.SerializeToString,
+            lerobot__armory_dot_proto_dot_armory__pb2.AdminStatusResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)

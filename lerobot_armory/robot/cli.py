@@ -111,22 +111,31 @@ class ClientConfig:
 
 def read_credentials(cfg: ClientConfig) -> tuple[bytes | None, str]:
     """The CA certificate and the token the command line points at."""
-    tls_ca = None
-    if cfg.tls_ca:
-        try:
-            tls_ca = Path(cfg.tls_ca).read_bytes()
-        except OSError as exc:
-            raise ConfigError("tls_ca", f"cannot read {cfg.tls_ca}: {exc}") from None
-    token = ""
-    if cfg.auth_token_file:
-        try:
-            lines = [ln.split("#", 1)[0].strip() for ln in Path(cfg.auth_token_file).read_text().splitlines()]
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError("auth_token_file", f"cannot read {cfg.auth_token_file}: {exc}") from None
-        token = next((ln.split()[-1] for ln in lines if ln), "")
-        if not token:
-            raise ConfigError("auth_token_file", f"{cfg.auth_token_file} holds no token")
-    return tls_ca, token
+    return read_ca(cfg.tls_ca), read_token(cfg.auth_token_file)
+
+
+def read_ca(path: str | None, field: str = "tls_ca") -> bytes | None:
+    """The PEM bytes of ``--tls_ca`` (None: plaintext)."""
+    if not path:
+        return None
+    try:
+        return Path(path).read_bytes()
+    except OSError as exc:
+        raise ConfigError(field, f"cannot read {path}: {exc}") from None
+
+
+def read_token(path: str | None, field: str = "auth_token_file") -> str:
+    """The token of a token file (its first line that holds one: the last word of it); "" without a file."""
+    if not path:
+        return ""
+    try:
+        lines = [ln.split("#", 1)[0].strip() for ln in Path(path).read_text().splitlines()]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(field, f"cannot read {path}: {exc}") from None
+    token = next((ln.split()[-1] for ln in lines if ln), "")
+    if not token:
+        raise ConfigError(field, f"{path} holds no token")
+    return token
 
 
 def default_robot_id(cfg: ClientConfig, robot_type: str | None = None) -> str:

@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import grpc
 import numpy as np
@@ -71,6 +72,14 @@ class Registration:
         )
 
 
+def open_channel(address: str, tls_ca: bytes | None = None, options: list[tuple[str, Any]] | None = None) -> grpc.Channel:
+    """A channel to an armory server: TLS checked against ``tls_ca`` (PEM), or plaintext without it."""
+    if tls_ca is not None:
+        credentials = grpc.ssl_channel_credentials(root_certificates=tls_ca)
+        return grpc.secure_channel(address, credentials, options=options or [])
+    return grpc.insecure_channel(address, options=options or [])
+
+
 class Connection:
     """One robot's connection to an armory server.
 
@@ -112,10 +121,7 @@ class Connection:
         self.error: grpc.RpcError | None = None
 
     def _open_channel(self, address: str) -> grpc.Channel:
-        if self._tls_ca is not None:
-            credentials = grpc.ssl_channel_credentials(root_certificates=self._tls_ca)
-            return grpc.secure_channel(address, credentials, options=self._options)
-        return grpc.insecure_channel(address, options=self._options)
+        return open_channel(address, self._tls_ca, self._options)
 
     def wait_ready(self, timeout: float) -> bool:
         """True once the server's port accepts connections (within ``timeout`` seconds)."""

@@ -97,6 +97,9 @@ class ServerConfig:
         metrics_port: serve Prometheus metrics on this port (same host as gRPC); unset: off.
         tls_cert / tls_key: PEM files; with both, the gRPC port speaks TLS only.
         auth_token_file: robots must present a token from this file (see serving/security.py).
+        operator_token_file: tokens (one a line) that may call the admin RPCs
+            (``lerobot-armory-admin swap|status``: swap the served checkpoint live); distinct from
+            every robot token. Unset: admin calls are refused.
         max_obs_rate_hz: observations per second a robot may send (0: unlimited).
         fleet: ``--fleet.policy=FILE`` (YAML or JSON): what each robot may be granted (weight,
             tier, fps and horizon bounds, device share); see serving/fleet_policy.py. Without it
@@ -126,6 +129,7 @@ class ServerConfig:
     tls_cert: str | None = None
     tls_key: str | None = None
     auth_token_file: str | None = None
+    operator_token_file: str | None = None
     max_obs_rate_hz: float = 200.0
     fleet: FleetOptions = field(default_factory=lambda: FleetOptions())
     openpi: OpenpiOptions = field(default_factory=OpenpiOptions)

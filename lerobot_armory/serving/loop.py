@@ -20,7 +20,7 @@ import numpy as np
 
 from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.mirror import Chunk, RobotMirror
-from lerobot_armory.inference_latency import OnlineLatency
+from lerobot_armory.inference_latency import LatencyProfile, OnlineLatency
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.engine.faults import Fault, classify
 from lerobot_armory.engine.protocol import Engine, noise_seed
@@ -65,6 +65,7 @@ class BatchRecord:
     decision_ms: float
     ok: bool = True
     rtc_delays: list[int | None] | None = None  # with RTC: each robot's predicted inference delay
+    chunk_ids: list[int] | None = None  # each robot's chunk id (what its ActionChunk carries)
 
 
 @dataclass
@@ -124,6 +125,12 @@ class ServingLoop:
         self._last_end: float | None = None
         self._work_at_last_end = False
         self.error: BaseException | None = None
+        # A policy swap (serving/swap.py): the engine and d_infer table to switch to at the next
+        # batch boundary, whether dispatching is held (a drain), and whether a batch is in flight.
+        self._pending: tuple[Engine, list[float] | None] | None = None
+        self._held = False
+        self._busy = False
+        self.switched_at_batch: int | None = None  # loop batches served before the last switch
 
     def start(self) -> None:
         self._thread.start()
@@ -136,6 +143,57 @@ class ServingLoop:
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
+
+    # ---- policy swaps (serving/swap.py) ------------------------------------------------------
+
+    def hold(self, timeout: float) -> bool:
+        """Stop dispatching and wait until no batch is in flight (its chunks are queued by then).
+
+        Robots keep streaming and see a delay, not an error. False: the in-flight batch did not
+        finish in ``timeout`` or the loop stopped (the hold stays on; :meth:`resume` lifts it)."""
+        with self.fleet.cond:
+            self._held = True
+            self.fleet.cond.notify_all()
+            return self.fleet.cond.wait_for(lambda: not self._busy or self.fleet.stopping, timeout) and not self.fleet.stopping
+
+    def resume(self) -> None:
+        """Dispatch again after :meth:`hold`."""
+        with self.fleet.cond:
+            self._held = False
+            self.fleet.cond.notify_all()
+
+    def switch(self, engine: Engine, d_infer: list[float] | None, timeout: float) -> int | None:
+        """Serve every batch from the next one on with ``engine`` (and ``d_infer`` as the scheduler's
+        table, None: unchanged); returns the loop's batch count at the switch once it happened.
+
+        The switch happens on the loop's own thread between two batches, under the fleet lock:
+        the batch in flight finishes on the old engine and its chunks are queued before it, and
+        no batch after it runs on the old engine. None: the loop stopped or did not reach a batch
+        boundary within ``timeout`` (the switch is withdrawn)."""
+        with self.fleet.cond:
+            self._pending = (engine, d_infer)
+            self.fleet.cond.notify_all()
+            done = self.fleet.cond.wait_for(lambda: self._pending is None or self.fleet.stopping, timeout)
+            if not done or self._pending is not None:
+                self._pending = None
+                return None
+            return self.switched_at_batch
+
+    def _apply_switch(self) -> None:
+        """Take the pending engine (fleet lock held, loop thread, no batch in flight)."""
+        assert self._pending is not None
+        engine, table = self._pending
+        self.engine = engine
+        self.rtc = engine.rtc is not None
+        if table is not None:
+            self.scheduler.d_infer[:] = table
+            if self.latency is not None:
+                self.latency.restart(LatencyProfile("swapped", tuple(1000.0 * t for t in table), source="profiled"))
+        self._failures_in_a_row = 0
+        self._last_end = None  # the pause of a drain is not idle time with work waiting
+        self.switched_at_batch = self.stats.batches
+        self._pending = None
+        self.fleet.cond.notify_all()
 
     def _run(self) -> None:
         try:
@@ -156,8 +214,13 @@ class ServingLoop:
         with fleet.cond:
             while True:
                 while True:
+                    if self._pending is not None:
+                        self._apply_switch()
                     if fleet.stopping:
                         return None
+                    if self._held:
+                        fleet.cond.wait(0.25)
+                        continue
                     now = fleet.clock()
                     # A robot over its granted share of device time waits until the share decays;
                     # a robot without a stored observation has nothing to serve.
@@ -191,6 +254,7 @@ class ServingLoop:
             prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if self.rtc else None
             steps = self.engine.history_steps
             history = [s.history(steps) for s in chosen] if steps > 1 else None
+            self._busy = bool(chosen)
             return Batch(plan, chosen, [s.latest for s in chosen], prefixes, history)
 
     def _serve(self, batch: Batch) -> None:
@@ -228,6 +292,7 @@ class ServingLoop:
                 if session.move_after_chunk:
                     fleet.move_now(session)
             fleet.in_flight = set()
+            self._busy = False
             fleet.charge_device(batch.sessions, t_done - t_start, t_done)
             self._finish(plan.size, t_start, t_done)
             fleet.cond.notify_all()
@@ -282,6 +347,7 @@ class ServingLoop:
         with self.fleet.cond:
             self.dispatcher.cancel(plan)
             self.fleet.in_flight = set()
+            self._busy = False
             if shrink:
                 self.scheduler.max_batch_size = min(self.scheduler.max_batch_size, plan.size - 1)
                 self.stats.batch_cap = self.scheduler.max_batch_size
@@ -338,6 +404,7 @@ class ServingLoop:
                     plan.decision_s * 1000.0,
                     ok,
                     None if prefixes is None else [None if p is None else p.inference_delay for p in prefixes],
+                    [c.chunk_id for c in chunks],
                 )
             )
 

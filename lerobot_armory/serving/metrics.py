@@ -10,13 +10,14 @@ from __future__ import annotations
 import statistics
 from collections.abc import Callable, Iterator
 
-from prometheus_client import CollectorRegistry, Histogram, start_http_server
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
 from lerobot_armory.inference_latency import OnlineLatency
 from lerobot_armory.serving.fleet import Fleet
 from lerobot_armory.serving.loop import BatchRecord, LoopStats
+from lerobot_armory.serving.swap import RESULTS, SwapResult
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0)
 DECISION_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05)
@@ -128,6 +129,26 @@ class ServerMetrics:
         self.decision = Histogram(
             "armory_scheduler_decision_seconds", "Time the scheduler took to pick a batch", buckets=DECISION_BUCKETS, registry=self.registry
         )
+
+        self.swaps = Counter(
+            "armory_policy_swaps", "Live policy swaps asked by an operator, by result", ["result"], registry=self.registry
+        )
+        for result in RESULTS:
+            self.swaps.labels(result=result)  # every result shows, 0 until it happens
+        self.swap_seconds = Gauge(
+            "armory_policy_swap_seconds", "Duration of the last successful swap (load + warm-up + profile + switch)", registry=self.registry
+        )
+        self.policy = Gauge("armory_policy_info", "The checkpoint served now (value 1; its path is the label)", ["path"], registry=self.registry)
+
+    def set_policy(self, path: str) -> None:
+        self.policy.clear()
+        self.policy.labels(path=path).set(1)
+
+    def on_swap(self, result: SwapResult) -> None:
+        self.swaps.labels(result=result.result).inc()
+        if result.ok:
+            self.swap_seconds.set(result.seconds)
+            self.set_policy(result.new_path)
 
     def on_batch(self, record: BatchRecord) -> None:
         size = len(record.robots)

@@ -93,6 +93,50 @@ class AuthTokens:
         return self.identify(robot_id, token) is not None
 
 
+@dataclass
+class OperatorTokens:
+    """``--operator_token_file``: the tokens that may call the admin RPCs (swap a policy, status).
+
+    One token per line (blank lines and ``#`` comments ignored), at least 16 characters, none of
+    them a robot token: an operator token is a separate secret, and a robot's token never
+    authorises an admin call. Comparisons are constant-time; tokens are never logged.
+    """
+
+    tokens: list[str] = field(default_factory=list)
+
+    @classmethod
+    def load(cls, path: str, robots: AuthTokens | None = None, field_name: str = "operator_token_file") -> OperatorTokens:
+        try:
+            text = Path(path).read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(field_name, f"cannot read {path}: {exc}") from None
+        tokens = []
+        for n, raw in enumerate(text.splitlines(), start=1):
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            if len(line.split()) != 1:
+                raise ConfigError(field_name, f"{path}:{n}: expected one token per line")
+            if len(line) < 16:
+                raise ConfigError(field_name, f"{path}: tokens must be at least 16 characters")
+            tokens.append(line)
+        if not tokens:
+            raise ConfigError(field_name, f"{path} holds no token")
+        if robots is not None:
+            robot_tokens = {*robots.fleet, *robots.per_robot.values(), *robots.named.values()}
+            if any(t in robot_tokens for t in tokens):
+                raise ConfigError(field_name, f"{path} holds a token of --auth_token_file: operator tokens must differ from robot tokens")
+        return cls(tokens)
+
+    def check(self, token: str) -> bool:
+        """True if ``token`` is an operator token (every token compared, in constant time each)."""
+        given = token.encode()
+        found = False
+        for t in self.tokens:
+            found |= hmac.compare_digest(t.encode(), given)
+        return found and bool(token)
+
+
 def read_tls(cert: str | None, key: str | None) -> tuple[bytes, bytes] | None:
     """(key, certificate chain) PEM bytes for the server, or None without TLS."""
     if not cert and not key:

@@ -27,10 +27,17 @@ import grpc
 from google.protobuf import message_factory
 
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, add_ArmoryServicer_to_server
+from lerobot_armory.proto.armory_pb2_grpc import (
+    ArmoryAdminServicer,
+    ArmoryServicer,
+    add_ArmoryAdminServicer_to_server,
+    add_ArmoryServicer_to_server,
+)
 from lerobot_armory.proto.limits import MAX_REPORT_BYTES
 
-__all__ = ["MAX_ERROR_CHARS", "MAX_REPORT_BYTES", "Malformed", "add_armory_to_server", "rpc_names", "safe_deserializer"]
+__all__ = [
+    "MAX_ERROR_CHARS", "MAX_REPORT_BYTES", "Malformed", "add_admin_to_server", "add_armory_to_server", "rpc_names", "safe_deserializer",
+]
 
 # Longest parse error kept in a Malformed: the message of a DecodeError is short, anything longer is noise.
 MAX_ERROR_CHARS = 200
@@ -69,9 +76,9 @@ def safe_deserializer(message_type: type) -> Callable[[bytes], Any]:
     return deserialize
 
 
-def rpc_names() -> list[str]:
+def rpc_names(base: type = ArmoryServicer) -> list[str]:
     """The RPCs of the generated servicer base, i.e. of the ``.proto``'s service."""
-    return [name for name, value in vars(ArmoryServicer).items() if not name.startswith("_") and callable(value)]
+    return [name for name, value in vars(base).items() if not name.startswith("_") and callable(value)]
 
 
 class _Recorder:
@@ -95,14 +102,23 @@ def add_armory_to_server(servicer: ArmoryServicer, server: grpc.Server) -> None:
     Raises:
         TypeError: ``servicer`` does not implement one of the service's RPCs (caught here, not per call).
     """
-    for name in rpc_names():
+    _bind(servicer, server, ArmoryServicer, add_ArmoryServicer_to_server)
+
+
+def add_admin_to_server(servicer: ArmoryAdminServicer, server: grpc.Server) -> None:
+    """Serve the operator RPCs (``ArmoryAdmin``) as :func:`add_armory_to_server` serves the robots'."""
+    _bind(servicer, server, ArmoryAdminServicer, add_ArmoryAdminServicer_to_server)
+
+
+def _bind(servicer: Any, server: grpc.Server, base: type, add: Callable[[Any, Any], None]) -> None:
+    for name in rpc_names(base):
         method = getattr(servicer, name, None)
-        if not callable(method) or getattr(method, "__func__", method) is vars(ArmoryServicer)[name]:
-            raise TypeError(f"{type(servicer).__name__} does not implement the Armory RPC {name!r}")
+        if not callable(method) or getattr(method, "__func__", method) is vars(base)[name]:
+            raise TypeError(f"{type(servicer).__name__} does not implement the {base.__name__.removesuffix('Servicer')} RPC {name!r}")
     recorder = _Recorder()
-    add_ArmoryServicer_to_server(servicer, recorder)
+    add(servicer, recorder)
     if not recorder.tables:  # pragma: no cover - only a grpcio-tools that registers differently
-        raise RuntimeError("armory_pb2_grpc.add_ArmoryServicer_to_server registered no method table")
+        raise RuntimeError(f"armory_pb2_grpc.{add.__name__} registered no method table")
     for service_name, generated in recorder.tables.items():
         methods = pb.DESCRIPTOR.pool.FindServiceByName(service_name).methods_by_name
         handlers = {}

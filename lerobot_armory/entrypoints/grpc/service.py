@@ -22,8 +22,8 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec, spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
-from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_armory_to_server
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminServicer, ArmoryServicer
+from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_admin_to_server, add_armory_to_server
 from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, grant_to_wire, report_from_wire, to_wire
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
@@ -331,6 +331,7 @@ def start_grpc_server(
     max_robots: int,
     max_message_bytes: int,
     tls: tuple[bytes, bytes] | None = None,
+    admin: ArmoryAdminServicer | None = None,
 ) -> RunningServer:
     """Bind and start the gRPC server (``port=0`` picks a free port; ``tls`` = (key, cert) PEM).
 
@@ -356,6 +357,8 @@ def start_grpc_server(
         ],
     )
     add_armory_to_server(service, server)
+    if admin is not None:  # the operator's RPCs (entrypoints/grpc/admin.py), on the same port
+        add_admin_to_server(admin, server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"

@@ -1,0 +1,73 @@
+"""The operator's RPCs (``ArmoryAdmin``: swap the served checkpoint, status) on the robots' port.
+
+Only the translation lives here: authentication by operator token, protobuf in and out. The
+swap itself is the serving core's (:mod:`lerobot_armory.serving.swap`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import grpc
+
+from lerobot_armory.entrypoints.grpc.hardening import Malformed
+from lerobot_armory.proto import armory_pb2 as pb
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminServicer
+from lerobot_armory.proto.limits import TOKEN_KEY
+from lerobot_armory.serving.fleet import Fleet
+from lerobot_armory.serving.peer_log import ThrottledLog
+from lerobot_armory.serving.security import OperatorTokens
+from lerobot_armory.serving.swap import PolicySwapper
+
+log = logging.getLogger(__name__)
+
+MAX_PATH = 4096
+MAX_OVERRIDES = 64
+DEFAULT_POLICY = "default"
+NO_OPERATOR = "admin calls are off: the server was started without --operator_token_file"
+
+
+class AdminService(ArmoryAdminServicer):
+    """``SwapPolicy`` and ``Status`` for holders of an operator token (none configured: refused)."""
+
+    def __init__(
+        self, swapper: PolicySwapper, fleet: Fleet, operators: OperatorTokens | None, status_line: Callable[[], str]
+    ) -> None:
+        self.swapper = swapper
+        self.fleet = fleet
+        self.operators = operators
+        self.status_line = status_line
+        self.peer_log = ThrottledLog(log)
+
+    def _authorise(self, context: grpc.ServicerContext) -> None:
+        if self.operators is None:
+            context.abort(grpc.StatusCode.PERMISSION_DENIED, NO_OPERATOR)
+        token = dict(context.invocation_metadata()).get(TOKEN_KEY, "")
+        if not self.operators.check(token if isinstance(token, str) else ""):
+            self.peer_log.warn(context.peer(), "admin call refused: missing or wrong operator token")
+            context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong operator token")
+
+    def SwapPolicy(self, request: pb.SwapRequest, context: grpc.ServicerContext) -> pb.SwapResponse:  # noqa: N802
+        self._authorise(context)
+        if isinstance(request, Malformed):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed SwapRequest")
+        if request.policy_name not in ("", DEFAULT_POLICY):
+            context.abort(grpc.StatusCode.NOT_FOUND, f"no policy named {request.policy_name[:80]!r}: this server serves {DEFAULT_POLICY!r}")
+        if len(request.policy_path) > MAX_PATH or len(request.overrides) > MAX_OVERRIDES or any(len(o) > MAX_PATH for o in request.overrides):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "policy path or overrides too long")
+        log.info("operator %s asks to swap the policy to %s%s", context.peer(), request.policy_path, " (drain)" if request.drain else "")
+        result = self.swapper.swap(request.policy_path, list(request.overrides), request.drain)
+        return pb.SwapResponse(
+            result=result.result, message=result.message, old_path=result.old_path, new_path=result.new_path, seconds=result.seconds
+        )
+
+    def Status(self, request: pb.AdminStatusRequest, context: grpc.ServicerContext) -> pb.AdminStatusResponse:  # noqa: N802
+        self._authorise(context)
+        with self.fleet.cond:
+            robots = len(self.fleet.active())
+        counts = self.swapper.counts.by_result
+        return pb.AdminStatusResponse(
+            policy_path=self.swapper.current.path, policy=self.swapper.current.description, robots=robots,
+            swaps_ok=counts["ok"], swaps_refused=counts["refused"], swaps_failed=counts["failed"], status_line=self.status_line(),
+        )  # fmt: skip
