@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from prometheus_client import generate_latest
+
 from lerobot_armory.entrypoints.cluster.front import MOVE_INTERVAL_S, ClusterFront, FrontOptions
 from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.placement import Capacity
 
 
@@ -57,3 +60,14 @@ def test_at_most_one_move_per_interval_and_the_next_is_not_forgotten():
     now[0] += MOVE_INTERVAL_S
     second = front._plan_move(now[0])
     assert second is not None and second.robot_id != first.robot_id and not front._rebalance_due
+
+
+def test_moves_are_counted_on_the_front_s_metrics():
+    now = [100.0]
+    front = _front(now)
+    metrics = FrontMetrics(front)
+    assert "armory_front_moves_total 0.0" in generate_latest(metrics.registry).decode()
+    front.state["a"].reported = _robots("r", 8)
+    front._release(front._plan_move(now[0]), now[0])
+    assert front.moves_made == 1
+    assert "armory_front_moves_total 1.0" in generate_latest(metrics.registry).decode()

@@ -30,6 +30,7 @@ from typing import Any
 
 import grpc
 
+from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
@@ -136,6 +137,8 @@ class ClusterFront(ArmoryServicer):
         self.peer_log = ThrottledLog(log)
         self.admission = AdmissionLimiter()  # registrations per peer host, as on a replica
         self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
+        self.placed: collections.Counter[str] = collections.Counter()  # registrations accepted, by replica
+        self.moves_made = 0  # robots released for a move (self.moves keeps only the recent ones)
 
     # ---- the view ----------------------------------------------------------------------------
 
@@ -214,7 +217,9 @@ class ClusterFront(ArmoryServicer):
         except ReplicaDown:
             released = False
         if released:
-            self.moves.append(move)
+            with self.lock:
+                self.moves.append(move)
+                self.moves_made += 1
             log.info("rebalancing: moving %s from %s to %s (between two of its chunks)", move.robot_id, move.source, move.target)
 
     def placements(self) -> dict[str, str]:
@@ -316,6 +321,7 @@ class ClusterFront(ArmoryServicer):
                 context.abort(exc.code(), exc.details() or exc.code().name)  # the robot's own problem: told as is
             response.stream_address = address
             with self.lock:
+                self.placed[rid] += 1
                 for other_id, other in self.state.items():  # placed here now, nowhere else
                     if other_id != rid:
                         other.pending.pop(request.robot_id, None)
@@ -332,8 +338,10 @@ class ClusterFront(ArmoryServicer):
         self._refuse(context, grpc.StatusCode.UNAVAILABLE, "down", "no replica is up; retry")
 
     def _refuse(self, context: grpc.ServicerContext, code: grpc.StatusCode, why: str, message: str) -> None:
-        """Refuse a registration: counted by reason, logged once per peer (per 10 s), told as it is."""
-        self.refused[why] += 1
+        """Refuse a registration: counted by reason (``armory_front_registrations_refused_total``),
+        logged once per peer (per 10 s), told as it is."""
+        with self.lock:
+            self.refused[why] += 1
         self.peer_log.warn(context.peer(), f"registration refused: {message}")
         context.abort(code, message)
 
@@ -372,6 +380,8 @@ class FrontServer:
         tls: tuple[bytes, bytes] | None = None,
     ) -> None:
         self.front = front
+        self.metrics = FrontMetrics(front)
+        self._stop_metrics: Callable[[], None] | None = None
         self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls)  # type: ignore[arg-type]
         self.host = host
         self._stop = threading.Event()
@@ -387,6 +397,11 @@ class FrontServer:
     def address(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def serve_metrics(self, port: int) -> int:
+        """Start the front's Prometheus endpoint on its gRPC host; returns the port bound (0: a free one)."""
+        bound, self._stop_metrics = self.metrics.serve(port, self.host)
+        return bound
+
     def _loop(self) -> None:
         while not self._stop.wait(self.front.options.health_interval_s):
             try:
@@ -399,3 +414,6 @@ class FrontServer:
         self.grpc.set_serving(False)
         self.grpc.server.stop(grace_s).wait()
         self._thread.join(timeout=5)
+        if self._stop_metrics is not None:
+            self._stop_metrics()
+            self._stop_metrics = None
