@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import itertools
 import logging
 import threading
@@ -279,8 +280,8 @@ class OpenpiEndpoint:
         finally:
             self.waiting -= 1
         session: RobotSession | None = None
+        frames = _prepend(first, websocket)
         try:
-            frames = _prepend(first, websocket)
             async for frame in frames:
                 if session is None or self.fleet.sessions.get(session.session_id) is not session:
                     # The first request, or the first after the fleet gave an idle client's slot away.
@@ -308,6 +309,10 @@ class OpenpiEndpoint:
             if session is not None:
                 await asyncio.to_thread(self.fleet.detach, session.session_id)
                 log.info("openpi client %s disconnected", session.robot_id)
+            # Closed here: a connection that ended in the middle of a reply (a client that never
+            # reads, then drops) must not leave its frame generator to a later collection.
+            with contextlib.suppress(Exception):
+                await frames.aclose()
 
     def stop(self) -> None:
         if self._server is None:
