@@ -34,7 +34,17 @@ from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.placement import Capacity, Move, NoReplica, Placement, ReplicaView, make_placement, rebalance
+from lerobot_armory.placement import (
+    Capacity,
+    Move,
+    NoReplica,
+    Placement,
+    ReplicaView,
+    balanced_choices,
+    make_placement,
+    rebalance,
+    with_unverified,
+)
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
 from lerobot_armory.entrypoints.grpc.hardening import Malformed
@@ -197,7 +207,8 @@ class ClusterFront(ArmoryServicer):
 
     def _plan_move(self, now: float) -> Move | None:
         """The next move, planned on the robots that stream (as the replicas report them): a
-        registration that never streams counts for placement while pending, never for a move."""
+        registration that never streams counts for placement while pending (as one more robot like
+        the one being placed), never for a move."""
         self._rebalance_due = now - self.last_move_at < MOVE_INTERVAL_S
         if self._rebalance_due:
             return None
@@ -257,7 +268,13 @@ class ClusterFront(ArmoryServicer):
                 spec = self._spec(request)
                 try:
                     if spec is not None:
-                        rid = self.placement.choose(spec, views)
+                        # A registration that has not streamed yet counts as one more robot like
+                        # this one, whatever it claimed, and no choice unbalances the robots that
+                        # stream (placement.with_unverified, placement.balanced_choices).
+                        here = [(rid, s) for rid, s in self.state.items() if rid not in tried]
+                        placed = [with_unverified(s.view, s.reported, s.pending, spec) for rid, s in here]
+                        keep = balanced_choices(spec, [replace(s.view, robots=dict(s.reported)) for rid, s in here])
+                        rid = self.placement.choose(spec, [v for v in placed if v.replica_id in keep and v.open] or placed)
                     else:  # the replica will refuse it and say why: any open one answers
                         rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
                 except (NoReplica, ValueError):
