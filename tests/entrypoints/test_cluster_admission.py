@@ -70,7 +70,7 @@ def test_registrations_that_never_stream_cannot_lock_the_cluster(small_cluster):
     assert front.front.refused["down"] == 0
     metrics = _scrape(front.serve_metrics(0))
     assert sum(v for (name, _), v in metrics.items() if name == "armory_front_registrations_placed_total") == 13
-    assert all(_refused(metrics, reason) == 0 for reason in ("rate", "full", "unavailable", "down"))
+    assert all(_refused(metrics, reason) == 0 for reason in ("rate", "replica_rate", "full", "unavailable", "down"))
     assert metrics[("armory_front_replica_up", (("replica", "r0"),))] == 1.0
     assert metrics[("armory_front_replica_max_robots", (("replica", "r1"),))] == 2.0
 
@@ -95,6 +95,21 @@ def test_a_cluster_full_of_robots_that_ask_refuses_with_the_true_reason(small_cl
             r.client.close()
 
 
+def test_a_replica_s_registration_limit_is_named_as_such_not_as_full_replicas(small_cluster):
+    """Every registration reaches a replica from the front's host, so the replicas' per-host limit
+    counts all the front's robots together; when it refuses, the front says so (replica_rate)."""
+    front, local = small_cluster
+    assert wait_for(lambda: all(s.view.healthy for s in front.front.state.values()), timeout=10)
+    for rid in local.ids():
+        local.replicas[rid].server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
+    answers = [_register(front.address, f"r{k}") for k in range(5)]
+    assert answers[:4] == ["OK"] * 4, answers
+    assert answers[4].startswith("RESOURCE_EXHAUSTED: the replicas take no more registrations through this front"), answers[4]
+    assert "too many registrations from this host (127.0.0.1)" in answers[4] and "full of robots" not in answers[4]
+    assert front.front.refused["replica_rate"] == 1 and front.front.refused["full"] == 0
+    assert _refused(_scrape(front.serve_metrics(0)), "replica_rate") == 1
+
+
 class DeadReplicas:
     """Two replicas that never answer."""
 
@@ -114,7 +129,7 @@ def test_refusals_are_published_by_reason_on_the_front_s_metrics_port():
     try:
         port = front.serve_metrics(0)
         before = _scrape(port)
-        assert all(_refused(before, reason) == 0 for reason in ("rate", "full", "unavailable", "down"))
+        assert all(_refused(before, reason) == 0 for reason in ("rate", "replica_rate", "full", "unavailable", "down"))
         answers = [_register(front.address, f"r{k}") for k in range(5)]
         assert [a.split(":")[0] for a in answers] == ["UNAVAILABLE"] * 3 + ["RESOURCE_EXHAUSTED"] * 2, answers
         assert "no replica is up" in answers[0] and "too many registrations" in answers[3]

@@ -74,6 +74,8 @@ MOVE_COOLDOWN_S = 30.0
 # rebalances one robot at a time, each time against the load the replicas then report.
 MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
+# What a replica's refusal says when its per-host registration limit refused (serving/admission.py).
+REPLICA_RATE = "too many registrations from"
 
 
 @dataclass
@@ -348,6 +350,13 @@ class ClusterFront(ArmoryServicer):
             return response
         if answers and all(code == grpc.StatusCode.RESOURCE_EXHAUSTED for _, code, _ in answers):
             what = "; ".join(f"{rid}: {details}" for rid, _, details in answers)
+            if any(REPLICA_RATE in details for _, _, details in answers):
+                # A replica limits registrations per host, and every registration reaches it from
+                # this front's host: its limit is spent by all the front's robots together.
+                self._refuse(
+                    context, grpc.StatusCode.RESOURCE_EXHAUSTED, "replica_rate",
+                    f"the replicas take no more registrations through this front for now ({what})",
+                )  # fmt: skip
             self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "full", f"every replica is full of robots that ask ({what}); retry later")
         if answers:
             what = "; ".join(f"{rid}: {code.name}: {details}" for rid, code, details in answers)

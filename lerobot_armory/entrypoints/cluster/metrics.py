@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
 # Every reason the front refuses a registration for (ClusterFront._refuse), published at 0 from
 # the start so that a dashboard's rate() sees the first refusal.
-REFUSAL_REASONS = ("rate", "full", "unavailable", "down")
+REFUSAL_REASONS = ("rate", "replica_rate", "full", "unavailable", "down")
 
 
 class FrontCollector(Collector):
@@ -40,7 +40,8 @@ class FrontCollector(Collector):
             ]
         refused_f = CounterMetricFamily(
             "armory_front_registrations_refused",
-            "Registrations the front refused, by reason: rate (per-host limit), full (every replica full of robots "
+            "Registrations the front refused, by reason: rate (the front's per-host limit), replica_rate (the replicas' "
+            "per-host limit, which counts every registration through the front), full (every replica full of robots "
             "that ask), unavailable (replicas answered but none could take it), down (no replica up)",
             labels=["reason"],
         )
