@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+from collections import Counter
+
 from prometheus_client import generate_latest
 
 from lerobot_armory.entrypoints.cluster.front import MOVE_INTERVAL_S, ClusterFront, FrontOptions
@@ -100,6 +103,32 @@ def test_registrations_that_never_stream_cannot_fill_one_side_and_push_newcomers
         front._rebuild(state)
     request = pb.RegisterRequest(robot_id="new", fps=20.0, h_min=5, h_max=10, weight=1.0, tier="slow")
     assert next(front._choices(request)) == "a"
+
+
+def test_robots_registering_at_the_same_moment_are_spread_by_a_reservation_made_with_the_choice():
+    """8 registrations placed from 8 threads at once on an empty cluster: each choice is reserved
+    under the lock it was made under, so they split 4-4 (a reservation made later, as the call
+    went out, let several threads choose the same replica)."""
+    now = [100.0]
+    front = _front(now)
+    for state in front.state.values():
+        state.chunk_size = 10
+        state.address = f"127.0.0.1:{len(state.address) + 1}"
+    barrier = threading.Barrier(8)
+    chosen: list[str] = []
+
+    def place(k: int) -> None:
+        request = pb.RegisterRequest(robot_id=f"r{k}", fps=20.0, h_min=5, h_max=10, weight=1.0, tier="slow")
+        barrier.wait()
+        chosen.append(next(front._choices(request)))
+
+    threads = [threading.Thread(target=place, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(Counter(chosen).values()) == [4, 4], chosen
+    assert sorted(len(s.pending) for s in front.state.values()) == [4, 4]
 
 
 def test_moves_are_counted_on_the_front_s_metrics():

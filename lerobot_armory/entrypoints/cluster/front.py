@@ -268,14 +268,18 @@ class ClusterFront(ArmoryServicer):
             with self.lock:
                 views = [s.view for rid, s in self.state.items() if rid not in tried]
                 spec = self._spec(request)
+                # The robots that stream stay balanced whatever is chosen (placement.balanced_choices):
+                # registrations that never stream cannot push newcomers onto one replica.
+                keep = (
+                    balanced_choices(spec, [replace(s.view, robots=dict(s.reported)) for rid, s in self.state.items() if rid not in tried])
+                    if spec is not None
+                    else set()
+                )
                 try:
                     if spec is not None:
                         # A registration that has not streamed yet counts as one more robot like
-                        # this one, whatever it claimed, and no choice unbalances the robots that
-                        # stream (placement.with_unverified, placement.balanced_choices).
-                        here = [(rid, s) for rid, s in self.state.items() if rid not in tried]
-                        placed = [with_unverified(s.view, s.reported, s.pending, spec) for rid, s in here]
-                        keep = balanced_choices(spec, [replace(s.view, robots=dict(s.reported)) for rid, s in here])
+                        # this one, whatever it claimed (placement.with_unverified).
+                        placed = [with_unverified(s.view, s.reported, s.pending, spec) for rid, s in self.state.items() if rid not in tried]
                         rid = self.placement.choose(spec, [v for v in placed if v.replica_id in keep and v.open] or placed)
                     else:  # the replica will refuse it and say why: any open one answers
                         rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
@@ -284,9 +288,16 @@ class ClusterFront(ArmoryServicer):
                     # registrations that never streamed and robots that stopped asking), so the
                     # healthy ones decide, least loaded first; they refuse if they cannot.
                     healthy = sorted((v for v in views if v.healthy), key=lambda v: (len(v.robots), v.replica_id))
+                    healthy = [v for v in healthy if v.replica_id in keep] or healthy
                     if not healthy:
                         return
                     rid = healthy[0].replica_id
+                state = self.state[rid]
+                if spec is not None and state.view.healthy and state.address:
+                    # Reserved with the choice, under the same lock: robots registering at the same
+                    # moment see each other and spread (Register reserves it again before its call).
+                    state.pending[robot] = (spec, self.clock() + PENDING_S)
+                    self._rebuild(state)
             tried.add(rid)
             yield rid
 
