@@ -492,6 +492,7 @@ def run_flood(cluster: Cluster, proxy: SourceProxy, attack: bool, hosts: int = 1
         for timer in timers:
             timer.join()
     end = time.monotonic() + tail_s
+    record["honest_end_t"] = end
     for h in incumbents + during + after:
         h.stop_at(end)
     record["honest"] = [h.result(t0) for h in incumbents + during + after]
@@ -537,7 +538,7 @@ def run_lies(cluster: Cluster, proxy: SourceProxy, attack: bool) -> dict[str, An
             k += 1
             next_lie += 1.0
         time.sleep(0.02)
-    return {"lies": dict(lies), "lie_samples": samples, "honest": [h.result(t0) for h in honest + list(newcomers.values())]}
+    return {"honest_end_t": t0 + end_s, "lies": dict(lies), "lie_samples": samples, "honest": [h.result(t0) for h in honest + list(newcomers.values())]}
 
 
 def judge(row: str, record: dict[str, Any], statuses: list[dict[str, Any]], metrics: dict[str, float] | None, attack: bool) -> dict[str, Any]:
@@ -552,7 +553,17 @@ def judge(row: str, record: dict[str, Any], statuses: list[dict[str, Any]], metr
     if errors:
         failures.append("honest robot failed: " + "; ".join(e[:160] for e in errors[:2]))
     moves = last.get("moves", [])
-    summary: dict[str, Any] = {"row": row, "attacker": attack, "front_up": up, "moves": moves}
+    # When each move first showed in the polled status; those after the honest robots began to
+    # stop (the end of the run: a replica emptied by robots leaving) are not the attack's doing.
+    seen_at: list[float] = []
+    for s in statuses:
+        seen_at += [s["t"]] * (len(s["moves"]) - len(seen_at))
+    end = record.get("honest_end_t", float("inf"))
+    during = [m for m, t in zip(moves, seen_at, strict=False) if t < end]
+    summary: dict[str, Any] = {"row": row, "attacker": attack, "front_up": up, "moves": moves, "moves_during_run": during}
+    honest_ids = {h["robot_id"] for h in honest}
+    moved = sorted({m[0] for m in during if m[0] in honest_ids} | {h["robot_id"] for h in honest if h["moved_notices"]})
+    summary["honest_moved"] = moved
     if row.startswith("front_register_flood"):
         newcomers = [h for h in honest if not h["robot_id"].startswith("honest")]
         joins = {h["robot_id"]: h["first_chunk_s"] for h in newcomers}
@@ -593,25 +604,19 @@ def judge(row: str, record: dict[str, Any], statuses: list[dict[str, Any]], metr
         if refused is not None:
             notes.append("front counted " + (", ".join(f"{k} {v}" for k, v in sorted(refused.items())) or "no refusal"))
         notes.append(f"front logged {record.get('front_log_refusal_lines', 0)} refusal line(s)")
+        notes.append(f"honest robots moved during the run: {', '.join(moved) or 'none'}")
     else:
-        honest_ids = {h["robot_id"] for h in honest}
-        moved = sorted({m[0] for m in moves if m[0] in honest_ids} | {h["robot_id"] for h in honest if h["moved_notices"]})
-        summary["honest_moved"] = moved
         summary["lies"] = record.get("lies")
         if moved:
             failures.append(f"honest robots moved: {', '.join(moved)}")
-        # When each move first showed in the polled status: at most one per MOVE_INTERVAL_S.
-        seen_at: list[float] = []
-        count = 0
-        for s in statuses:
-            if len(s["moves"]) > count:
-                seen_at += [s["t"]] * (len(s["moves"]) - count)
-                count = len(s["moves"])
+        # At most one move per MOVE_INTERVAL_S (with the poll's resolution).
         gaps = [b - a for a, b in zip(seen_at, seen_at[1:], strict=False)]
         summary["move_gaps_s"] = gaps
         if any(g < MOVE_INTERVAL_S - 2 * POLL_S for g in gaps):
             failures.append(f"moves {min(gaps):.1f} s apart (at most one per {MOVE_INTERVAL_S:g} s)")
-        notes.append(f"{len(moves)} move(s)" + (": " + ", ".join(f"{r} {s}->{t}" for r, s, t in moves) if moves else ""))
+        notes.append(f"{len(during)} move(s) during the run" + (": " + ", ".join(f"{r} {s}->{t}" for r, s, t in during) if during else ""))
+        if len(moves) > len(during):
+            notes.append(f"{len(moves) - len(during)} more as the robots stopped")
         if record.get("lies"):
             notes.append("lies: " + ", ".join(f"{k} x{v}" for k, v in sorted(record["lies"].items())))
     starv = [h["starvation_pct"] for h in honest if h["starvation_pct"] is not None]
