@@ -4,6 +4,7 @@ registration, and one host cannot register faster than its limit, on gRPC and op
 from __future__ import annotations
 
 import contextlib
+import socket
 import threading
 import time
 
@@ -138,3 +139,38 @@ def test_openpi_clients_that_never_read_their_replies_are_served_as_any_client_a
     assert attack.counts["requests sent"] > sum(sent for sent, _ in sessions), attack.summary()
     assert small_server.loop.alive and small_server.loop.stats.failed_batches == 0
     assert wait_for(lambda: _openpi_sessions(small_server) == 0, timeout=10)  # all left with their sockets
+
+
+def test_an_openpi_client_that_takes_none_of_its_replies_is_dropped(small_server, monkeypatch):
+    """Replies that are never read fill the socket until the server's send waits, and websockets'
+    keepalive ping waits behind them: without a bound the connection (and its handler) would stay
+    forever. Text frames are answered at once, so a raw client with a 4 KiB window that sends them
+    and never reads gets there in well under a second."""
+    monkeypatch.setattr(openpi_endpoint, "SEND_TIMEOUT_S", 0.5)
+    before = small_server.openpi.refused["unread"]
+    port = small_server.openpi.port
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.settimeout(0.2)
+    s.connect(("127.0.0.1", port))
+    s.sendall(adv._ws_upgrade("127.0.0.1", port))
+    assert b" 101 " in s.recv(4096)
+    frame = adv._ws_frame(b"not a request, and nobody reads the answer", opcode=1)
+    dropped, deadline = False, time.monotonic() + 15
+    try:
+        while not dropped and time.monotonic() < deadline:
+            try:
+                s.send(frame)
+            except TimeoutError:
+                pass  # the server stopped reading: its replies wait
+            except OSError:
+                dropped = True
+    finally:
+        s.close()
+    assert dropped, "the server kept a connection that reads nothing"
+    assert small_server.openpi.refused["unread"] == before + 1
+    assert wait_for(lambda: _openpi_sessions(small_server) == 0, timeout=10)
+    with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:  # nobody else noticed
+        unpack(ws.recv(timeout=10), 1 << 20)
+        ws.send(pack(OBS))
+        assert unpack(ws.recv(timeout=10), 1 << 20)["actions"].shape == (10, 2)
