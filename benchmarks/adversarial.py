@@ -8,7 +8,9 @@ the libero preset's jitter; ``python tests/support/adversaries.py honest SPEC.js
 process, on its own thread, one attacker from ``tests/support/adversaries.py`` speaking the raw
 protocol. The honest robots tick for ``warmup_s + duration_s``; the attacker starts after the
 warm-up (or, for the attacks on joining — slot_squat, identity, idle_sockets, openpi_idle — before the honest
-robots start). The same honest fleet without an attacker, once per scheduler, is the baseline.
+robots start). The same honest fleet without an attacker, once per scheduler, is the baseline;
+it serves one more honest robot in the attacker's place (for openpi_never_reads: as many openpi
+clients as the attacker opens connections, that read their replies and ask again at once).
 
 A row passes when
 
@@ -63,11 +65,11 @@ from lerobot_armory.sim.presets import get_preset
 ALL_SCENARIOS = (
     "clock_nan", "capture_absurd", "report_absurd", "fps_absurd", "priority_flood", "clock_ahead", "huge_report",
     "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage",
-    "share_liar",
+    "share_liar", "openpi_never_reads",
 )  # fmt: skip
 # Attacks on something every scheduler shares (memory, sockets, slots, credentials, parsing) run
 # once, under the first of these that is selected; the others run under every scheduler.
-ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage")
+ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage", "openpi_never_reads")
 SINGLE_PREFERENCE = ("lookahead", "edf", "rr", "rollout")
 SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
 # share_liar: the liar's chunks/s may be at most this multiple of its honest twin's (a robot with the
@@ -78,6 +80,8 @@ SHARE_REGISTRATION = (("h_min", 0),)
 # too, so that the row measures the clock lie, not the registration (the fleet policy's h_min
 # floor governs that; docs/security.md gives what a greedy registration costs the others).
 CLOCK_AHEAD_REGISTRATION = (("h_min", 1),)
+# openpi_never_reads: its connections, and the baseline's stand-in: as many openpi clients that read.
+OPENPI_NEVER_READS_CONNECTIONS = 3
 JOIN = {"slot_squat": 10.0, "idle_sockets": 5.0, "openpi_idle": 10.0}  # scenario -> join limit (s)
 LEAD_S = 1.5  # attacks on joining start this long before the honest robots
 STEP_SETTLE_S = 1.0  # clock_step: the stepped robot is judged from this long after its step
@@ -125,15 +129,25 @@ class RunSpec:
     tokens: dict[str, str] = field(default_factory=dict)  # honest robot id -> token
     duration_s: float | None = None  # attack window if not the config's (never_reads: until all is sent)
     standin: tuple[tuple[str, Any], ...] = ()  # the baseline stand-in's registration, where it is not an honest robot's
+    # The baseline's stand-in where it is not an armory_sim robot: one of adversaries.STANDINS, run
+    # in the attacker's place with ``standin_kwargs`` (and the attacked run's server options).
+    standin_attack: str = ""
+    standin_kwargs: tuple[tuple[str, Any], ...] = ()
+    metrics_port: int = 0  # scrape the server's chunks per robot at the end of the window (0: no)
 
     @property
-    def baseline_key(self) -> tuple[str, int, tuple[tuple[str, Any], ...]]:
-        return (self.scheduler, self.cap, self.standin)
+    def baseline_key(self) -> tuple[str, int, tuple[tuple[str, Any], ...], str, tuple[tuple[str, Any], ...]]:
+        return (self.scheduler, self.cap, self.standin, self.standin_attack, self.standin_kwargs)
 
     @property
     def sched_label(self) -> str:
         label = self.scheduler if self.cap == CAP else f"{self.scheduler} b={self.cap}"
-        return label + "".join(f", stand-in {k} {v}" for k, v in self.standin) if self.scenario == "baseline" else label
+        if self.scenario != "baseline":
+            return label
+        label += "".join(f", stand-in {k} {v}" for k, v in self.standin)
+        if self.standin_attack:
+            label += f", stand-in {self.standin_attack}" + "".join(f" {k}={v}" for k, v in self.standin_kwargs)
+        return label
 
     @property
     def label(self) -> str:
@@ -297,7 +311,7 @@ def honest_specs(spec: RunSpec, cfg: Config) -> list[dict[str, Any]]:
             "robot_id": "twin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
             "seed": 98, **dict(spec.standin),
         })  # fmt: skip
-    if spec.scenario == "baseline" and cfg.standin:
+    if spec.scenario == "baseline" and cfg.standin and not spec.standin_attack:
         robots.append({
             "robot_id": "standin", "tier": "slow", "scene": "static", "fps": 20.0, "h_min": 5, "h_max": 10, "weight": 1.0,
             "seed": 99, **({"token": spec.tokens["honest0"]} if spec.tokens else {}), **dict(spec.standin),
@@ -361,7 +375,8 @@ def run_once(spec: RunSpec, cfg: Config, policy: str, work: Path) -> dict[str, A
         def attack() -> None:
             assert spec.attack is not None
             try:
-                adv.SCENARIOS[spec.attack](server.address, stop, features, report, **spec.attack_kwargs)
+                run = adv.SCENARIOS.get(spec.attack) or adv.STANDINS[spec.attack]
+                run(server.address, stop, features, report, **spec.attack_kwargs)
             except Exception as exc:  # noqa: BLE001 - the attacker's own failure is reported, not fatal
                 report.event(f"attacker failed: {type(exc).__name__}: {exc}")
                 report.extra["attacker error"] = f"{type(exc).__name__}: {exc}"
@@ -387,6 +402,8 @@ def run_once(spec: RunSpec, cfg: Config, policy: str, work: Path) -> dict[str, A
             group.kill()
             code = group.wait()
         rss_end = server.rss_mib()
+        if spec.metrics_port:
+            record["chunks_served"] = chunks_served(spec.metrics_port)
         busy1 = machine_cpu()
         alive = server.alive
         healthy = alive and server.healthy()
@@ -429,6 +446,24 @@ def run_once(spec: RunSpec, cfg: Config, policy: str, work: Path) -> dict[str, A
             server.stop()
     record["robots"] = [json.loads(p.read_text()) for p in sorted(stats_dir.glob("*.json"))]
     return record
+
+
+def chunks_served(port: int) -> dict[str, float] | str:
+    """``armory_robot_chunks_served_total`` per robot id, from the server's metrics endpoint."""
+    import urllib.request
+
+    from prometheus_client.parser import text_string_to_metric_families
+
+    try:
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
+    except OSError as exc:
+        return f"metrics not read: {exc}"
+    return {
+        sample.labels["robot_id"]: sample.value
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+        if sample.name == "armory_robot_chunks_served_total"
+    }
 
 
 # ---- judging -------------------------------------------------------------------------------------
@@ -554,6 +589,22 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
         notes.append(f"{extra.get('connected', '?')} idle sockets")
     if spec.scenario == "openpi_garbage":
         notes.append(f"{extra.get('garbage frames', '?')} garbage frames")
+    if spec.scenario == "openpi_never_reads":
+        counts = record.get("attack", {}).get("counts", {})
+        standin = (baseline or {}).get("attack", {}).get("counts", {})
+        row["requests_sent"] = counts.get("requests sent")
+        row["unread_reply_bytes"] = extra.get("unread reply bytes (open connections)")
+        # Chunks the server sent each openpi connection over the run, by its own count: the
+        # attacker's against the stand-in clients' that read them.
+        row["attacker_chunks"] = openpi_chunks(record)
+        row["standin_chunks"] = openpi_chunks(baseline or {})
+        notes.append(
+            f"{counts.get('requests sent', 0)} requests on {counts.get('connections opened', 0)} connection(s), never read "
+            f"({fmt(row['unread_reply_bytes'], '.0f')} reply bytes unread at the end); "
+            f"{counts.get('connections ended by the server', 0)} ended by the server; chunks served per connection: "
+            f"attacker {', '.join(f'{c:.0f}' for c in row['attacker_chunks']) or '-'}, "
+            f"stand-in clients {', '.join(f'{c:.0f}' for c in row['standin_chunks']) or '-'} (they read {standin.get('chunks', '-')})"
+        )
     if spec.scenario == "openpi_idle":
         notes.append(f"{extra.get('connected', '?')} idle openpi connections, {extra.get('told and closed by the server', '?')} closed by the server")
     if record.get("attack", {}).get("extra", {}).get("attacker error"):
@@ -564,6 +615,12 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     row["attack_summary"] = record.get("attack_summary", "")
     row["machine_busy_pct"] = record.get("machine_busy_pct")
     return row
+
+
+def openpi_chunks(record: dict[str, Any]) -> list[float]:
+    """Chunks the server sent each openpi session of a run (scraped at the end of its window)."""
+    served = record.get("chunks_served")
+    return sorted((v for k, v in served.items() if k.startswith("openpi-")), reverse=True) if isinstance(served, dict) else []
 
 
 def chunks_per_s(robots: list[dict[str, Any]], robot_id: str, start: float) -> float | None:
@@ -655,6 +712,14 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 base.server_args = [f"--max_robots={HONEST + 4}", f"--openpi.port={port}"]
                 base.attack_kwargs = {"port": port}
                 base.lead = True
+            if name == "openpi_never_reads":
+                port = free_port()
+                base.metrics_port = free_port()
+                base.server_args = [f"--openpi.port={port}", f"--metrics_port={base.metrics_port}"]
+                base.attack_kwargs = {"port": port, "connections": OPENPI_NEVER_READS_CONNECTIONS}
+                if cfg.standin:  # stand-in: as many openpi clients that read their replies
+                    base.standin_attack = "openpi_honest"
+                    base.standin_kwargs = (("connections", OPENPI_NEVER_READS_CONNECTIONS),)
             if name == "openpi_garbage":
                 port = free_port()
                 base.server_args = [f"--openpi.port={port}"]
@@ -672,10 +737,14 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 runs.append(replace(base, cap=1))
     needed = {r.baseline_key for r in runs}
     order = {s: k for k, s in enumerate(schedulers)}
-    baselines = [
-        RunSpec("baseline", s, cap=c, standin=st, duration_s=2 * cfg.duration_s if st else None)
-        for s, c, st in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2]))
-    ]
+    baselines = []
+    for s, c, st, sa, sk in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2], p[3])):
+        b = RunSpec("baseline", s, cap=c, standin=st, duration_s=2 * cfg.duration_s if st else None, standin_attack=sa, standin_kwargs=sk)
+        if sa:  # the stand-in runs where the attacker would, on ports of its own
+            port, b.metrics_port = free_port(), free_port()
+            b.attack, b.attack_kwargs = sa, {"port": port, **dict(sk)}
+            b.server_args = [f"--openpi.port={port}", f"--metrics_port={b.metrics_port}"]
+        baselines.append(b)
     return baselines + runs
 
 
@@ -740,7 +809,9 @@ def markdown(
         f"{cfg.warmup_s:g} s + {cfg.duration_s:g} s; the attacker starts after the warm-up, or "
         f"{LEAD_S:g} s before the honest robots for slot_squat, identity, idle_sockets and openpi_idle "
         "(1,000 websocket connections to the openpi port that never ask; the server has room for "
-        f"{HONEST + 4} robots)."),
+        f"{HONEST + 4} robots). openpi_never_reads: {OPENPI_NEVER_READS_CONNECTIONS} openpi connections send valid "
+        "requests as fast as the server takes them and never read a reply; its baseline's stand-in is "
+        f"{OPENPI_NEVER_READS_CONNECTIONS} openpi clients that read each reply and ask again at once."),
         "",
         ("A row passes when the server is up at the end of the attack (alive, health SERVING), the "
         f"honest robots' starvation over the attack window is at most {cfg.tolerance_pp:g} pp above the "
@@ -848,7 +919,7 @@ def main(argv: list[str] | None = None) -> int:
         f"schedulers {cfg.schedulers}; work dir {work}",
         flush=True,
     )
-    baselines: dict[tuple[str, int, tuple[tuple[str, Any], ...]], dict[str, Any]] = {}
+    baselines: dict[tuple, dict[str, Any]] = {}
     rows: list[dict[str, Any]] = []
     records: list[dict[str, Any]] = []
     for k, spec in enumerate(runs, start=1):
@@ -890,7 +961,10 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     command = "benchmarks/adversarial.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    base_list = [{**b, "scheduler": RunSpec("baseline", s, cap=c, standin=st).sched_label} for (s, c, st), b in baselines.items()]
+    base_list = [
+        {**b, "scheduler": RunSpec("baseline", s, cap=c, standin=st, standin_attack=sa, standin_kwargs=sk).sched_label}
+        for (s, c, st, sa, sk), b in baselines.items()
+    ]
     (out / "README.md").write_text(markdown(rows, base_list, cfg, command, elapsed, before))
     slim = [{k: v for k, v in r.items() if k != "robots"} | {"robots": [_slim(x) for x in r.get("robots", [])]} for r in records]
     (out / "results.json").write_text(json.dumps({"command": command, "config": cfg.__dict__, "rows": rows, "runs": slim}, indent=1, default=str) + "\n")

@@ -21,8 +21,8 @@ import abc
 import functools
 import itertools
 import random
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
@@ -265,6 +265,47 @@ class MirrorAwarePlacement(Placement):
             return (round(load, 9), r.weight_at_or_above(spec.weight), len(r.robots), r.replica_id)
 
         return min(candidates, key=key).replica_id
+
+
+def with_unverified(view: ReplicaView, verified: Mapping[str, RobotSpec], unverified: Iterable[str], newcomer: RobotSpec) -> ReplicaView:
+    """``view`` as placement should see it when ``newcomer`` joins: the ``verified`` robots (those
+    that stream, with the specs their replica granted) as they are, and each ``unverified`` one (a
+    registration that has not streamed yet) as one more robot like ``newcomer``.
+
+    A registration's rate and horizons are a claim until the robot streams. Believed, a claim that
+    never streams (fps 1000, h_max 1) makes its replica look full, every honest newcomer goes to
+    the other replicas, and the front later moves honest robots back to even the load out. Counted
+    as the newcomer's equal, it still spreads robots that register together (a failed replica's
+    robots all re-register at once), but weighs no more than the robot being placed.
+    """
+    robots = RobotTable(verified)
+    for robot_id in unverified:
+        if robot_id not in robots and robot_id != newcomer.robot_id:
+            robots[robot_id] = replace(newcomer, robot_id=robot_id)
+    return replace(view, robots=robots)
+
+
+def balanced_choices(spec: RobotSpec, streaming: Sequence[ReplicaView]) -> set[str]:
+    """The replicas ``spec`` can join without :func:`rebalance` then wanting to move a robot, judged
+    on ``streaming`` (views holding only the robots that stream); every healthy one when the robots
+    that stream are unbalanced already, or when no replica keeps them balanced.
+
+    Placement also counts registrations that have not streamed yet (:func:`with_unverified`), so
+    that robots registering together spread. Registrations that never stream can still fill one
+    replica's side of that count (they are placed too), and honest newcomers then go to the other
+    replica until the robots that stream are unbalanced, and the front moves one back. Restricted
+    to these replicas, placement never makes the imbalance a move would undo.
+    """
+    healthy = [v for v in streaming if v.healthy and v.open]
+    everyone = {v.replica_id for v in healthy}
+    if rebalance(streaming) is not None:
+        return everyone
+    keep = set()
+    for candidate in healthy:
+        views = [replace(v, robots={**v.robots, spec.robot_id: spec}) if v is candidate else v for v in streaming]
+        if rebalance(views) is None:
+            keep.add(candidate.replica_id)
+    return keep or everyone
 
 
 PLACEMENTS: dict[str, Callable[[int], Placement]] = {

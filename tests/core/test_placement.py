@@ -18,7 +18,9 @@ from lerobot_armory.placement import (
     demand,
     make_placement,
     place_all,
+    balanced_choices,
     rebalance,
+    with_unverified,
 )
 
 L40S = Capacity(tuple(load_profile("l40s-pi05").table_s(3)), 0.00375)
@@ -196,3 +198,75 @@ def test_utilization_counts_the_extra_robot():
     view = ReplicaView("gpu0", L40S, robots={"a": slow(0)})
     assert view.utilization(fast(0)) == pytest.approx(view.utilization() + demand(fast(0), L40S))
     assert math.isclose(ReplicaView("x", L40S).utilization(), 0.0)
+
+
+def test_a_registration_that_has_not_streamed_counts_as_one_more_robot_like_the_newcomer():
+    liar = RobotSpec("liar", 1000.0, 10, 0, 1, 1.0, "slow")  # claims a chunk every millisecond
+    view = ReplicaView("gpu0", H100, robots={"s0": slow(0), "liar": liar}, max_robots=3)
+    newcomer = slow(1)
+    placed = with_unverified(view, {"s0": slow(0)}, ["liar"], newcomer)
+    assert placed.robots["s0"] == slow(0)
+    assert placed.robots["liar"] == RobotSpec("liar", 20.0, 10, 1, 10, 1.0, "slow")  # the newcomer's claim, not its own
+    assert placed.utilization() == pytest.approx(2 * demand(newcomer, H100))
+    assert placed.max_robots == 3 and len(placed.robots) == 2 and placed.open
+    assert view.robots["liar"] == liar  # the front's own view is left as it was
+    # The newcomer's own earlier registration is not counted twice.
+    assert "slow01" not in with_unverified(view, {}, ["slow01"], newcomer).robots
+
+
+def test_a_pending_liar_does_not_steer_honest_newcomers_onto_one_replica():
+    """Two replicas with two streaming robots each; a registration that claims fps 1000, h_max 1
+    and never streams is pending on gpu0. Believed, it sends both newcomers to gpu1 (2 vs 4, which
+    a later rebalance evens out by moving an honest robot); as one more ordinary robot, it does not."""
+    liar = RobotSpec("liar", 1000.0, 10, 0, 1, 1.0, "slow")
+    streaming = [{"a": slow(0), "b": slow(1)}, {"c": slow(2), "d": slow(3)}]
+    pending = [["liar"], []]
+    policy = make_placement("mirror_aware")
+    believed = [dict(s) for s in streaming]
+    for k, newcomer in enumerate([slow(10), slow(11)]):
+        views = [ReplicaView(f"gpu{r}", H100, robots={**believed[r], **({"liar": liar} if pending[r] else {})}) for r in range(2)]
+        believed[int(policy.choose(newcomer, views)[-1])][newcomer.robot_id] = newcomer
+    assert [len(r) for r in believed] == [2, 4]
+    assert rebalance([ReplicaView(f"gpu{r}", H100, robots=believed[r]) for r in range(2)]) is not None
+    for k, newcomer in enumerate([slow(10), slow(11)]):
+        views = [
+            with_unverified(ReplicaView(f"gpu{r}", H100), streaming[r], pending[r], newcomer) for r in range(2)
+        ]
+        streaming[int(policy.choose(newcomer, views)[-1])][newcomer.robot_id] = newcomer
+    assert [len(r) for r in streaming] == [3, 3]
+    assert rebalance([ReplicaView(f"gpu{r}", H100, robots=streaming[r]) for r in range(2)]) is None
+
+
+def test_placement_never_makes_the_imbalance_a_move_would_undo():
+    """Liars placed on gpu0 (registrations that never stream) balance the count that includes them
+    against gpu1's one extra streaming robot; a newcomer counted that way would go to gpu1 (2 vs 4
+    streaming, and a move). balanced_choices leaves gpu0 only."""
+    streaming = [{"a": slow(0), "b": slow(1)}, {"c": slow(2), "d": slow(3), "e": slow(4)}]
+    pending = [["liar0", "liar1", "liar2"], []]
+    newcomer = slow(10)
+    placed = [with_unverified(ReplicaView(f"gpu{r}", H100), streaming[r], pending[r], newcomer) for r in range(2)]
+    assert make_placement("mirror_aware").choose(newcomer, placed) == "gpu1"
+    views = [ReplicaView(f"gpu{r}", H100, robots=streaming[r]) for r in range(2)]
+    assert balanced_choices(newcomer, views) == {"gpu0"}
+    # Balanced robots: either replica keeps them so; already unbalanced, or unhealthy: no restriction.
+    even = [ReplicaView(f"gpu{r}", H100, robots={f"s{r}{k}": slow(10 * r + k) for k in range(2)}) for r in range(2)]
+    assert balanced_choices(newcomer, even) == {"gpu0", "gpu1"}
+    lopsided = [ReplicaView("gpu0", H100, robots={f"s{k}": slow(k) for k in range(5)}), ReplicaView("gpu1", H100)]
+    assert balanced_choices(newcomer, lopsided) == {"gpu0", "gpu1"}
+    views[1].healthy = False
+    assert balanced_choices(newcomer, views) == {"gpu0"}
+
+
+def test_robots_registering_together_still_spread():
+    """A failed replica's 6 robots re-register before any of them is reported streaming: each
+    earlier one counts as pending, so they spread over the two survivors."""
+    streaming = [{"a": slow(0)}, {"b": slow(1)}]
+    pending: list[list[str]] = [[], []]
+    policy = make_placement("mirror_aware")
+    for k in range(6):
+        newcomer = slow(20 + k)
+        placed = [with_unverified(ReplicaView(f"gpu{r}", H100), streaming[r], pending[r], newcomer) for r in range(2)]
+        keep = balanced_choices(newcomer, [ReplicaView(f"gpu{r}", H100, robots=streaming[r]) for r in range(2)])
+        chosen = policy.choose(newcomer, [v for v in placed if v.replica_id in keep])
+        pending[int(chosen[-1])].append(newcomer.robot_id)
+    assert [len(p) for p in pending] == [3, 3]

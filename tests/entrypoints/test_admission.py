@@ -4,6 +4,9 @@ registration, and one host cannot register faster than its limit, on gRPC and op
 from __future__ import annotations
 
 import contextlib
+import socket
+import threading
+import time
 
 import grpc
 import numpy as np
@@ -18,6 +21,7 @@ from lerobot_armory.robot.connection import Connection
 from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.config import OpenpiOptions, ServerConfig
+from tests.support import adversaries as adv
 from tests.support.cluster import make_planner
 from tests.support.pusher import wait_for
 
@@ -104,3 +108,69 @@ def test_one_host_cannot_register_faster_than_its_limit_on_grpc_or_openpi(small_
             assert "too many registrations from this host" in ws.recv(timeout=10)
     finally:
         small_server.service.admission, small_server.openpi.admission = old
+
+
+def test_openpi_clients_that_never_read_their_replies_are_served_as_any_client_and_hurt_nobody(small_server):
+    """benchmarks/adversarial.py's openpi_never_reads attacker (valid requests as fast as the server
+    takes them, replies never read) beside an openpi client that reads: the attacker's requests
+    are valid observations served as a client's, and the reading client keeps being served."""
+    features = {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}
+    stop = threading.Event()
+    attack, honest = adv.AttackReport("openpi_never_reads"), adv.AttackReport("openpi_honest")
+    kwargs = {"port": small_server.openpi.port}
+    threads = [
+        threading.Thread(target=adv.openpi_never_reads, args=(small_server.address, stop, features, attack), kwargs={**kwargs, "connections": 2}),
+        threading.Thread(target=adv.openpi_honest, args=(small_server.address, stop, features, honest), kwargs={**kwargs, "connections": 1}),
+    ]
+    for t in threads:
+        t.start()
+    try:
+        time.sleep(3.0)
+        with small_server.fleet.cond:
+            sessions = [(s.counters.chunks_sent, s.counters.rejected) for s in small_server.fleet.sessions.values() if s.robot_id.startswith("openpi-")]
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=15)
+    assert not any(t.is_alive() for t in threads)
+    assert honest.counts["chunks"] >= 5 and not honest.counts["refusals"], honest.summary()
+    assert len(sessions) == 3 and all(sent > 0 and rejected == 0 for sent, rejected in sessions), sessions
+    # It sent far more than was answered: the rest waits in the server's bounded queues and the kernel's.
+    assert attack.counts["requests sent"] > sum(sent for sent, _ in sessions), attack.summary()
+    assert small_server.loop.alive and small_server.loop.stats.failed_batches == 0
+    assert wait_for(lambda: _openpi_sessions(small_server) == 0, timeout=10)  # all left with their sockets
+
+
+def test_an_openpi_client_that_takes_none_of_its_replies_is_dropped(small_server, monkeypatch):
+    """Replies that are never read fill the socket until the server's send waits, and websockets'
+    keepalive ping waits behind them: without a bound the connection (and its handler) would stay
+    forever. Text frames are answered at once, so a raw client with a 4 KiB window that sends them
+    and never reads gets there in well under a second."""
+    monkeypatch.setattr(openpi_endpoint, "SEND_TIMEOUT_S", 0.5)
+    before = small_server.openpi.refused["unread"]
+    port = small_server.openpi.port
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.settimeout(0.2)
+    s.connect(("127.0.0.1", port))
+    s.sendall(adv._ws_upgrade("127.0.0.1", port))
+    assert b" 101 " in s.recv(4096)
+    frame = adv._ws_frame(b"not a request, and nobody reads the answer", opcode=1)
+    dropped, deadline = False, time.monotonic() + 15
+    try:
+        while not dropped and time.monotonic() < deadline:
+            try:
+                s.send(frame)
+            except TimeoutError:
+                pass  # the server stopped reading: its replies wait
+            except OSError:
+                dropped = True
+    finally:
+        s.close()
+    assert dropped, "the server kept a connection that reads nothing"
+    assert small_server.openpi.refused["unread"] == before + 1
+    assert wait_for(lambda: _openpi_sessions(small_server) == 0, timeout=10)
+    with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:  # nobody else noticed
+        unpack(ws.recv(timeout=10), 1 << 20)
+        ws.send(pack(OBS))
+        assert unpack(ws.recv(timeout=10), 1 << 20)["actions"].shape == (10, 2)

@@ -12,7 +12,8 @@ rate granted as asked). ``features`` is ``{name: (dtype, shape)}`` of what the s
 (zeros are sent).
 
 Scenarios: clock_nan, capture_absurd, report_absurd, fps_absurd, priority_flood, clock_ahead,
-huge_report, never_reads, slot_squat, identity, idle_sockets, garbage (``SCENARIOS``). The 11th
+huge_report, never_reads, slot_squat, identity, idle_sockets, garbage, openpi_idle, openpi_garbage,
+openpi_never_reads (``SCENARIOS``; honest stand-ins in ``STANDINS``). The 11th
 attack of the benchmark, a robot whose clock steps, is not an attacker but an honest robot with
 a stepped clock: :func:`run_ticks` with a :class:`SteppedClock`.
 
@@ -1257,6 +1258,151 @@ def openpi_garbage(
     return report
 
 
+# ---- 16. openpi_never_reads --------------------------------------------------------------------
+
+
+def openpi_observation(features: Features, task: str = "pick up the block") -> dict[str, Any]:
+    """A valid openpi request for a policy with ``features``: each feature under its own name
+    (the endpoint's key map takes it), zeros, and a prompt."""
+    return {**{name: np.zeros(shape, dtype=dtype) for name, (dtype, shape) in features.items()}, "prompt": task}
+
+
+def _send_frame(sock: socket.socket, data: bytes, stop: threading.Event, report: AttackReport) -> bool:
+    """All of ``data`` (one frame: a frame cut in two would be a protocol error, not the attack),
+    waiting as long as the server's receive window stays shut; False if ``stop`` came first."""
+    view = memoryview(data)
+    blocked = False
+    while view:
+        if stop.is_set():
+            return False
+        try:
+            view = view[sock.send(view) :]
+        except TimeoutError:
+            if not blocked:
+                report.add("sends blocked (the server stopped reading)")
+                blocked = True
+    return True
+
+
+def openpi_never_reads(
+    address: str,
+    stop: threading.Event,
+    features: Features,
+    report: AttackReport | None = None,
+    *,
+    port: int,
+    connections: int = 3,
+    rcvbuf: int = 4096,
+) -> AttackReport:
+    """``connections`` openpi connections that send valid requests as fast as the server takes
+    them and never read a byte back (a 4 KiB receive window, so that the server's replies back up
+    soon). A connection the server ends is opened again. The stand-in is :func:`openpi_honest`
+    with as many connections."""
+    report = report or AttackReport("openpi_never_reads")
+    from lerobot_armory.entrypoints.openpi.codec import pack
+
+    host = address.rpartition(":")[0].strip("[]")
+    upgrade = _ws_upgrade(host, port)
+    frame = _ws_frame(pack(openpi_observation(features)))
+    report.extra["request bytes"] = len(frame)
+    socks: list[socket.socket] = []
+    lock = threading.Lock()
+
+    def one(k: int) -> None:
+        while not stop.is_set():
+            s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)  # before connect: the window it advertises
+            s.settimeout(1.0)
+            try:
+                s.connect((host, port))
+                s.sendall(upgrade)
+                # The 101 and the server's metadata frame: the last bytes this client reads.
+                if b" 101 " not in s.recv(4096):
+                    raise OSError("no websocket upgrade")
+            except OSError as exc:
+                s.close()
+                report.add("connections failed")
+                report.event(f"connect failed: {exc}")
+                stop.wait(0.3)
+                continue
+            report.add("connections opened")
+            with lock:
+                socks.append(s)
+            try:
+                while _send_frame(s, frame, stop, report):
+                    report.add("requests sent")
+            except OSError as exc:
+                report.add("connections ended by the server")
+                report.event(f"connection ended: {type(exc).__name__}: {exc}")
+                stop.wait(0.3)
+
+    threads = [threading.Thread(target=one, args=(k,), name=f"openpi-never-reads-{k}", daemon=True) for k in range(connections)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    import fcntl
+    import termios
+
+    unread = []
+    for s in socks:  # what the server sent that nobody read, as it sits in this side's receive buffers
+        with contextlib.suppress(OSError):
+            unread.append(struct.unpack("i", fcntl.ioctl(s.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0])
+        s.close()
+    report.extra["unread reply bytes (open connections)"] = sum(unread)
+    report.extra["requests sent"] = report.counts["requests sent"]
+    return report
+
+
+def openpi_honest(
+    address: str,
+    stop: threading.Event,
+    features: Features,
+    report: AttackReport | None = None,
+    *,
+    port: int,
+    connections: int = 3,
+) -> AttackReport:
+    """The honest stand-in of :func:`openpi_never_reads`: ``connections`` openpi clients that send
+    the same request, read each reply, and ask again at once (openpi's client in a loop)."""
+    report = report or AttackReport("openpi_honest")
+    from websockets.sync.client import connect
+
+    from lerobot_armory.entrypoints.openpi.codec import pack
+
+    host = address.rpartition(":")[0].strip("[]")
+    request = pack(openpi_observation(features))
+
+    def one(k: int) -> None:
+        while not stop.is_set():
+            try:
+                with connect(f"ws://{host}:{port}", compression=None, max_size=None, open_timeout=10) as ws:
+                    ws.recv(timeout=10)  # the server's metadata
+                    report.add("connections opened")
+                    while not stop.is_set():
+                        ws.send(request)
+                        reply = ws.recv(timeout=30)
+                        report.add("chunks" if isinstance(reply, bytes) else "refusals")
+                        if isinstance(reply, str):
+                            report.event(reply[:200])
+            except Exception as exc:  # noqa: BLE001 - a connection the server ends is opened again
+                if not stop.is_set():
+                    report.add("connections ended")
+                    report.event(f"connection ended: {type(exc).__name__}: {str(exc)[:160]}")
+                    stop.wait(0.3)
+
+    threads = [threading.Thread(target=one, args=(k,), name=f"openpi-honest-{k}", daemon=True) for k in range(connections)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return report
+
+
+# The honest stand-ins of attackers whose baseline is not an armory_sim robot.
+STANDINS: dict[str, Callable[..., AttackReport]] = {"openpi_honest": openpi_honest}
+
+
 SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "clock_nan": clock_nan,
     "capture_absurd": capture_absurd,
@@ -1273,6 +1419,7 @@ SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "garbage": garbage,
     "openpi_idle": openpi_idle,
     "openpi_garbage": openpi_garbage,
+    "openpi_never_reads": openpi_never_reads,
 }
 
 

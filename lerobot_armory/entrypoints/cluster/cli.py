@@ -4,7 +4,9 @@
     lerobot-armory-cluster --policy.path=... --replicas=8 --ray.address=auto --replica.host=0.0.0.0
 
 Every ``lerobot-armory-server`` option applies to each replica (``--policy.*``, ``--scheduler.*``,
-``--max_batch_size``, ``--fleet.policy``, ``--auth_token_file`` ...); ``--port`` is the front's.
+``--max_batch_size``, ``--fleet.policy``, ``--auth_token_file`` ...); ``--port`` is the front's, and so
+is ``--metrics_port`` (the front's registrations placed and refused by reason, its moves, its view of
+the replicas; the replicas publish no metrics port of their own).
 Robots use ``--server_address=`` the front and nothing else changes.
 
 Ray places the replicas (one GPU each by default), restarts one that dies, and keeps them when
@@ -64,7 +66,8 @@ class ReplicaOptions:
 
 @dataclass
 class ClusterConfig(ServerConfig):
-    """Options of ``lerobot-armory-cluster``: the server's, plus the cluster's own."""
+    """Options of ``lerobot-armory-cluster``: the server's, plus the cluster's own. ``--port`` and
+    ``--metrics_port`` are the front's."""
 
     replicas: int = 2
     ray: RayOptions = field(default_factory=RayOptions)
@@ -84,6 +87,7 @@ class ClusterConfig(ServerConfig):
         base = {f.name: getattr(self, f.name) for f in dataclasses.fields(ServerConfig)}
         base["host"] = self.replica.host or self.host
         base["port"] = 0
+        base["metrics_port"] = None  # --metrics_port is the front's
         base["status_interval_s"] = 0.0
         return ServerConfig(**base)
 
@@ -168,8 +172,10 @@ def run(cfg: ClusterConfig) -> None:
     front = FrontServer(
         ClusterFront(replicas, cfg.cluster, channel_factory=channels), cfg.host, cfg.port, int(cfg.max_message_mb * (1 << 20)), tls
     )
+    metrics_port = front.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
     print(
         f"lerobot-armory-cluster front listening on {front.address}: robots use --server_address={front.address}\n"
+        f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
         f"  placement: {cfg.cluster.placement}, health checks every {cfg.cluster.health_interval_s:g} s, "
         f"rebalancing {'on' if cfg.cluster.rebalance else 'off'}\n{front.front.describe()}",
         flush=True,

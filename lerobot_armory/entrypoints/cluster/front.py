@@ -30,10 +30,21 @@ from typing import Any
 
 import grpc
 
+from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
-from lerobot_armory.placement import Capacity, Move, NoReplica, Placement, ReplicaView, make_placement, rebalance
+from lerobot_armory.placement import (
+    Capacity,
+    Move,
+    NoReplica,
+    Placement,
+    ReplicaView,
+    balanced_choices,
+    make_placement,
+    rebalance,
+    with_unverified,
+)
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
 from lerobot_armory.entrypoints.grpc.hardening import Malformed
@@ -63,6 +74,8 @@ MOVE_COOLDOWN_S = 30.0
 # rebalances one robot at a time, each time against the load the replicas then report.
 MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
+# What a replica's refusal says when its per-host registration limit refused (serving/admission.py).
+REPLICA_RATE = "too many registrations from"
 
 
 @dataclass
@@ -136,6 +149,8 @@ class ClusterFront(ArmoryServicer):
         self.peer_log = ThrottledLog(log)
         self.admission = AdmissionLimiter()  # registrations per peer host, as on a replica
         self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
+        self.placed: collections.Counter[str] = collections.Counter()  # registrations accepted, by replica
+        self.moves_made = 0  # robots released for a move (self.moves keeps only the recent ones)
 
     # ---- the view ----------------------------------------------------------------------------
 
@@ -194,7 +209,8 @@ class ClusterFront(ArmoryServicer):
 
     def _plan_move(self, now: float) -> Move | None:
         """The next move, planned on the robots that stream (as the replicas report them): a
-        registration that never streams counts for placement while pending, never for a move."""
+        registration that never streams counts for placement while pending (as one more robot like
+        the one being placed), never for a move."""
         self._rebalance_due = now - self.last_move_at < MOVE_INTERVAL_S
         if self._rebalance_due:
             return None
@@ -214,7 +230,9 @@ class ClusterFront(ArmoryServicer):
         except ReplicaDown:
             released = False
         if released:
-            self.moves.append(move)
+            with self.lock:
+                self.moves.append(move)
+                self.moves_made += 1
             log.info("rebalancing: moving %s from %s to %s (between two of its chunks)", move.robot_id, move.source, move.target)
 
     def placements(self) -> dict[str, str]:
@@ -250,9 +268,19 @@ class ClusterFront(ArmoryServicer):
             with self.lock:
                 views = [s.view for rid, s in self.state.items() if rid not in tried]
                 spec = self._spec(request)
+                # The robots that stream stay balanced whatever is chosen (placement.balanced_choices):
+                # registrations that never stream cannot push newcomers onto one replica.
+                keep = (
+                    balanced_choices(spec, [replace(s.view, robots=dict(s.reported)) for rid, s in self.state.items() if rid not in tried])
+                    if spec is not None
+                    else set()
+                )
                 try:
                     if spec is not None:
-                        rid = self.placement.choose(spec, views)
+                        # A registration that has not streamed yet counts as one more robot like
+                        # this one, whatever it claimed (placement.with_unverified).
+                        placed = [with_unverified(s.view, s.reported, s.pending, spec) for rid, s in self.state.items() if rid not in tried]
+                        rid = self.placement.choose(spec, [v for v in placed if v.replica_id in keep and v.open] or placed)
                     else:  # the replica will refuse it and say why: any open one answers
                         rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
                 except (NoReplica, ValueError):
@@ -260,9 +288,16 @@ class ClusterFront(ArmoryServicer):
                     # registrations that never streamed and robots that stopped asking), so the
                     # healthy ones decide, least loaded first; they refuse if they cannot.
                     healthy = sorted((v for v in views if v.healthy), key=lambda v: (len(v.robots), v.replica_id))
+                    healthy = [v for v in healthy if v.replica_id in keep] or healthy
                     if not healthy:
                         return
                     rid = healthy[0].replica_id
+                state = self.state[rid]
+                if spec is not None and state.view.healthy and state.address:
+                    # Reserved with the choice, under the same lock: robots registering at the same
+                    # moment see each other and spread (Register reserves it again before its call).
+                    state.pending[robot] = (spec, self.clock() + PENDING_S)
+                    self._rebuild(state)
             tried.add(rid)
             yield rid
 
@@ -316,6 +351,7 @@ class ClusterFront(ArmoryServicer):
                 context.abort(exc.code(), exc.details() or exc.code().name)  # the robot's own problem: told as is
             response.stream_address = address
             with self.lock:
+                self.placed[rid] += 1
                 for other_id, other in self.state.items():  # placed here now, nowhere else
                     if other_id != rid:
                         other.pending.pop(request.robot_id, None)
@@ -325,6 +361,13 @@ class ClusterFront(ArmoryServicer):
             return response
         if answers and all(code == grpc.StatusCode.RESOURCE_EXHAUSTED for _, code, _ in answers):
             what = "; ".join(f"{rid}: {details}" for rid, _, details in answers)
+            if any(REPLICA_RATE in details for _, _, details in answers):
+                # A replica limits registrations per host, and every registration reaches it from
+                # this front's host: its limit is spent by all the front's robots together.
+                self._refuse(
+                    context, grpc.StatusCode.RESOURCE_EXHAUSTED, "replica_rate",
+                    f"the replicas take no more registrations through this front for now ({what})",
+                )  # fmt: skip
             self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "full", f"every replica is full of robots that ask ({what}); retry later")
         if answers:
             what = "; ".join(f"{rid}: {code.name}: {details}" for rid, code, details in answers)
@@ -332,8 +375,10 @@ class ClusterFront(ArmoryServicer):
         self._refuse(context, grpc.StatusCode.UNAVAILABLE, "down", "no replica is up; retry")
 
     def _refuse(self, context: grpc.ServicerContext, code: grpc.StatusCode, why: str, message: str) -> None:
-        """Refuse a registration: counted by reason, logged once per peer (per 10 s), told as it is."""
-        self.refused[why] += 1
+        """Refuse a registration: counted by reason (``armory_front_registrations_refused_total``),
+        logged once per peer (per 10 s), told as it is."""
+        with self.lock:
+            self.refused[why] += 1
         self.peer_log.warn(context.peer(), f"registration refused: {message}")
         context.abort(code, message)
 
@@ -372,6 +417,8 @@ class FrontServer:
         tls: tuple[bytes, bytes] | None = None,
     ) -> None:
         self.front = front
+        self.metrics = FrontMetrics(front)
+        self._stop_metrics: Callable[[], None] | None = None
         self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls)  # type: ignore[arg-type]
         self.host = host
         self._stop = threading.Event()
@@ -387,6 +434,11 @@ class FrontServer:
     def address(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def serve_metrics(self, port: int) -> int:
+        """Start the front's Prometheus endpoint on its gRPC host; returns the port bound (0: a free one)."""
+        bound, self._stop_metrics = self.metrics.serve(port, self.host)
+        return bound
+
     def _loop(self) -> None:
         while not self._stop.wait(self.front.options.health_interval_s):
             try:
@@ -399,3 +451,6 @@ class FrontServer:
         self.grpc.set_serving(False)
         self.grpc.server.stop(grace_s).wait()
         self._thread.join(timeout=5)
+        if self._stop_metrics is not None:
+            self._stop_metrics()
+            self._stop_metrics = None

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import itertools
 import logging
 import threading
@@ -52,6 +53,9 @@ FIRST_REQUEST_S = 10.0
 MAX_WAITING = 64
 # Longest a request is held for the progress bound (replan actions at the lowest sane fps).
 MAX_PACE_S = 10.0
+# A client that takes none of our bytes for this long while a reply waits is dropped: its replies
+# would wait forever (websockets' keepalive ping waits behind them and never times out).
+SEND_TIMEOUT_S = 10.0
 
 
 class OpenpiSession:
@@ -246,8 +250,20 @@ class OpenpiEndpoint:
 
     async def _refuse(self, websocket: Any, reason: str, why: str) -> None:
         self.refused[why] += 1
-        await websocket.send(f"lerobot-armory refused this client: {reason}")
-        await websocket.close()
+        with contextlib.suppress(ConnectionAbortedError):  # it reads nothing: already dropped
+            await self._send(websocket, f"lerobot-armory refused this client: {reason}")
+            await websocket.close()
+
+    async def _send(self, websocket: Any, message: str | bytes) -> None:
+        """Send one frame; a client that does not read it within ``SEND_TIMEOUT_S`` is dropped
+        (counted in ``refused["unread"]``) and ConnectionAbortedError ends its handler."""
+        try:
+            await asyncio.wait_for(websocket.send(message), SEND_TIMEOUT_S)
+        except TimeoutError:
+            self.refused["unread"] += 1
+            log.info("openpi client %s read nothing for %g s: dropped", websocket.remote_address, SEND_TIMEOUT_S)
+            websocket.transport.abort()
+            raise ConnectionAbortedError(f"the client read no reply for {SEND_TIMEOUT_S:g} s") from None
 
     async def _handle(self, websocket: Any) -> None:
         header = websocket.request.headers.get("Authorization", "") if websocket.request is not None else ""
@@ -269,7 +285,7 @@ class OpenpiEndpoint:
             return
         self.waiting += 1
         try:
-            await websocket.send(pack(self.metadata))
+            await self._send(websocket, pack(self.metadata))
             first = await asyncio.wait_for(websocket.recv(), FIRST_REQUEST_S)
         except TimeoutError:
             await self._refuse(websocket, f"no request within {FIRST_REQUEST_S:g} s (a connection holds a slot only while it asks)", "idle")
@@ -279,8 +295,8 @@ class OpenpiEndpoint:
         finally:
             self.waiting -= 1
         session: RobotSession | None = None
+        frames = _prepend(first, websocket)
         try:
-            frames = _prepend(first, websocket)
             async for frame in frames:
                 if session is None or self.fleet.sessions.get(session.session_id) is not session:
                     # The first request, or the first after the fleet gave an idle client's slot away.
@@ -292,22 +308,26 @@ class OpenpiEndpoint:
                     client = OpenpiSession(self.fleet, session, self.keymap, min(self.options.replan_steps, self.chunk_size))
                     log.info("openpi client %s asks as %s", address, session.robot_id)
                 if isinstance(frame, str):
-                    await websocket.send("expected a binary msgpack frame (openpi's client packs the observation), got text")
+                    await self._send(websocket, "expected a binary msgpack frame (openpi's client packs the observation), got text")
                     continue
                 try:
                     obs = unpack(frame, self.max_message_bytes)
                     reply = await asyncio.to_thread(client.infer, obs)
                 except (WireError, RuntimeError) as exc:
                     session.counters.rejected += 1
-                    await websocket.send(f"lerobot-armory: request refused: {exc}")
+                    await self._send(websocket, f"lerobot-armory: request refused: {exc}")
                     continue
-                await websocket.send(pack(reply))
+                await self._send(websocket, pack(reply))
         except Exception as exc:  # noqa: BLE001 - a connection's failure is its own
             log.info("openpi client %s: connection ended (%s)", robot_id, type(exc).__name__)
         finally:
             if session is not None:
                 await asyncio.to_thread(self.fleet.detach, session.session_id)
                 log.info("openpi client %s disconnected", session.robot_id)
+            # Closed here: a connection that ended in the middle of a reply (a client that never
+            # reads, then drops) must not leave its frame generator to a later collection.
+            with contextlib.suppress(Exception):
+                await frames.aclose()
 
     def stop(self) -> None:
         if self._server is None:
