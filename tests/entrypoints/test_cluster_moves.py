@@ -134,7 +134,7 @@ def test_robots_registering_at_the_same_moment_are_spread_by_a_reservation_made_
 def test_moves_are_counted_on_the_front_s_metrics():
     now = [100.0]
     front = _front(now)
-    metrics = FrontMetrics(front)
+    metrics = FrontMetrics(front.snapshot)
     assert "armory_front_moves_total 0.0" in generate_latest(metrics.registry).decode()
     front.state["a"].reported = _robots("r", 8)
     front._release(front._plan_move(now[0]), now[0])

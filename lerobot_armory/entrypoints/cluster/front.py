@@ -30,7 +30,7 @@ from typing import Any
 
 import grpc
 
-from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
+from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics, FrontSnapshot
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
@@ -153,6 +153,15 @@ class ClusterFront(ArmoryServicer):
         self.moves_made = 0  # robots released for a move (self.moves keeps only the recent ones)
 
     # ---- the view ----------------------------------------------------------------------------
+
+    def snapshot(self) -> FrontSnapshot:
+        """The counters and the replicas as the metrics endpoint publishes them (under the lock)."""
+        with self.lock:
+            replicas = [
+                (rid, s.view.healthy, len(s.reported), len(s.pending), s.view.max_robots if s.address else None)
+                for rid, s in sorted(self.state.items())
+            ]
+            return FrontSnapshot(dict(self.refused), dict(self.placed), self.moves_made, replicas)
 
     def refresh(self) -> None:
         """Ask every replica for its load; rebuild the view; rebalance if membership changed."""
@@ -417,7 +426,7 @@ class FrontServer:
         tls: tuple[bytes, bytes] | None = None,
     ) -> None:
         self.front = front
-        self.metrics = FrontMetrics(front)
+        self.metrics = FrontMetrics(front.snapshot)
         self._stop_metrics: Callable[[], None] | None = None
         self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls)  # type: ignore[arg-type]
         self.host = host

@@ -9,35 +9,43 @@ The replicas' own metrics stay on the replicas; the front publishes what only it
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
-
-if TYPE_CHECKING:
-    from lerobot_armory.entrypoints.cluster.front import ClusterFront
 
 # Every reason the front refuses a registration for (ClusterFront._refuse), published at 0 from
 # the start so that a dashboard's rate() sees the first refusal.
 REFUSAL_REASONS = ("rate", "replica_rate", "full", "unavailable", "down")
 
 
-class FrontCollector(Collector):
-    """The front's counters and its view of each replica, read under the front's lock."""
+@dataclass
+class FrontSnapshot:
+    """What the front's metrics read, taken under the front's lock (``ClusterFront.snapshot``).
 
-    def __init__(self, front: ClusterFront) -> None:
-        self.front = front
+    Attributes:
+        refused: registrations refused, by reason.
+        placed: registrations placed, by replica.
+        moves: robots moved between replicas.
+        replicas: ``(replica, healthy, streaming robots, pending registrations, max robots or None)``.
+    """
+
+    refused: dict[str, int] = field(default_factory=dict)
+    placed: dict[str, int] = field(default_factory=dict)
+    moves: int = 0
+    replicas: list[tuple[str, bool, int, int, int | None]] = field(default_factory=list)
+
+
+class FrontCollector(Collector):
+    """The front's counters and its view of each replica, from a snapshot per scrape."""
+
+    def __init__(self, snapshot: Callable[[], FrontSnapshot]) -> None:
+        self.snapshot = snapshot
 
     def collect(self) -> Iterator:
-        front = self.front
-        with front.lock:
-            refused = dict(front.refused)
-            placed = dict(front.placed)
-            moves = front.moves_made
-            replicas = [
-                (rid, s.view.healthy, len(s.reported), len(s.pending), s.view.max_robots if s.address else None) for rid, s in sorted(front.state.items())
-            ]
+        snap = self.snapshot()
+        refused, placed, moves, replicas = snap.refused, snap.placed, snap.moves, snap.replicas
         refused_f = CounterMetricFamily(
             "armory_front_registrations_refused",
             "Registrations the front refused, by reason: rate (the front's per-host limit), replica_rate (the replicas' "
@@ -74,9 +82,9 @@ class FrontCollector(Collector):
 class FrontMetrics:
     """The front's registry and its HTTP endpoint."""
 
-    def __init__(self, front: ClusterFront) -> None:
+    def __init__(self, snapshot: Callable[[], FrontSnapshot]) -> None:
         self.registry = CollectorRegistry()
-        self.registry.register(FrontCollector(front))
+        self.registry.register(FrontCollector(snapshot))
 
     def serve(self, port: int, host: str) -> tuple[int, Callable[[], None]]:
         """Start the HTTP endpoint; returns the port bound (0: a free one) and a function that stops it."""
