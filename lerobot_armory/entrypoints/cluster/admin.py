@@ -8,10 +8,10 @@ Same operator tokens (``--operator_token_file``) as the replicas; none configure
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import grpc
 
-from lerobot_armory.entrypoints.cluster.front import ClusterFront
 from lerobot_armory.entrypoints.grpc.admin import authorise, check_swap_request
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminServicer
@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 class FrontAdminService(ArmoryAdminServicer):
     """``SwapPolicy`` (a rolling swap) and ``Status`` for holders of an operator token."""
 
-    def __init__(self, front: ClusterFront, operators: OperatorTokens | None) -> None:
+    def __init__(self, front: Any, operators: OperatorTokens | None) -> None:
+        """``front``: the :class:`~lerobot_armory.entrypoints.cluster.front.ClusterFront` (not imported: it imports this)."""
         self.front = front
         self.operators = operators
         self.peer_log = ThrottledLog(log)

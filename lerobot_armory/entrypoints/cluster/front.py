@@ -37,6 +37,7 @@ from typing import Any
 
 import grpc
 
+from lerobot_armory.entrypoints.cluster.admin import FrontAdminService
 from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
@@ -577,8 +578,6 @@ class FrontServer:
         tls: tuple[bytes, bytes] | None = None,
         operators: OperatorTokens | None = None,
     ) -> None:
-        from lerobot_armory.entrypoints.cluster.admin import FrontAdminService  # it imports this module
-
         self.front = front
         self.metrics = FrontMetrics(front)
         self._stop_metrics: Callable[[], None] | None = None
