@@ -9,14 +9,14 @@ The replicas' own metrics stay on the replicas; the front publishes what only it
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
+from typing import Any
 
 from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
-if TYPE_CHECKING:
-    from lerobot_armory.entrypoints.cluster.front import ClusterFront
+# ``front`` is a ClusterFront, not imported: the front imports this module (no import cycle).
+ClusterFront = Any
 
 # Every reason the front refuses a registration for (ClusterFront._refuse), published at 0 from
 # the start so that a dashboard's rate() sees the first refusal.
