@@ -8,6 +8,10 @@
 sending what they send, and switches between two batches (serving/swap.py). It prints one line:
 what is served now, or why nothing changed; it exits 0 on success, 1 when the server refused or
 failed the swap, 2 on a usage error, 3 when the call itself failed (unreachable, bad token).
+
+``--address`` may be a cluster front (``lerobot-armory-cluster``): ``swap`` then rolls replica by
+replica, stopping at the first that refuses or fails (the line says which replicas serve which
+path), and ``status`` adds each replica's path and swaps.
 """
 
 from __future__ import annotations
@@ -75,10 +79,16 @@ def call(command: str, cfg: AdminConfig) -> tuple[int, str]:
                 return 0, f"swapped {r.old_path} -> {r.new_path} in {r.seconds:.2f} s: {r.message}"
             return 1, f"swap {r.result}: {r.message}"
         s = stub.Status(pb.AdminStatusRequest(), timeout=cfg.timeout_s, metadata=metadata)
-        return 0, (
+        line = (
             f"policy {s.policy_path} ({s.policy}); robots {s.robots}; swaps ok {s.swaps_ok}, refused {s.swaps_refused}, "
             f"failed {s.swaps_failed}; {s.status_line}"
         )
+        for r in s.replicas:  # a cluster front: each replica's path and own swaps
+            line += (
+                f" | {r.replica_id} {'up' if r.up else 'DOWN'} {r.policy_path or '-'} robots {r.robots} "
+                f"swaps ok {r.swaps_ok}, refused {r.swaps_refused}, failed {r.swaps_failed}"
+            )
+        return 0, line
     except grpc.RpcError as exc:
         return 3, f"{command} refused: {exc.code().name}: {exc.details()}"
     finally:

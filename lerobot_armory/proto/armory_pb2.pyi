@@ -255,7 +255,7 @@ class AdminStatusRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class AdminStatusResponse(_message.Message):
-    __slots__ = ("policy_path", "policy", "robots", "swaps_ok", "swaps_refused", "swaps_failed", "status_line")
+    __slots__ = ("policy_path", "policy", "robots", "swaps_ok", "swaps_refused", "swaps_failed", "status_line", "replicas")
     POLICY_PATH_FIELD_NUMBER: _ClassVar[int]
     POLICY_FIELD_NUMBER: _ClassVar[int]
     ROBOTS_FIELD_NUMBER: _ClassVar[int]
@@ -263,6 +263,7 @@ class AdminStatusResponse(_message.Message):
     SWAPS_REFUSED_FIELD_NUMBER: _ClassVar[int]
     SWAPS_FAILED_FIELD_NUMBER: _ClassVar[int]
     STATUS_LINE_FIELD_NUMBER: _ClassVar[int]
+    REPLICAS_FIELD_NUMBER: _ClassVar[int]
     policy_path: str
     policy: str
     robots: int
@@ -270,4 +271,23 @@ class AdminStatusResponse(_message.Message):
     swaps_refused: int
     swaps_failed: int
     status_line: str
-    def __init__(self, policy_path: _Optional[str] = ..., policy: _Optional[str] = ..., robots: _Optional[int] = ..., swaps_ok: _Optional[int] = ..., swaps_refused: _Optional[int] = ..., swaps_failed: _Optional[int] = ..., status_line: _Optional[str] = ...) -> None: ...
+    replicas: _containers.RepeatedCompositeFieldContainer[ReplicaStatus]
+    def __init__(self, policy_path: _Optional[str] = ..., policy: _Optional[str] = ..., robots: _Optional[int] = ..., swaps_ok: _Optional[int] = ..., swaps_refused: _Optional[int] = ..., swaps_failed: _Optional[int] = ..., status_line: _Optional[str] = ..., replicas: _Optional[_Iterable[_Union[ReplicaStatus, _Mapping]]] = ...) -> None: ...
+
+class ReplicaStatus(_message.Message):
+    __slots__ = ("replica_id", "up", "policy_path", "robots", "swaps_ok", "swaps_refused", "swaps_failed")
+    REPLICA_ID_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
+    POLICY_PATH_FIELD_NUMBER: _ClassVar[int]
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_OK_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_REFUSED_FIELD_NUMBER: _ClassVar[int]
+    SWAPS_FAILED_FIELD_NUMBER: _ClassVar[int]
+    replica_id: str
+    up: bool
+    policy_path: str
+    robots: int
+    swaps_ok: int
+    swaps_refused: int
+    swaps_failed: int
+    def __init__(self, replica_id: _Optional[str] = ..., up: _Optional[bool] = ..., policy_path: _Optional[str] = ..., robots: _Optional[int] = ..., swaps_ok: _Optional[int] = ..., swaps_refused: _Optional[int] = ..., swaps_failed: _Optional[int] = ...) -> None: ...

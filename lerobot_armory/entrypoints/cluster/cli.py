@@ -34,7 +34,7 @@ from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, RayReplica
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.serving.config import ServerConfig, parse_server_args
 from lerobot_armory.serving.logs import configure_logging
-from lerobot_armory.serving.security import read_tls
+from lerobot_armory.serving.security import AuthTokens, OperatorTokens, read_tls
 
 log = logging.getLogger("lerobot_armory.cluster")
 
@@ -115,6 +115,7 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
             get_if_exists=True,  # a front started again attaches to the replicas already serving
             lifetime="detached" if detached else None,
             max_restarts=cfg.replica.max_restarts,
+            max_concurrency=4,  # load checks and releases go on while a swap loads a checkpoint
             num_gpus=cfg.replica.num_gpus,
             num_cpus=cfg.replica.num_cpus,
         ).remote(cfg.replica_config(), rid)
@@ -163,6 +164,8 @@ def run(cfg: ClusterConfig) -> None:
     print(f"lerobot-armory-cluster: starting {cfg.replicas} replicas of {cfg.policy.path} on Ray ...", flush=True)
     replicas = start_replicas(cfg)
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
+    auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
+    operators = OperatorTokens.load(cfg.operator_token_file, auth) if cfg.operator_token_file else None
     channels = None
     if tls is not None:
         # The replicas serve TLS with the same certificate (it must name every replica's host):
@@ -170,14 +173,17 @@ def run(cfg: ClusterConfig) -> None:
         cert = tls[1]
         channels = lambda address: grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=cert))
     front = FrontServer(
-        ClusterFront(replicas, cfg.cluster, channel_factory=channels), cfg.host, cfg.port, int(cfg.max_message_mb * (1 << 20)), tls
+        ClusterFront(replicas, cfg.cluster, channel_factory=channels), cfg.host, cfg.port, int(cfg.max_message_mb * (1 << 20)), tls,
+        operators,
     )
     metrics_port = front.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
     print(
         f"lerobot-armory-cluster front listening on {front.address}: robots use --server_address={front.address}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
         f"  placement: {cfg.cluster.placement}, health checks every {cfg.cluster.health_interval_s:g} s, "
-        f"rebalancing {'on' if cfg.cluster.rebalance else 'off'}\n{front.front.describe()}",
+        f"rebalancing {'on' if cfg.cluster.rebalance else 'off'}, "
+        f"{'operator token (lerobot-armory-admin rolls swaps replica by replica)' if operators else 'admin calls off'}\n"
+        f"{front.front.describe()}",
         flush=True,
     )
     stop = threading.Event()

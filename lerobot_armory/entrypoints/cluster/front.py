@@ -16,6 +16,13 @@ Rebalancing: when robots joined or left since the last refresh, the front asks
 :func:`~lerobot_armory.placement.rebalance` for one move and tells the source replica to release
 that robot, which it does between two of the robot's chunks (``Notice.MOVED``); the robot
 re-registers here and is steered to the target.
+
+Swapping the checkpoint (:meth:`ClusterFront.roll`, ``lerobot-armory-admin swap --address=FRONT``):
+one replica at a time, each loading beside its old engine and switching between two batches (as a
+single server does); the roll stops at the first replica that refuses or fails, and the replicas
+after it keep the old checkpoint. Robots are never moved by a swap. The front remembers the
+cluster's policy (path and overrides) and brings a replica that restarted (Ray restarts a dead
+replica with the options the cluster started with) to it before placing robots there.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from typing import Any
 
 import grpc
 
+from lerobot_armory.entrypoints.cluster.admin import FrontAdminService
 from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics, FrontSnapshot
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
@@ -51,6 +59,7 @@ from lerobot_armory.entrypoints.grpc.hardening import Malformed
 from lerobot_armory.serving.peer_log import ThrottledLog
 from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_server
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
+from lerobot_armory.serving.security import OperatorTokens
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +85,10 @@ MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
 # What a replica's refusal says when its per-host registration limit refused (serving/admission.py).
 REPLICA_RATE = "too many registrations from"
+# How long one replica may take to load, warm up and switch to a new checkpoint.
+SWAP_TIMEOUT_S = 900.0
+
+Policy = tuple[str, tuple[str, ...]]  # (path, --policy.<field> overrides)
 
 
 @dataclass
@@ -115,6 +128,22 @@ class ReplicaState:
     status: str = ""
     pending: dict[str, tuple[RobotSpec, float]] = field(default_factory=dict)  # placed here, not yet reported
     reported: dict[str, RobotSpec] = field(default_factory=dict)
+    policy: Policy | None = None  # what it serves, as last reported
+    swaps: dict[str, int] = field(default_factory=dict)  # its own swaps by result
+    instance: str = ""  # changes when the replica restarts
+
+
+@dataclass
+class RollResult:
+    """The answer to one rolling swap: ``result`` ok, refused or failed (the replica's that stopped
+    it); ``message`` one line saying which replicas serve which path."""
+
+    result: str
+    message: str
+    old_path: str
+    new_path: str
+    seconds: float = 0.0
+    switched: list[str] = field(default_factory=list)  # replicas now on the new path, in order
 
 
 class ClusterFront(ArmoryServicer):
@@ -151,6 +180,13 @@ class ClusterFront(ArmoryServicer):
         self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
         self.placed: collections.Counter[str] = collections.Counter()  # registrations accepted, by replica
         self.moves_made = 0  # robots released for a move (self.moves keeps only the recent ones)
+        # The cluster's policy: what every replica should serve, and what a restarted one is brought
+        # to. None until known: the replicas' own when they all agree, or a roll's.
+        self.policy: Policy | None = None
+        self.rolls: dict[str, int] = {"ok": 0, "refused": 0, "failed": 0}
+        self._roll_lock = threading.Lock()  # one roll (or restarted replica's catch-up) at a time
+        self.syncing: set[str] = set()  # replicas being brought to self.policy: no robot is placed there
+        self._behind: set[str] = set()  # replicas a roll skipped (down): brought to the policy when back
 
     # ---- the view ----------------------------------------------------------------------------
 
@@ -191,8 +227,16 @@ class ClusterFront(ArmoryServicer):
                 state.view.capacity = Capacity(tuple(answer["latency_s"]), self.options.one_way_ms / 1000.0)
                 state.view.max_robots = int(answer["max_robots"])
                 state.reported = {r["robot_id"]: spec_of(r) for r in answer["robots"]}
-                state.view.healthy = True
-                if not was:
+                if "policy_path" in answer:
+                    state.policy = (answer["policy_path"], tuple(answer.get("policy_overrides", ())))
+                    state.swaps = dict(answer.get("swaps", {}))
+                instance = answer.get("instance", "")
+                if state.instance and instance != state.instance:
+                    log.info("replica %s restarted", rid)
+                    self._behind.add(rid)
+                state.instance = instance
+                state.view.healthy = rid not in self.syncing
+                if not was and state.view.healthy:
                     log.info("replica %s is up at %s", rid, state.address)
                 state.pending = {k: v for k, v in state.pending.items() if k not in state.reported and v[1] > now}
                 self._rebuild(state)
@@ -210,8 +254,125 @@ class ClusterFront(ArmoryServicer):
             for address in [a for a in self._channels if a not in current]:  # a restarted replica's old port
                 self._channels.pop(address)[0].close()
             move = self._plan_move(now) if changed and self.options.rebalance else None
+            catch_up = self._plan_catch_up(answers)
         if move is not None:
             self._release(move, now)
+        for rid in catch_up:
+            threading.Thread(target=self._catch_up, args=(rid,), name=f"armory-front-sync-{rid}", daemon=True).start()
+
+    # ---- the cluster's policy: rolling swaps, restarted replicas ----------------------------
+
+    def _plan_catch_up(self, answers: dict[str, dict[str, Any] | None]) -> list[str]:
+        """Under the lock: learn the cluster's policy; the replicas to bring to it now."""
+        policies = {s.policy for s in self.state.values()}
+        if self.policy is None and None not in policies and len(policies) == 1 and all(answers.values()):
+            self.policy = policies.pop()  # every replica answered and serves the same: the cluster's
+        if self.policy is None:
+            self._behind.clear()
+            return []
+        out = []
+        for rid in sorted(self._behind):
+            state = self.state[rid]
+            if answers.get(rid) is None or rid in self.syncing or state.policy is None:
+                continue
+            if state.policy == self.policy:
+                self._behind.discard(rid)
+                continue
+            # Out of placement until it serves the cluster's policy (it has no robots: it restarted,
+            # or was down during a roll).
+            self.syncing.add(rid)
+            state.view.healthy = False
+            out.append(rid)
+        return out
+
+    def _catch_up(self, rid: str) -> None:
+        with self._roll_lock:
+            policy = self.policy
+            try:
+                answer = self.replicas.swap(rid, policy[0], list(policy[1]), False, SWAP_TIMEOUT_S) if policy else None
+            except Exception as exc:  # noqa: BLE001 - logged; the replica serves what it loaded
+                answer = {"result": "failed", "message": f"{type(exc).__name__}: {exc}"}
+        with self.lock:
+            self.syncing.discard(rid)
+            self._behind.discard(rid)
+        if answer is None or answer["result"] == "ok":
+            log.info("replica %s now serves the cluster's policy %s", rid, policy[0] if policy else "?")
+        else:
+            log.error(
+                "replica %s could not load the cluster's policy %s (%s: %s): it serves what it started with; "
+                "lerobot-armory-admin status shows each replica's path", rid, policy[0] if policy else "?",
+                answer["result"], answer.get("message", ""),
+            )  # fmt: skip
+
+    def roll(self, path: str, overrides: list[str], drain: bool = False, timeout: float = SWAP_TIMEOUT_S) -> RollResult:
+        """Swap every replica to ``path``, one at a time, stopping at the first that refuses or fails."""
+        t0 = time.monotonic()
+        if not self._roll_lock.acquire(blocking=False):
+            return self._rolled(RollResult("refused", "another swap is in progress", self.cluster_path(), path), t0)
+        try:
+            return self._rolled(self._roll(path, tuple(overrides), drain, timeout), t0)
+        finally:
+            self._roll_lock.release()
+
+    def cluster_path(self) -> str:
+        with self.lock:
+            if self.policy is not None:
+                return self.policy[0]
+            paths = sorted({s.policy[0] for s in self.state.values() if s.policy is not None})
+            return paths[0] if len(paths) == 1 else ",".join(paths)
+
+    def _roll(self, path: str, overrides: tuple[str, ...], drain: bool, timeout: float) -> RollResult:
+        old = self.cluster_path()
+        if not path:
+            return RollResult("refused", "no policy path given", old, path)
+        with self.lock:
+            up = [rid for rid in self.replicas.ids() if self.state[rid].view.healthy]
+            down = [rid for rid in self.replicas.ids() if rid not in up]
+            was = {rid: (self.state[rid].policy or ("?", ()))[0] for rid in self.replicas.ids()}
+        if not up:
+            return RollResult("refused", "no replica is up; nothing changed", old, path)
+        switched: list[str] = []
+        for rid in up:
+            with self.lock:
+                if self.state[rid].policy == (path, overrides):
+                    switched.append(rid)  # already serves it (a roll run again after one that stopped)
+                    continue
+            log.info("rolling swap: %s loads %s", rid, path)
+            try:
+                answer = self.replicas.swap(rid, path, list(overrides), drain, timeout)
+            except ReplicaDown as exc:
+                answer = {"result": "failed", "message": f"did not answer ({exc})"}
+            except Exception as exc:  # noqa: BLE001 - one replica's error stops the roll, told as is
+                answer = {"result": "failed", "message": f"{type(exc).__name__}: {exc}"}
+            if answer["result"] != "ok":
+                rest = [r for r in up if r not in switched]
+                where = "; ".join(
+                    part for part in (
+                        f"{','.join(switched)} serve {path}" if switched else "",
+                        f"{','.join(rest)} serve {was[rest[0]]}" if rest else "",
+                        f"{','.join(down)} down" if down else "",
+                    ) if part
+                )  # fmt: skip
+                why = str(answer.get("message", "")).replace("\n", " ")
+                return RollResult(answer["result"], f"stopped at {rid} ({answer['result']}: {why}): {where}", old, path, 0.0, switched)
+            with self.lock:
+                self.state[rid].policy = (path, overrides)
+            switched.append(rid)
+        with self.lock:
+            self.policy = (path, overrides)
+            self._behind |= set(down)  # brought to the new policy when they come back
+        tail = f"; {','.join(down)} down, load it when back" if down else ""
+        return RollResult("ok", f"{','.join(switched)} serve {path}{tail}", old, path, 0.0, switched)
+
+    def _rolled(self, result: RollResult, t0: float) -> RollResult:
+        result.seconds = time.monotonic() - t0
+        with self.lock:
+            self.rolls[result.result] += 1
+        if result.result == "ok":
+            log.info("rolling swap %s -> %s in %.2f s: %s", result.old_path, result.new_path, result.seconds, result.message)
+        else:
+            log.warning("rolling swap %s -> %s %s: %s", result.old_path, result.new_path, result.result, result.message)
+        return result
 
     def _rebuild(self, state: ReplicaState) -> None:
         state.view.robots = {**state.reported, **{k: spec for k, (spec, _) in state.pending.items()}}
@@ -424,11 +585,14 @@ class FrontServer:
         port: int = 0,
         max_message_bytes: int = 4 << 20,
         tls: tuple[bytes, bytes] | None = None,
+        operators: OperatorTokens | None = None,
     ) -> None:
         self.front = front
         self.metrics = FrontMetrics(front.snapshot)
         self._stop_metrics: Callable[[], None] | None = None
-        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls)  # type: ignore[arg-type]
+        # The operator's calls (lerobot-armory-admin swap|status), refused without operator tokens.
+        self.admin = FrontAdminService(front, operators)
+        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls, admin=self.admin)  # type: ignore[arg-type]
         self.host = host
         self._stop = threading.Event()
         front.refresh()

@@ -2,9 +2,11 @@
 
 A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.entrypoints.server.build_server` with the
 user's options on a free port. It adds three calls for the front: ``info`` (where it listens,
-its ``d_infer`` table), ``load`` (info plus the robots it serves, from its own fleet: the front
-rebuilds its whole view from these, so a restarted front loses nothing) and ``release`` (move a
-robot away between two of its chunks).
+its ``d_infer`` table, the policy it serves), ``load`` (info plus the robots it serves, from its
+own fleet: the front rebuilds its whole view from these, so a restarted front loses nothing),
+``release`` (move a robot away between two of its chunks) and ``swap`` (load another checkpoint
+beside the served one and switch between batches, as ``lerobot-armory-admin swap`` does on a
+single server: the front rolls a swap replica by replica).
 
 :class:`ArmoryReplica` is a plain class; Ray runs it as an actor (:class:`RayReplicas`), tests
 and single-host setups can hold it in-process (:class:`LocalReplicas`). The front sees either
@@ -18,6 +20,7 @@ import dataclasses
 import logging
 import os
 import socket
+import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -61,6 +64,7 @@ class ArmoryReplica:
         self.server, self.summary = build_server(cfg)
         host = advertise_host or advertised_host(cfg.host, _ray_node_ip)
         self.address = f"{host}:{self.server.port}"
+        self.instance = uuid.uuid4().hex  # a replica restarted (by Ray) is a new instance
         log.info("replica %s serving at %s (pid %d)", replica_id, self.address, os.getpid())
 
     def info(self) -> dict[str, Any]:
@@ -72,7 +76,11 @@ class ArmoryReplica:
             "max_robots": self.server.fleet.max_robots,
             "chunk_size": self.server.policy.chunk_size,
             "policy": self.server.policy.description,
+            "policy_path": self.server.swapper.current.path,
+            "policy_overrides": list(self.server.swapper.current.options.overrides),
+            "swaps": dict(self.server.swapper.counts.by_result),
             "pid": os.getpid(),
+            "instance": self.instance,
         }
 
     def load(self) -> dict[str, Any]:
@@ -86,6 +94,10 @@ class ArmoryReplica:
     def release(self, robot_id: str) -> bool:
         """Move ``robot_id`` away between two of its chunks (False: it does not stream here)."""
         return self.server.fleet.release(robot_id)
+
+    def swap(self, path: str, overrides: list[str], drain: bool = False) -> dict[str, Any]:
+        """Serve ``path`` from the next batch (serving/swap.py); its :class:`SwapResult` as a dict."""
+        return dataclasses.asdict(self.server.swapper.swap(path, overrides, drain))
 
     def stop(self) -> None:
         """Stop serving (robots are told, as on a server's shutdown)."""
@@ -122,6 +134,10 @@ class ReplicaSet(Protocol):
         """The replica's :meth:`ArmoryReplica.release` (:class:`ReplicaDown` if it does not answer)."""
         ...
 
+    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
+        """The replica's :meth:`ArmoryReplica.swap` (:class:`ReplicaDown` if it does not answer)."""
+        ...
+
 
 class LocalReplicas:
     """Replicas held in this process (tests, and one host without Ray). ``kill`` stops one."""
@@ -143,6 +159,9 @@ class LocalReplicas:
 
     def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
         return self._get(replica_id).release(robot_id)
+
+    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
+        return self._get(replica_id).swap(path, overrides, drain)
 
     def kill(self, replica_id: str) -> None:
         """Stop a replica abruptly (its robots' streams end)."""
@@ -175,3 +194,6 @@ class RayReplicas:
 
     def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
         return self._call(replica_id, "release", robot_id, timeout=timeout)
+
+    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
+        return self._call(replica_id, "swap", path, overrides, drain, timeout=timeout)

@@ -28,6 +28,26 @@ DEFAULT_POLICY = "default"
 NO_OPERATOR = "admin calls are off: the server was started without --operator_token_file"
 
 
+def authorise(operators: OperatorTokens | None, context: grpc.ServicerContext, peer_log: ThrottledLog) -> None:
+    """Abort the call unless it carries one of ``operators``' tokens (None: admin calls are off)."""
+    if operators is None:
+        context.abort(grpc.StatusCode.PERMISSION_DENIED, NO_OPERATOR)
+    token = dict(context.invocation_metadata()).get(TOKEN_KEY, "")
+    if not operators.check(token if isinstance(token, str) else ""):
+        peer_log.warn(context.peer(), "admin call refused: missing or wrong operator token")
+        context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong operator token")
+
+
+def check_swap_request(request: pb.SwapRequest, context: grpc.ServicerContext) -> None:
+    """Abort a malformed or oversized ``SwapRequest``, or one naming a policy not served."""
+    if isinstance(request, Malformed):
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed SwapRequest")
+    if request.policy_name not in ("", DEFAULT_POLICY):
+        context.abort(grpc.StatusCode.NOT_FOUND, f"no policy named {request.policy_name[:80]!r}: this server serves {DEFAULT_POLICY!r}")
+    if len(request.policy_path) > MAX_PATH or len(request.overrides) > MAX_OVERRIDES or any(len(o) > MAX_PATH for o in request.overrides):
+        context.abort(grpc.StatusCode.INVALID_ARGUMENT, "policy path or overrides too long")
+
+
 class AdminService(ArmoryAdminServicer):
     """``SwapPolicy`` and ``Status`` for holders of an operator token (none configured: refused)."""
 
@@ -41,21 +61,11 @@ class AdminService(ArmoryAdminServicer):
         self.peer_log = ThrottledLog(log)
 
     def _authorise(self, context: grpc.ServicerContext) -> None:
-        if self.operators is None:
-            context.abort(grpc.StatusCode.PERMISSION_DENIED, NO_OPERATOR)
-        token = dict(context.invocation_metadata()).get(TOKEN_KEY, "")
-        if not self.operators.check(token if isinstance(token, str) else ""):
-            self.peer_log.warn(context.peer(), "admin call refused: missing or wrong operator token")
-            context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong operator token")
+        authorise(self.operators, context, self.peer_log)
 
     def SwapPolicy(self, request: pb.SwapRequest, context: grpc.ServicerContext) -> pb.SwapResponse:  # noqa: N802
         self._authorise(context)
-        if isinstance(request, Malformed):
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed SwapRequest")
-        if request.policy_name not in ("", DEFAULT_POLICY):
-            context.abort(grpc.StatusCode.NOT_FOUND, f"no policy named {request.policy_name[:80]!r}: this server serves {DEFAULT_POLICY!r}")
-        if len(request.policy_path) > MAX_PATH or len(request.overrides) > MAX_OVERRIDES or any(len(o) > MAX_PATH for o in request.overrides):
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "policy path or overrides too long")
+        check_swap_request(request, context)
         log.info("operator %s asks to swap the policy to %s%s", context.peer(), request.policy_path, " (drain)" if request.drain else "")
         result = self.swapper.swap(request.policy_path, list(request.overrides), request.drain)
         return pb.SwapResponse(
