@@ -131,9 +131,12 @@ class ArmoryServer:
         return f"{self._host}:{self.port}"
 
     def _swapped(self, new: LoadedPolicy) -> None:
-        """After a swap: registrations describe the new policy; the shortest horizon follows its d_infer."""
+        """After a swap: registrations and openpi handshakes describe the new policy; the shortest
+        horizon follows its d_infer."""
         self.policy = dataclasses.replace(self.policy, description=new.description)
         self.service.policy = self.policy
+        if self.openpi is not None:  # the handshake dict is read per connection: new ones see the new policy
+            self.openpi.metadata["policy"] = new.description
         if new.d_infer:
             self._fleet_policy.batch_s = new.d_infer[0]
 

@@ -247,3 +247,24 @@ def test_admin_cli_swaps_and_refuses_with_exit_codes(engine, new_dir, tmp_path):
     finally:
         server.stop(grace_s=0.5)
     assert server.swapper.current.path == str(new_dir)
+
+
+def test_openpi_clients_connecting_after_a_swap_are_told_the_new_policy(engine, new_dir):
+    from websockets.sync.client import connect
+
+    from lerobot_armory.entrypoints.openpi.codec import unpack
+    from lerobot_armory.serving.config import OpenpiOptions
+
+    server = start(engine)
+    try:
+        port = server.serve_openpi(OpenpiOptions(port=0))
+
+        def handshake() -> dict:
+            with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+                return unpack(ws.recv(), 1 << 20)
+
+        assert str(new_dir) not in handshake()["policy"]
+        assert admin(server).swap(new_dir).result == "ok"
+        assert str(new_dir) in handshake()["policy"]
+    finally:
+        server.stop(grace_s=0.5)
