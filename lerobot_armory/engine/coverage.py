@@ -193,7 +193,7 @@ def unbuilt_row(kind: str) -> list[str]:
     from lerobot_armory.engine.policy_kinds import KINDS
 
     info = KINDS[kind]
-    why = info.refuse(None) if info.refuse is not KINDS["act"].refuse else None
+    why = info.refuse(None)  # the built-in refusals do not read the config
     served = f"refused: {why}" if why else "not run here; with its checkpoint: served as stateless, current observation"
     return [kind, f"no: {NOT_BUILT_OFFLINE[kind]}", served, "—", info.randomness(None) if not why else "—", *["—"] * 5]
 
