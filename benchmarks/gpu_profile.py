@@ -75,15 +75,18 @@ def engine_options(config: str) -> Any:
     """The ``--engine.*`` options of a configuration."""
     from lerobot_armory.engine.options import EngineOptions
 
+    # Precision named in every configuration: "auto" would turn TF32 on for bf16 on a GPU, and
+    # LeRobot's eager sampler is measured as LeRobot runs it.
+    precision = "high" if config.endswith("-tf32") else "highest"
     if "-graphs" not in config:
-        return EngineOptions(cuda_graphs="off")
+        return EngineOptions(cuda_graphs="off", matmul_precision=precision)
     return EngineOptions(
         cuda_graphs="on" if _cuda() else "off",  # on a CPU: the static sampler, unrecorded
         static_sampler=True,
         attention="sdpa" if config.endswith("-sdpa") else "eager",
         compile_sampler=config.endswith("-graphs-compiled"),
         graph_buckets=ARGS.graph_buckets,
-        matmul_precision="high" if config.endswith("-tf32") else "highest",
+        matmul_precision=precision,
     )
 
 
@@ -317,7 +320,7 @@ def main() -> None:
                 torch.cuda.empty_cache()
             print(f"[{config}] loading {path} {' '.join('--policy.' + o for o in overrides)}", flush=True)
             t0 = time.perf_counter()
-            engine = PolicyEngine(PolicyOptions(path, device, overrides=overrides), engine=EngineOptions(cuda_graphs="off"))
+            engine = PolicyEngine(PolicyOptions(path, device, overrides=overrides), engine=engine_options(config.split("-graphs")[0]))
             loaded = (path, overrides)
             print(f"  loaded in {time.perf_counter() - t0:.0f} s", flush=True)
         assert engine is not None

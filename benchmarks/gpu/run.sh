@@ -10,6 +10,7 @@ cd "$(dirname "$0")/../.."
 OUT=${OUT:-out/gpu}
 mkdir -p "$OUT"
 LOG="$OUT/log.txt"
+touch /tmp/run_start
 if [ -d .whl ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
   export PYTHONPATH=/tmp/site:$PWD
@@ -41,8 +42,8 @@ sim_pi05() {
 
 live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, real timing
   sim_pi05 && python3 -m lerobot_armory.bench.live --preset=libero --mix=half-fast --robots="$1" \
-    --schedulers=edf,lookahead@3 --emulate_profile= --device=cuda --policy_path=/tmp/pi05-sim --groups=4 \
-    --policy_args="--engine.cuda_graphs=on --max_robots=64" --duration_s=30 \
+    --schedulers=edf,lookahead@3 --emulate_profile= --device=cuda --policy_path=/tmp/pi05-sim --groups=4 --max_batch_size=8 \
+    --policy_args="--engine.cuda_graphs=on --engine.matmul_precision=${MATMUL:-high} --max_robots=64" --duration_s=30 \
     --output="$OUT/live_N$1.json" --work_dir=/tmp/live
 }
 
@@ -56,18 +57,20 @@ export OUT
 
 for s in "$@"; do
   case $s in
-    env) step env 60 env_report ;;
+    env) step env 40 env_report ;;
     smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
-    graphs) step graphs 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
+    graphs) step graphs 510 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
     compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-compiled --graph_buckets=1,8 --max_batch_size=8 --work_dir=/tmp/gp ;;
-    efficiency) step efficiency 400 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
-    live4) step live4 560 live 4 ;;
-    live10) step live10 560 live 10 ;;
-    live20) step live20 560 live 20 ;;
+    buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
+    efficiency) step efficiency 170 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
+    live4) step live4 170 live 4 ;;
+    live10) step live10 170 live 10 ;;
+    live20) step live20 200 live 20 ;;
     vs_async) step vs_async 560 vs_async 1,4 ;;
     vs_async8) step vs_async8 560 vs_async 8 ;;
-    *) echo "unknown step $s (env smoke graphs compiled efficiency live4 live10 live20 vs_async vs_async8)" | tee -a "$LOG" ;;
+    *) echo "unknown step $s (env smoke graphs buckets compiled efficiency live4 live10 live20 vs_async vs_async8)" | tee -a "$LOG" ;;
   esac
 done
-cp docs/results/gpu/*.json docs/results/gpu/*.png "$OUT/" 2>/dev/null || true
+# Only what this call wrote (the files back are limited to 8).
+find docs/results/gpu -maxdepth 1 -newer /tmp/run_start \( -name '*.json' -o -name '*.png' \) -exec cp {} "$OUT/" \;
 ls -la "$OUT"

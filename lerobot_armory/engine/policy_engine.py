@@ -83,7 +83,6 @@ class PolicyEngine:
 
         self.engine_options = engine or EngineOptions()
         self.engine_options.validate()
-        torch.set_float32_matmul_precision(self.engine_options.matmul_precision)
 
         if not options.path:
             raise ConfigError("policy.path", "no policy given; pass --policy.path=DIR or a hub id")
@@ -101,6 +100,7 @@ class PolicyEngine:
         self.path = options.path
         self.overrides = list(options.overrides)
         self.config, self.policy, self.preprocessor, self.postprocessor = _load(options.path, self.device, options.overrides)
+        self.matmul_precision = self._apply_matmul_precision()
         # A server never trains: without gradients on the weights, RTC's guidance step records no
         # autograd graph through the model.
         for param in self.policy.parameters():
@@ -150,13 +150,20 @@ class PolicyEngine:
         Raises:
             ConfigError: as the constructor does for these options.
         """
-        import torch
-
         options.validate()
         self.engine_options = options
-        torch.set_float32_matmul_precision(options.matmul_precision)
+        self.matmul_precision = self._apply_matmul_precision()
         self.sampler = None  # drops the recorded graphs (and their memory pool) with it
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
+
+    def _apply_matmul_precision(self) -> str:
+        """Set torch's float32 matmul precision (process-wide) as the options ask; returns it."""
+        import torch
+
+        dtype = getattr(self.config, "dtype", None)
+        precision = self.engine_options.resolved_matmul_precision(str(self.device), dtype if isinstance(dtype, str) else None)
+        torch.set_float32_matmul_precision(precision)
+        return precision
 
     def _choose_sampler(self) -> tuple[bool, str | None]:
         """Install the static sampler if the options and the policy allow it; returns (record CUDA
@@ -205,14 +212,14 @@ class PolicyEngine:
     @property
     def description(self) -> str:
         notes = [f"dtype={self.config.dtype}"] if isinstance(getattr(self.config, "dtype", None), str) else []
+        if self.matmul_precision != "highest":
+            notes.append(f"float32 matmul precision {self.matmul_precision}")
         if self.compiled_kept is not None:
             notes.append("compiled" if self.compiled_kept else "eager (compiled was slower)")
         if self.sampler is not None:
             buckets = ",".join(map(str, self.sampler.buckets)) or "-"
             if self.engine_options.compile_sampler:
                 notes.append("static sampler compiled")
-            if self.engine_options.matmul_precision != "highest":
-                notes.append(f"float32 matmul precision {self.engine_options.matmul_precision}")
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")

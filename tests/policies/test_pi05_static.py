@@ -27,7 +27,7 @@ def engines(pi05_dir):
 
     torch.set_num_threads(1)
     lerobot = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC)
-    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC, EngineOptions(static_sampler=True))
+    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC, EngineOptions(static_sampler=True, graph_buckets="1,2,4,8"))
     static.warmup(8, log_progress=False)
     assert lerobot.sampler is None and static.sampler is not None and static.sampler.buckets == BUCKETS
     return lerobot, static
@@ -149,15 +149,29 @@ def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket
     assert theirs.host_syncs["aten.lift_fresh.default"] >= 3 * sampler.num_steps  # 3+ torch.tensor(list) per step
 
 
-def test_buckets_default_to_powers_of_two_and_end_at_the_cap():
-    assert parse_buckets(None, 8) == (1, 2, 4, 8)
-    assert parse_buckets(None, 5) == (1, 2, 4, 5)
+def test_buckets_default_to_every_size_to_16_then_multiples_of_8_ending_at_the_cap():
+    assert parse_buckets(None, 8) == (1, 2, 3, 4, 5, 6, 7, 8)
+    assert parse_buckets(None, 5) == (1, 2, 3, 4, 5)
+    assert parse_buckets(None, 40) == (*range(1, 17), 24, 32, 40)
+    assert parse_buckets(None, 30) == (*range(1, 17), 24, 30)
     assert parse_buckets(None, 1) == (1,)
     assert parse_buckets("1, 3,16", 6) == (1, 3, 6)
     assert [bucket_for(b, (1, 2, 4, 8)) for b in range(1, 10)] == [1, 2, 4, 4, 8, 8, 8, 8, None]
     for bad in ("0,2", "two", ","):
         with pytest.raises(ConfigError, match="engine.graph_buckets"):
             parse_buckets(bad, 4)
+
+
+def test_tf32_is_the_default_only_for_a_bf16_policy_on_a_cuda_device():
+    auto = EngineOptions()
+    assert auto.resolved_matmul_precision("cuda", "bfloat16") == "high"
+    assert auto.resolved_matmul_precision("cuda:1", "bfloat16") == "high"
+    assert auto.resolved_matmul_precision("cuda", "float32") == "highest"
+    assert auto.resolved_matmul_precision("cpu", "bfloat16") == "highest"
+    assert auto.resolved_matmul_precision("cuda", None) == "highest"
+    assert EngineOptions(matmul_precision="highest").resolved_matmul_precision("cuda", "bfloat16") == "highest"
+    with pytest.raises(ConfigError, match="engine.matmul_precision"):
+        EngineOptions(matmul_precision="tf32").validate()
 
 
 def test_profile_gives_every_batch_size_the_time_of_its_bucket(engines):

@@ -4,6 +4,7 @@ an error); a lost device stops the server at once; anything else fails one batch
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -43,6 +44,11 @@ class OutOfMemoryAbove(EchoEngine):
         self.sizes: list[int] = []
 
     def infer(self, observations, tasks, noise_seeds=None, history=None):
+        if not self.sizes:
+            # The first batch is slow, so every robot that joins meanwhile waits for its first chunk
+            # and the next batch holds them all: without this the robots can fall into a phase
+            # pattern of batches of 1 and 2 (seen on a loaded 2-core machine) and never try 3.
+            time.sleep(0.3)
         self.sizes.append(len(observations))
         if len(observations) >= self.limit:
             raise torch.OutOfMemoryError(f"CUDA out of memory at a batch of {len(observations)}")
