@@ -90,6 +90,33 @@ class Plan:
         return [r.robot_id for r in self.requests]
 
 
+@dataclass
+class Proposal:
+    """A scheduler's decision before it is booked (:meth:`Dispatcher.propose`).
+
+    Attributes:
+        now: decision time.
+        chosen: the batch's mirrors, in the scheduler's order (empty: all quarantined).
+        decision_s / decision_cpu_s: the decision's wall and CPU time so far, seconds.
+        quarantined / fell_back: as :class:`Plan`'s.
+        score: the scheduler's own score of the batch (``last_score``; None if it keeps none):
+            what an arbiter between policies compares when their schedulers score batches.
+    """
+
+    now: float
+    chosen: list[RobotMirror]
+    decision_s: float
+    decision_cpu_s: float
+    quarantined: list[tuple[str, str]] = field(default_factory=list)
+    fell_back: bool = False
+    score: float | None = None
+
+    @property
+    def deadline(self) -> float:
+        """The soonest deadline among the chosen robots (inf: none)."""
+        return min((m.deadline() for m in self.chosen), default=float("inf"))
+
+
 class Dispatcher:
     """Owns the dispatch step for one scheduler (see the module docstring).
 
@@ -119,25 +146,43 @@ class Dispatcher:
 
         Returns None when no robot has a useful request.
         """
+        proposal = self.propose(mirrors, now)
+        if proposal is None:
+            return None
+        return self.book(proposal, mirrors)
+
+    def propose(self, mirrors: Sequence[RobotMirror], now: float) -> Proposal | None:
+        """The scheduler's batch among ``mirrors`` at ``now``, booked nowhere yet (None: no robot
+        has a useful request). Several policies' dispatchers propose and one proposal is booked
+        (:mod:`lerobot_armory.arbiter`); a proposal must be booked before the mirrors change."""
         if not self.has_work(mirrors):
             self._stop_holding(now)
             return None
         t0, c0 = time.perf_counter(), time.thread_time()
         chosen, quarantined, fell_back = self._choose(mirrors, now)
-        hold = self._hold(mirrors, chosen, now) if chosen and not fell_back and not quarantined else None
-        decision_s, decision_cpu_s = time.perf_counter() - t0, time.thread_time() - c0
+        score = getattr(self.scheduler, "last_score", None)
+        return Proposal(now, chosen, time.perf_counter() - t0, time.thread_time() - c0, quarantined, fell_back, score)
+
+    def book(self, proposal: Proposal, mirrors: Sequence[RobotMirror]) -> Plan:
+        """Book ``proposal`` on its mirrors, or say wait (:attr:`Plan.wait_until`) if the
+        scheduler's dispatch timing holds the device for an observation about to land."""
+        now, chosen = proposal.now, proposal.chosen
+        t0, c0 = time.perf_counter(), time.thread_time()
+        hold = self._hold(mirrors, chosen, now) if chosen and not proposal.fell_back and not proposal.quarantined else None
+        decision_s = proposal.decision_s + time.perf_counter() - t0
+        decision_cpu_s = proposal.decision_cpu_s + time.thread_time() - c0
         if hold is not None:
             self.holds += 1
             return Plan(now, [], now, decision_s, decision_cpu_s, wait_until=hold)
         self._stop_holding(now)
         if not chosen:  # every useful robot was quarantined
-            return Plan(now, [], now, decision_s, decision_cpu_s, quarantined, fell_back)
+            return Plan(now, [], now, decision_s, decision_cpu_s, proposal.quarantined, proposal.fell_back)
         t_done = now + self.scheduler.d_infer[len(chosen) - 1]
         requests = []
         for mirror in chosen:
             previous = mirror.last_served_index
             requests.append(Request(mirror.spec.robot_id, mirror, mirror.on_dispatch(t_done), previous))
-        return Plan(now, requests, t_done, decision_s, decision_cpu_s, quarantined, fell_back)
+        return Plan(now, requests, t_done, decision_s, decision_cpu_s, proposal.quarantined, proposal.fell_back)
 
     def complete(self, plan: Plan, t_done: float) -> None:
         """The plan's batch finished at ``t_done`` and its chunks go out now."""

@@ -50,6 +50,11 @@ class Scheduler(abc.ABC):
 
     max_wait_s: float = 0.0
     wait_margin_s: float = 0.002
+    # How an arbiter between policies sharing one device picks whose batch runs next
+    # (lerobot_armory/arbiter.py): "deadline" (the soonest deadline), "rotate" (in turn) or
+    # "score" (the highest ``last_score``, which the scheduler sets in ``select``).
+    arbitration: str = "deadline"
+    last_score: float | None = None
 
     def __init__(self, profile: LatencyProfile, max_batch_size: int) -> None:
         if max_batch_size < 1:

@@ -71,6 +71,8 @@ class _Robot:
 class LookaheadScheduler(Scheduler):
     """Lookahead over ``depth`` epochs with per-robot weights (from each robot's spec)."""
 
+    arbitration = "score"  # its score is a rate: robot-seconds gained per device-second
+
     def __init__(
         self,
         profile: LatencyProfile,
@@ -97,6 +99,8 @@ class LookaheadScheduler(Scheduler):
         for first, score in self._expand(pool, now, {}, {}, 0.0, 1):
             if score > best_score:
                 best_score, best_first = score, first
+        # Robot-seconds gained per device-second: comparable across policies of different speeds.
+        self.last_score = best_score if best_first is not None else None
         return [] if best_first is None else [r.mirror for r in best_first]
 
     def _candidates(

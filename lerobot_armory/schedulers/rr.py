@@ -15,6 +15,8 @@ class RoundRobinScheduler(Scheduler):
     the pointer then moves past the last robot taken. Robots are identified by id so robots
     joining or leaving do not reset the rotation."""
 
+    arbitration = "rotate"  # several policies take turns, as robots do
+
     def __init__(self, profile: LatencyProfile, max_batch_size: int) -> None:
         super().__init__(profile, max_batch_size)
         self._last_id: str | None = None
