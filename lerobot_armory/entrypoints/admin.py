@@ -53,6 +53,7 @@ class AdminConfig:
         drain: release the served policy before loading the new one (one in memory at a time;
             robots see a pause in service for the load and warm-up, not an error).
         timeout_s: how long to wait for the server's answer (a load and warm-up can take minutes).
+        policy_name: which policy to swap on a server of several (``--policies``); empty: the only one.
     """
 
     address: str = "127.0.0.1:8080"
@@ -61,6 +62,7 @@ class AdminConfig:
     policy: SwapTarget = field(default_factory=SwapTarget)
     drain: bool = False
     timeout_s: float = 900.0
+    policy_name: str = ""
 
 
 def call(command: str, cfg: AdminConfig) -> tuple[int, str]:
@@ -73,7 +75,9 @@ def call(command: str, cfg: AdminConfig) -> tuple[int, str]:
     metadata = ((TOKEN_KEY, token),) if token else ()
     try:
         if command == "swap":
-            request = pb.SwapRequest(policy_path=cfg.policy.path, overrides=cfg.policy.overrides, drain=cfg.drain)
+            request = pb.SwapRequest(
+                policy_path=cfg.policy.path, overrides=cfg.policy.overrides, drain=cfg.drain, policy_name=cfg.policy_name
+            )
             r = stub.SwapPolicy(request, timeout=cfg.timeout_s, metadata=metadata)
             if r.result == "ok":
                 return 0, f"swapped {r.old_path} -> {r.new_path} in {r.seconds:.2f} s: {r.message}"

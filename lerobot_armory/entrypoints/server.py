@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TypeVar
 from pathlib import Path
 
@@ -35,8 +36,10 @@ from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.config import OpenpiOptions, ServerConfig, parse_server_args
 from lerobot_armory.serving.fleet_policy import FleetPolicy
 from lerobot_armory.serving.logs import configure_logging
+from lerobot_armory.serving.policies_file import PolicyEntry, load_policies
 from lerobot_armory.engine.protocol import Engine
-from lerobot_armory.serving.loop import BatchRecord, ServingLoop
+from lerobot_armory.serving.loop import BatchRecord, ServedPolicy, ServingLoop
+from lerobot_armory.serving.session import DEFAULT_POLICY
 from lerobot_armory.serving.metrics import ServerMetrics, status_line
 from lerobot_armory.entrypoints.openpi.endpoint import OpenpiEndpoint
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
@@ -79,25 +82,40 @@ class ArmoryServer:
         operators: OperatorTokens | None = None,
         loader: Loader | None = None,
         policy_options: PolicyOptions | None = None,
+        policy_name: str = DEFAULT_POLICY,
+        others: tuple[ExtraPolicy, ...] = (),
     ) -> None:
         self.policy = policy
         self.profile = profile
         fleet_policy = fleet_policy or FleetPolicy.builtin()
-        fleet_policy.batch_s = profile.latency_s(1)
+        # The shortest horizon a robot may ask for follows the fastest policy's single-robot batch.
+        fleet_policy.batch_s = min([profile.latency_s(1), *(o.profile.latency_s(1) for o in others)])
         self.scheduler_config = scheduler
         self.scheduler = scheduler.make(profile, max_batch_size)
-        self.fleet = Fleet(clock, max_robots, history_steps=engine.history_steps)
+        history = max([engine.history_steps, *(o.engine.history_steps for o in others)])
+        self.fleet = Fleet(clock, max_robots, history_steps=history)
         self.batch_log: list[BatchRecord] = []
         self.batch_listeners: list[Callable[[BatchRecord], None]] = [self._keep_recent]
         # Built even when not learning: it then reports the fixed table (drift 0) to metrics.
         self.latency = OnlineLatency(profile, max_batch_size)
         self.learn_latency = learn_latency
+        served = tuple(
+            ServedPolicy(
+                o.name, o.engine, scheduler.make(o.profile, o.max_batch_size),
+                OnlineLatency(o.profile, o.max_batch_size) if learn_latency else None,
+            )
+            for o in others
+        )  # fmt: skip
         self.loop = ServingLoop(
-            self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None
-        )
+            self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None,
+            policy_name=policy_name, others=served,
+        )  # fmt: skip
         # One admission limit per peer and credential, whichever entrypoint the registrations use.
         self.admission = AdmissionLimiter()
-        self.service = ArmoryService(self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy, self.admission)
+        self.service = ArmoryService(
+            self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy, self.admission,
+            policy_name=policy_name, others={o.name: o.info for o in others},
+        )  # fmt: skip
         self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
         self.batch_listeners.append(self.metrics.on_batch)
         # Live checkpoint swaps (lerobot-armory-admin swap): refused unless operator tokens are set.
@@ -107,10 +125,18 @@ class ArmoryServer:
         )  # fmt: skip
         shape = PolicyShape(tuple(policy.wire_features), len(policy.action_names), policy.chunk_size, engine.history_steps)
         current = LoadedPolicy(options, engine, shape, None, policy.description)
-        self.swapper = PolicySwapper(self.loop, current, loader or policy_loader(max_batch_size), self._swapped)
-        self.swapper.listeners.append(self.metrics.on_swap)
+        self.swapper = PolicySwapper(self.loop, current, loader or policy_loader(max_batch_size), self._swapped, policy_name)
+        self.swappers = {policy_name: self.swapper}
+        for o in others:
+            o_shape = PolicyShape(tuple(o.info.wire_features), len(o.info.action_names), o.info.chunk_size, o.engine.history_steps)
+            o_current = LoadedPolicy(o.options or PolicyOptions(getattr(o.engine, "path", "")), o.engine, o_shape, None, o.info.description)
+            self.swappers[o.name] = PolicySwapper(
+                self.loop, o_current, loader or policy_loader(o.max_batch_size), self._other_swapped(o.name), o.name
+            )
+        for swapper in self.swappers.values():
+            swapper.listeners.append(self.metrics.on_swap)
         self.metrics.set_policy(options.path)
-        self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line)
+        self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line, self.swappers)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None
         self._auth, self._fleet_policy = auth, fleet_policy
@@ -139,6 +165,14 @@ class ArmoryServer:
             self.openpi.metadata["policy"] = new.description
         if new.d_infer:
             self._fleet_policy.batch_s = new.d_infer[0]
+
+    def _other_swapped(self, name: str) -> Callable[[LoadedPolicy], None]:
+        """After a swap of a policy other than the first: registrations describe the new checkpoint."""
+
+        def swapped(new: LoadedPolicy) -> None:
+            self.service.others[name] = dataclasses.replace(self.service.others[name], description=new.description)
+
+        return swapped
 
     def _on_batch(self, record: BatchRecord) -> None:
         for listener in self.batch_listeners:
@@ -210,10 +244,34 @@ class ArmoryServer:
     def status_line(self) -> str:
         """One line of fleet status (logged every second); after a swap, the policy served and the swaps."""
         line = status_line(self.fleet, self.loop.stats, self.latency if self.learn_latency else None)
+        if len(self.loop.policies) > 1:
+            by_policy = self.loop.stats.batches_by_policy
+            line += " batches=" + ",".join(f"{name}:{by_policy[name]}" for name in self.loop.policies)
         counts = self.swapper.counts.by_result
         if any(counts.values()):
             line += f" policy={self.swapper.current.path} swaps=ok:{counts['ok']},refused:{counts['refused']},failed:{counts['failed']}"
         return line
+
+
+@dataclass(frozen=True)
+class ExtraPolicy:
+    """A policy served beside the first from the same device (``--policies=FILE``).
+
+    Attributes:
+        name: what robots name at registration (``--policy_name``).
+        engine: its engine.
+        info: what registration checks against and tells the robot.
+        profile: its ``d_infer(b)``.
+        max_batch_size: its batch cap.
+        options: how it was loaded (a swap of it reuses the device and threads).
+    """
+
+    name: str
+    engine: Engine
+    info: PolicyInfo
+    profile: LatencyProfile
+    max_batch_size: int
+    options: PolicyOptions | None = None
 
 
 def tune_process() -> None:
@@ -302,9 +360,7 @@ def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
                 profile.name,
             )
         return profile
-    log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", cfg.max_batch_size, cfg.profile_reps)
-    # warmup=0: serve() has just warmed every size up.
-    profile = on_startup_device(f"profiling b = 1..{cfg.max_batch_size}", engine.profile, cfg.max_batch_size, 0, cfg.profile_reps)
+    profile = profile_at_startup(engine, cfg.max_batch_size, cfg.profile_reps)
     if name:
         profile.save(name)
         log.info("latency profile saved to %s", name)
@@ -330,22 +386,20 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     """
     cfg.validate()
     fleet_policy = cfg.fleet.load()  # before the model loads: a bad file is one line, at once
+    entries = load_policies(cfg.policies) if cfg.policies else []
     tune_process()
     configure_logging(cfg.log_level, cfg.log_format)
-    log.info("loading policy %s ...", cfg.policy.path)
-    engine = PolicyEngine(cfg.policy, cfg.rtc, cfg.engine)
-    log.info("warming up b = 1..%d ...", cfg.max_batch_size)
-    on_startup_device(f"warming up b = 1..{cfg.max_batch_size}", engine.warmup, cfg.max_batch_size)
-    serving_engine: Engine = engine
-    latency_note = ""
-    if cfg.engine.emulate_profile:
-        profile = load_profile(cfg.engine.emulate_profile)
-        serving_engine = EmulatedLatencyEngine(engine, profile)
-        latency_note = " (emulated latency)"
-        log.info("emulating latency profile %s: every batch takes exactly d_infer(b)", profile.name)
-    else:
-        profile = resolve_profile(cfg, engine)
+    first = _options_of(cfg, entries[0]) if entries else cfg.policy
+    engine, serving_engine, profile, latency_note = _load_policy(cfg, first, cfg.max_batch_size, profile_file=not entries)
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
+    others = []
+    for entry in entries[1:]:
+        cap = entry.max_batch_size or cfg.max_batch_size
+        options = _options_of(cfg, entry)
+        o_engine, o_serving, o_profile, _ = _load_policy(cfg, options, cap, profile_file=False)
+        o_info = PolicyInfo(o_engine.description, o_engine.wire_features, o_engine.action_names, o_engine.chunk_size)
+        others.append(ExtraPolicy(entry.name, o_serving, o_info, o_profile, cap, options))
+    first_cap = (entries[0].max_batch_size if entries else None) or cfg.max_batch_size
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
     operators = OperatorTokens.load(cfg.operator_token_file, auth) if cfg.operator_token_file else None
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
@@ -355,11 +409,11 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         )
     learn, learn_why = latency_learning(cfg, profile)
     server = ArmoryServer(
-        serving_engine, info, profile, cfg.scheduler, cfg.max_batch_size, cfg.host, cfg.port, cfg.max_robots,
+        serving_engine, info, profile, cfg.scheduler, first_cap, cfg.host, cfg.port, cfg.max_robots,
         int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
         learn_latency=learn, fleet_policy=fleet_policy, operators=operators,
-        loader=policy_loader(cfg.max_batch_size, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile),
-        policy_options=cfg.policy,
+        loader=policy_loader(first_cap, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile),
+        policy_options=first, policy_name=entries[0].name if entries else DEFAULT_POLICY, others=tuple(others),
     )  # fmt: skip
     if cfg.batch_log:
         server.log_batches_to(cfg.batch_log)
@@ -367,9 +421,15 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     metrics_port = server.serve_metrics(cfg.metrics_port) if cfg.metrics_port is not None else None
     openpi_port = server.serve_openpi(cfg.openpi, cfg.openpi.keymap) if cfg.openpi.port is not None else None
     features = "\n".join(f"    {f.name}: {f.describe()}" for f in engine.wire_features)
+    policies_line = ""
+    if entries:
+        policies_line = "  policies (robots name one with --policy_name): " + "; ".join(
+            [f"{entries[0].name} (b <= {first_cap})", *(f"{o.name}: {o.info.description} (b <= {o.max_batch_size})" for o in others)]
+        ) + "\n"
     summary = (
         f"lerobot-armory-server listening on {server.address}\n"
         f"  policy: {engine.description}\n"
+        f"{policies_line}"
         f"  observation features robots must send:\n{features}\n"
         f"  actions: {len(engine.action_names)} dims ({', '.join(engine.action_names)}), chunk size H={engine.chunk_size}\n"
         f"  scheduler: {cfg.scheduler.label()} (max batch size {cfg.max_batch_size})\n"
@@ -383,6 +443,37 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         f"  d_infer learning: {'on' if learn else 'off'} ({learn_why})"
     )
     return server, summary
+
+
+def _options_of(cfg: ServerConfig, entry: PolicyEntry) -> PolicyOptions:
+    """The ``--policy.*`` options of one policy of ``--policies``: the server's device and
+    threads, the command line's overrides, then the file's."""
+    return PolicyOptions(entry.path, cfg.policy.device, cfg.policy.cpu_threads, [*cfg.policy.overrides, *entry.overrides])
+
+
+def _load_policy(
+    cfg: ServerConfig, options: PolicyOptions, max_batch_size: int, profile_file: bool
+) -> tuple[PolicyEngine, Engine, LatencyProfile, str]:
+    """Load, warm up and profile one policy: (its engine, the engine the loop runs — the same, or
+    wrapped in the emulated profile —, its ``d_infer`` profile, a note for the summary).
+    ``profile_file``: ``--latency_profile`` applies (one policy served)."""
+    log.info("loading policy %s ...", options.path)
+    engine = PolicyEngine(options, cfg.rtc, dataclasses.replace(cfg.engine))
+    log.info("warming up b = 1..%d ...", max_batch_size)
+    on_startup_device(f"warming up b = 1..{max_batch_size}", engine.warmup, max_batch_size)
+    if cfg.engine.emulate_profile:
+        profile = load_profile(cfg.engine.emulate_profile)
+        log.info("emulating latency profile %s: every batch takes exactly d_infer(b)", profile.name)
+        return engine, EmulatedLatencyEngine(engine, profile), profile, " (emulated latency)"
+    if profile_file:
+        return engine, engine, resolve_profile(cfg, engine), ""
+    return engine, engine, profile_at_startup(engine, max_batch_size, cfg.profile_reps), ""
+
+
+def profile_at_startup(engine: PolicyEngine, max_batch_size: int, reps: int) -> LatencyProfile:
+    """``d_infer(b)`` for b = 1..cap, measured (the engine has just warmed every size up)."""
+    log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", max_batch_size, reps)
+    return on_startup_device(f"profiling b = 1..{max_batch_size}", engine.profile, max_batch_size, 0, reps)
 
 
 def serve(cfg: ServerConfig) -> None:

@@ -24,57 +24,57 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n!lerobot_armory/proto/armory.proto\x12\x11lerobot_armory.v1\"8\n\nTensorSpec\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05\x64type\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\"q\n\x06Tensor\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05\x64type\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12-\n\x08\x65ncoding\x18\x05 \x01(\x0e\x32\x1b.lerobot_armory.v1.Encoding\"\xd9\x01\n\x0fRegisterRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\t\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0b\n\x03\x66ps\x18\x03 \x01(\x01\x12\r\n\x05h_min\x18\x04 \x01(\x05\x12\r\n\x05h_max\x18\x05 \x01(\x05\x12\x0e\n\x06weight\x18\x06 \x01(\x01\x12\x0c\n\x04tier\x18\x07 \x01(\t\x12/\n\x08\x66\x65\x61tures\x18\x08 \x03(\x0b\x32\x1d.lerobot_armory.v1.TensorSpec\x12\x18\n\x10\x63lient_send_time\x18\t \x01(\x01\x12\x12\n\nauth_token\x18\n \x01(\t\"\xc0\x02\n\x10RegisterResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x14\n\x0c\x61\x63tion_names\x18\x02 \x03(\t\x12\x12\n\nchunk_size\x18\x03 \x01(\x05\x12\x12\n\naction_dim\x18\x04 \x01(\x05\x12\x18\n\x10server_recv_time\x18\x05 \x01(\x01\x12\x18\n\x10server_send_time\x18\x06 \x01(\x01\x12\x0e\n\x06policy\x18\x07 \x01(\t\x12\x38\n\x11\x65xpected_features\x18\x08 \x03(\x0b\x32\x1d.lerobot_armory.v1.TensorSpec\x12\x19\n\x11max_message_bytes\x18\t \x01(\x05\x12)\n\x07granted\x18\n \x01(\x0b\x32\x18.lerobot_armory.v1.Grant\x12\x16\n\x0estream_address\x18\x0b \x01(\t\"x\n\x05Grant\x12\x0e\n\x06weight\x18\x01 \x01(\x01\x12\x0c\n\x04tier\x18\x02 \x01(\t\x12\x0b\n\x03\x66ps\x18\x03 \x01(\x01\x12\r\n\x05h_min\x18\x04 \x01(\x05\x12\r\n\x05h_max\x18\x05 \x01(\x05\x12\x18\n\x10max_device_share\x18\x06 \x01(\x01\x12\x0c\n\x04rule\x18\x07 \x01(\t\"\x84\x01\n\tClockSync\x12\x18\n\x10\x63lient_send_time\x18\x01 \x01(\x01\x12\x18\n\x10server_recv_time\x18\x02 \x01(\x01\x12\x18\n\x10server_send_time\x18\x03 \x01(\x01\x12\x18\n\x10\x63lient_recv_time\x18\x04 \x01(\x01\x12\x0f\n\x07sync_id\x18\x05 \x01(\x03\"=\n\x10\x43lockSyncRequest\x12\x0f\n\x07sync_id\x18\x01 \x01(\x03\x12\x18\n\x10server_send_time\x18\x02 \x01(\x01\"^\n\x0bObservation\x12\r\n\x05index\x18\x01 \x01(\x03\x12\x14\n\x0c\x63\x61pture_time\x18\x02 \x01(\x01\x12*\n\x07tensors\x18\x03 \x03(\x0b\x32\x19.lerobot_armory.v1.Tensor\"T\n\x0c\x43hunkReceipt\x12\x10\n\x08\x63hunk_id\x18\x01 \x01(\x03\x12\x14\n\x0c\x61rrival_time\x18\x02 \x01(\x01\x12\x1c\n\x14\x66irst_executed_index\x18\x03 \x01(\x03\"\x95\x01\n\x0f\x45xecutionReport\x12\x13\n\x0breport_time\x18\x01 \x01(\x01\x12\r\n\x05index\x18\x02 \x01(\x03\x12\x16\n\x0e\x65xecuted_steps\x18\x03 \x01(\x03\x12\x15\n\rstarved_steps\x18\x04 \x01(\x03\x12/\n\x06\x63hunks\x18\x05 \x03(\x0b\x32\x1f.lerobot_armory.v1.ChunkReceipt\"\xb7\x01\n\x0cRobotMessage\x12\x35\n\x0bobservation\x18\x01 \x01(\x0b\x32\x1e.lerobot_armory.v1.ObservationH\x00\x12\x34\n\x06report\x18\x02 \x01(\x0b\x32\".lerobot_armory.v1.ExecutionReportH\x00\x12\x32\n\nclock_sync\x18\x03 \x01(\x0b\x32\x1c.lerobot_armory.v1.ClockSyncH\x00\x42\x06\n\x04kind\"\x90\x01\n\x0b\x41\x63tionChunk\x12\x10\n\x08\x63hunk_id\x18\x01 \x01(\x03\x12\x0f\n\x07i_start\x18\x02 \x01(\x03\x12*\n\x07\x61\x63tions\x18\x03 \x01(\x0b\x32\x19.lerobot_armory.v1.Tensor\x12\x18\n\x10server_send_time\x18\x04 \x01(\x01\x12\x18\n\x10obs_capture_time\x18\x05 \x01(\x01\"\xdf\x01\n\x06Notice\x12,\n\x04kind\x18\x01 \x01(\x0e\x32\x1e.lerobot_armory.v1.Notice.Kind\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05index\x18\x03 \x01(\x03\"\x86\x01\n\x04Kind\x12\x08\n\x04INFO\x10\x00\x12\x18\n\x14REJECTED_OBSERVATION\x10\x01\x12\x13\n\x0fREJECTED_REPORT\x10\x02\x12\x14\n\x10INFERENCE_FAILED\x10\x03\x12\x0c\n\x08SHUTDOWN\x10\x04\x12\x0b\n\x07\x44ROPPED\x10\x05\x12\t\n\x05\x43LOCK\x10\x06\x12\t\n\x05MOVED\x10\x07\"\xb2\x01\n\rServerMessage\x12/\n\x05\x63hunk\x18\x01 \x01(\x0b\x32\x1e.lerobot_armory.v1.ActionChunkH\x00\x12+\n\x06notice\x18\x02 \x01(\x0b\x32\x19.lerobot_armory.v1.NoticeH\x00\x12;\n\x0csync_request\x18\x03 \x01(\x0b\x32#.lerobot_armory.v1.ClockSyncRequestH\x00\x42\x06\n\x04kind\"Y\n\x0bSwapRequest\x12\x13\n\x0bpolicy_path\x18\x01 \x01(\t\x12\x11\n\toverrides\x18\x02 \x03(\t\x12\r\n\x05\x64rain\x18\x03 \x01(\x08\x12\x13\n\x0bpolicy_name\x18\x04 \x01(\t\"d\n\x0cSwapResponse\x12\x0e\n\x06result\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x10\n\x08old_path\x18\x03 \x01(\t\x12\x10\n\x08new_path\x18\x04 \x01(\t\x12\x0f\n\x07seconds\x18\x05 \x01(\x01\"\x14\n\x12\x41\x64minStatusRequest\"\xd2\x01\n\x13\x41\x64minStatusResponse\x12\x13\n\x0bpolicy_path\x18\x01 \x01(\t\x12\x0e\n\x06policy\x18\x02 \x01(\t\x12\x0e\n\x06robots\x18\x03 \x01(\x05\x12\x10\n\x08swaps_ok\x18\x04 \x01(\x04\x12\x15\n\rswaps_refused\x18\x05 \x01(\x04\x12\x14\n\x0cswaps_failed\x18\x06 \x01(\x04\x12\x13\n\x0bstatus_line\x18\x07 \x01(\t\x12\x32\n\x08replicas\x18\x08 \x03(\x0b\x32 .lerobot_armory.v1.ReplicaStatus\"\x93\x01\n\rReplicaStatus\x12\x12\n\nreplica_id\x18\x01 \x01(\t\x12\n\n\x02up\x18\x02 \x01(\x08\x12\x13\n\x0bpolicy_path\x18\x03 \x01(\t\x12\x0e\n\x06robots\x18\x04 \x01(\x05\x12\x10\n\x08swaps_ok\x18\x05 \x01(\x04\x12\x15\n\rswaps_refused\x18\x06 \x01(\x04\x12\x14\n\x0cswaps_failed\x18\x07 \x01(\x04*\x1d\n\x08\x45ncoding\x12\x07\n\x03RAW\x10\x00\x12\x08\n\x04JPEG\x10\x01\x32\xae\x01\n\x06\x41rmory\x12S\n\x08Register\x12\".lerobot_armory.v1.RegisterRequest\x1a#.lerobot_armory.v1.RegisterResponse\x12O\n\x06Stream\x12\x1f.lerobot_armory.v1.RobotMessage\x1a .lerobot_armory.v1.ServerMessage(\x01\x30\x01\x32\xb5\x01\n\x0b\x41rmoryAdmin\x12M\n\nSwapPolicy\x12\x1e.lerobot_armory.v1.SwapRequest\x1a\x1f.lerobot_armory.v1.SwapResponse\x12W\n\x06Status\x12%.lerobot_armory.v1.AdminStatusRequest\x1a&.lerobot_armory.v1.AdminStatusResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n!lerobot_armory/proto/armory.proto\x12\x11lerobot_armory.v1\"8\n\nTensorSpec\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05\x64type\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\"q\n\x06Tensor\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05\x64type\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12-\n\x08\x65ncoding\x18\x05 \x01(\x0e\x32\x1b.lerobot_armory.v1.Encoding\"\xee\x01\n\x0fRegisterRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\t\x12\x0c\n\x04task\x18\x02 \x01(\t\x12\x0b\n\x03\x66ps\x18\x03 \x01(\x01\x12\r\n\x05h_min\x18\x04 \x01(\x05\x12\r\n\x05h_max\x18\x05 \x01(\x05\x12\x0e\n\x06weight\x18\x06 \x01(\x01\x12\x0c\n\x04tier\x18\x07 \x01(\t\x12/\n\x08\x66\x65\x61tures\x18\x08 \x03(\x0b\x32\x1d.lerobot_armory.v1.TensorSpec\x12\x18\n\x10\x63lient_send_time\x18\t \x01(\x01\x12\x12\n\nauth_token\x18\n \x01(\t\x12\x13\n\x0bpolicy_name\x18\x0b \x01(\t\"\xc0\x02\n\x10RegisterResponse\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x14\n\x0c\x61\x63tion_names\x18\x02 \x03(\t\x12\x12\n\nchunk_size\x18\x03 \x01(\x05\x12\x12\n\naction_dim\x18\x04 \x01(\x05\x12\x18\n\x10server_recv_time\x18\x05 \x01(\x01\x12\x18\n\x10server_send_time\x18\x06 \x01(\x01\x12\x0e\n\x06policy\x18\x07 \x01(\t\x12\x38\n\x11\x65xpected_features\x18\x08 \x03(\x0b\x32\x1d.lerobot_armory.v1.TensorSpec\x12\x19\n\x11max_message_bytes\x18\t \x01(\x05\x12)\n\x07granted\x18\n \x01(\x0b\x32\x18.lerobot_armory.v1.Grant\x12\x16\n\x0estream_address\x18\x0b \x01(\t\"x\n\x05Grant\x12\x0e\n\x06weight\x18\x01 \x01(\x01\x12\x0c\n\x04tier\x18\x02 \x01(\t\x12\x0b\n\x03\x66ps\x18\x03 \x01(\x01\x12\r\n\x05h_min\x18\x04 \x01(\x05\x12\r\n\x05h_max\x18\x05 \x01(\x05\x12\x18\n\x10max_device_share\x18\x06 \x01(\x01\x12\x0c\n\x04rule\x18\x07 \x01(\t\"\x84\x01\n\tClockSync\x12\x18\n\x10\x63lient_send_time\x18\x01 \x01(\x01\x12\x18\n\x10server_recv_time\x18\x02 \x01(\x01\x12\x18\n\x10server_send_time\x18\x03 \x01(\x01\x12\x18\n\x10\x63lient_recv_time\x18\x04 \x01(\x01\x12\x0f\n\x07sync_id\x18\x05 \x01(\x03\"=\n\x10\x43lockSyncRequest\x12\x0f\n\x07sync_id\x18\x01 \x01(\x03\x12\x18\n\x10server_send_time\x18\x02 \x01(\x01\"^\n\x0bObservation\x12\r\n\x05index\x18\x01 \x01(\x03\x12\x14\n\x0c\x63\x61pture_time\x18\x02 \x01(\x01\x12*\n\x07tensors\x18\x03 \x03(\x0b\x32\x19.lerobot_armory.v1.Tensor\"T\n\x0c\x43hunkReceipt\x12\x10\n\x08\x63hunk_id\x18\x01 \x01(\x03\x12\x14\n\x0c\x61rrival_time\x18\x02 \x01(\x01\x12\x1c\n\x14\x66irst_executed_index\x18\x03 \x01(\x03\"\x95\x01\n\x0f\x45xecutionReport\x12\x13\n\x0breport_time\x18\x01 \x01(\x01\x12\r\n\x05index\x18\x02 \x01(\x03\x12\x16\n\x0e\x65xecuted_steps\x18\x03 \x01(\x03\x12\x15\n\rstarved_steps\x18\x04 \x01(\x03\x12/\n\x06\x63hunks\x18\x05 \x03(\x0b\x32\x1f.lerobot_armory.v1.ChunkReceipt\"\xb7\x01\n\x0cRobotMessage\x12\x35\n\x0bobservation\x18\x01 \x01(\x0b\x32\x1e.lerobot_armory.v1.ObservationH\x00\x12\x34\n\x06report\x18\x02 \x01(\x0b\x32\".lerobot_armory.v1.ExecutionReportH\x00\x12\x32\n\nclock_sync\x18\x03 \x01(\x0b\x32\x1c.lerobot_armory.v1.ClockSyncH\x00\x42\x06\n\x04kind\"\x90\x01\n\x0b\x41\x63tionChunk\x12\x10\n\x08\x63hunk_id\x18\x01 \x01(\x03\x12\x0f\n\x07i_start\x18\x02 \x01(\x03\x12*\n\x07\x61\x63tions\x18\x03 \x01(\x0b\x32\x19.lerobot_armory.v1.Tensor\x12\x18\n\x10server_send_time\x18\x04 \x01(\x01\x12\x18\n\x10obs_capture_time\x18\x05 \x01(\x01\"\xdf\x01\n\x06Notice\x12,\n\x04kind\x18\x01 \x01(\x0e\x32\x1e.lerobot_armory.v1.Notice.Kind\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05index\x18\x03 \x01(\x03\"\x86\x01\n\x04Kind\x12\x08\n\x04INFO\x10\x00\x12\x18\n\x14REJECTED_OBSERVATION\x10\x01\x12\x13\n\x0fREJECTED_REPORT\x10\x02\x12\x14\n\x10INFERENCE_FAILED\x10\x03\x12\x0c\n\x08SHUTDOWN\x10\x04\x12\x0b\n\x07\x44ROPPED\x10\x05\x12\t\n\x05\x43LOCK\x10\x06\x12\t\n\x05MOVED\x10\x07\"\xb2\x01\n\rServerMessage\x12/\n\x05\x63hunk\x18\x01 \x01(\x0b\x32\x1e.lerobot_armory.v1.ActionChunkH\x00\x12+\n\x06notice\x18\x02 \x01(\x0b\x32\x19.lerobot_armory.v1.NoticeH\x00\x12;\n\x0csync_request\x18\x03 \x01(\x0b\x32#.lerobot_armory.v1.ClockSyncRequestH\x00\x42\x06\n\x04kind\"Y\n\x0bSwapRequest\x12\x13\n\x0bpolicy_path\x18\x01 \x01(\t\x12\x11\n\toverrides\x18\x02 \x03(\t\x12\r\n\x05\x64rain\x18\x03 \x01(\x08\x12\x13\n\x0bpolicy_name\x18\x04 \x01(\t\"d\n\x0cSwapResponse\x12\x0e\n\x06result\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x10\n\x08old_path\x18\x03 \x01(\t\x12\x10\n\x08new_path\x18\x04 \x01(\t\x12\x0f\n\x07seconds\x18\x05 \x01(\x01\"\x14\n\x12\x41\x64minStatusRequest\"\xd2\x01\n\x13\x41\x64minStatusResponse\x12\x13\n\x0bpolicy_path\x18\x01 \x01(\t\x12\x0e\n\x06policy\x18\x02 \x01(\t\x12\x0e\n\x06robots\x18\x03 \x01(\x05\x12\x10\n\x08swaps_ok\x18\x04 \x01(\x04\x12\x15\n\rswaps_refused\x18\x05 \x01(\x04\x12\x14\n\x0cswaps_failed\x18\x06 \x01(\x04\x12\x13\n\x0bstatus_line\x18\x07 \x01(\t\x12\x32\n\x08replicas\x18\x08 \x03(\x0b\x32 .lerobot_armory.v1.ReplicaStatus\"\x93\x01\n\rReplicaStatus\x12\x12\n\nreplica_id\x18\x01 \x01(\t\x12\n\n\x02up\x18\x02 \x01(\x08\x12\x13\n\x0bpolicy_path\x18\x03 \x01(\t\x12\x0e\n\x06robots\x18\x04 \x01(\x05\x12\x10\n\x08swaps_ok\x18\x05 \x01(\x04\x12\x15\n\rswaps_refused\x18\x06 \x01(\x04\x12\x14\n\x0cswaps_failed\x18\x07 \x01(\x04*\x1d\n\x08\x45ncoding\x12\x07\n\x03RAW\x10\x00\x12\x08\n\x04JPEG\x10\x01\x32\xae\x01\n\x06\x41rmory\x12S\n\x08Register\x12\".lerobot_armory.v1.RegisterRequest\x1a#.lerobot_armory.v1.RegisterResponse\x12O\n\x06Stream\x12\x1f.lerobot_armory.v1.RobotMessage\x1a .lerobot_armory.v1.ServerMessage(\x01\x30\x01\x32\xb5\x01\n\x0b\x41rmoryAdmin\x12M\n\nSwapPolicy\x12\x1e.lerobot_armory.v1.SwapRequest\x1a\x1f.lerobot_armory.v1.SwapResponse\x12W\n\x06Status\x12%.lerobot_armory.v1.AdminStatusRequest\x1a&.lerobot_armory.v1.AdminStatusResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'lerobot_armory.proto.armory_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_ENCODING']._serialized_start=2744
-  _globals['_ENCODING']._serialized_end=2773
+  _globals['_ENCODING']._serialized_start=2765
+  _globals['_ENCODING']._serialized_end=2794
   _globals['_TENSORSPEC']._serialized_start=56
   _globals['_TENSORSPEC']._serialized_end=112
   _globals['_TENSOR']._serialized_start=114
   _globals['_TENSOR']._serialized_end=227
   _globals['_REGISTERREQUEST']._serialized_start=230
-  _globals['_REGISTERREQUEST']._serialized_end=447
-  _globals['_REGISTERRESPONSE']._serialized_start=450
-  _globals['_REGISTERRESPONSE']._serialized_end=770
-  _globals['_GRANT']._serialized_start=772
-  _globals['_GRANT']._serialized_end=892
-  _globals['_CLOCKSYNC']._serialized_start=895
-  _globals['_CLOCKSYNC']._serialized_end=1027
-  _globals['_CLOCKSYNCREQUEST']._serialized_start=1029
-  _globals['_CLOCKSYNCREQUEST']._serialized_end=1090
-  _globals['_OBSERVATION']._serialized_start=1092
-  _globals['_OBSERVATION']._serialized_end=1186
-  _globals['_CHUNKRECEIPT']._serialized_start=1188
-  _globals['_CHUNKRECEIPT']._serialized_end=1272
-  _globals['_EXECUTIONREPORT']._serialized_start=1275
-  _globals['_EXECUTIONREPORT']._serialized_end=1424
-  _globals['_ROBOTMESSAGE']._serialized_start=1427
-  _globals['_ROBOTMESSAGE']._serialized_end=1610
-  _globals['_ACTIONCHUNK']._serialized_start=1613
-  _globals['_ACTIONCHUNK']._serialized_end=1757
-  _globals['_NOTICE']._serialized_start=1760
-  _globals['_NOTICE']._serialized_end=1983
-  _globals['_NOTICE_KIND']._serialized_start=1849
-  _globals['_NOTICE_KIND']._serialized_end=1983
-  _globals['_SERVERMESSAGE']._serialized_start=1986
-  _globals['_SERVERMESSAGE']._serialized_end=2164
-  _globals['_SWAPREQUEST']._serialized_start=2166
-  _globals['_SWAPREQUEST']._serialized_end=2255
-  _globals['_SWAPRESPONSE']._serialized_start=2257
-  _globals['_SWAPRESPONSE']._serialized_end=2357
-  _globals['_ADMINSTATUSREQUEST']._serialized_start=2359
-  _globals['_ADMINSTATUSREQUEST']._serialized_end=2379
-  _globals['_ADMINSTATUSRESPONSE']._serialized_start=2382
-  _globals['_ADMINSTATUSRESPONSE']._serialized_end=2592
-  _globals['_REPLICASTATUS']._serialized_start=2595
-  _globals['_REPLICASTATUS']._serialized_end=2742
-  _globals['_ARMORY']._serialized_start=2776
-  _globals['_ARMORY']._serialized_end=2950
-  _globals['_ARMORYADMIN']._serialized_start=2953
-  _globals['_ARMORYADMIN']._serialized_end=3134
+  _globals['_REGISTERREQUEST']._serialized_end=468
+  _globals['_REGISTERRESPONSE']._serialized_start=471
+  _globals['_REGISTERRESPONSE']._serialized_end=791
+  _globals['_GRANT']._serialized_start=793
+  _globals['_GRANT']._serialized_end=913
+  _globals['_CLOCKSYNC']._serialized_start=916
+  _globals['_CLOCKSYNC']._serialized_end=1048
+  _globals['_CLOCKSYNCREQUEST']._serialized_start=1050
+  _globals['_CLOCKSYNCREQUEST']._serialized_end=1111
+  _globals['_OBSERVATION']._serialized_start=1113
+  _globals['_OBSERVATION']._serialized_end=1207
+  _globals['_CHUNKRECEIPT']._serialized_start=1209
+  _globals['_CHUNKRECEIPT']._serialized_end=1293
+  _globals['_EXECUTIONREPORT']._serialized_start=1296
+  _globals['_EXECUTIONREPORT']._serialized_end=1445
+  _globals['_ROBOTMESSAGE']._serialized_start=1448
+  _globals['_ROBOTMESSAGE']._serialized_end=1631
+  _globals['_ACTIONCHUNK']._serialized_start=1634
+  _globals['_ACTIONCHUNK']._serialized_end=1778
+  _globals['_NOTICE']._serialized_start=1781
+  _globals['_NOTICE']._serialized_end=2004
+  _globals['_NOTICE_KIND']._serialized_start=1870
+  _globals['_NOTICE_KIND']._serialized_end=2004
+  _globals['_SERVERMESSAGE']._serialized_start=2007
+  _globals['_SERVERMESSAGE']._serialized_end=2185
+  _globals['_SWAPREQUEST']._serialized_start=2187
+  _globals['_SWAPREQUEST']._serialized_end=2276
+  _globals['_SWAPRESPONSE']._serialized_start=2278
+  _globals['_SWAPRESPONSE']._serialized_end=2378
+  _globals['_ADMINSTATUSREQUEST']._serialized_start=2380
+  _globals['_ADMINSTATUSREQUEST']._serialized_end=2400
+  _globals['_ADMINSTATUSRESPONSE']._serialized_start=2403
+  _globals['_ADMINSTATUSRESPONSE']._serialized_end=2613
+  _globals['_REPLICASTATUS']._serialized_start=2616
+  _globals['_REPLICASTATUS']._serialized_end=2763
+  _globals['_ARMORY']._serialized_start=2797
+  _globals['_ARMORY']._serialized_end=2971
+  _globals['_ARMORYADMIN']._serialized_start=2974
+  _globals['_ARMORYADMIN']._serialized_end=3155
 # @@protoc_insertion_point(module_scope)

@@ -39,7 +39,7 @@ class Tensor(_message.Message):
     def __init__(self, name: _Optional[str] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., data: _Optional[bytes] = ..., encoding: _Optional[_Union[Encoding, str]] = ...) -> None: ...
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("robot_id", "task", "fps", "h_min", "h_max", "weight", "tier", "features", "client_send_time", "auth_token")
+    __slots__ = ("robot_id", "task", "fps", "h_min", "h_max", "weight", "tier", "features", "client_send_time", "auth_token", "policy_name")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
     FPS_FIELD_NUMBER: _ClassVar[int]
@@ -50,6 +50,7 @@ class RegisterRequest(_message.Message):
     FEATURES_FIELD_NUMBER: _ClassVar[int]
     CLIENT_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
     AUTH_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    POLICY_NAME_FIELD_NUMBER: _ClassVar[int]
     robot_id: str
     task: str
     fps: float
@@ -60,7 +61,8 @@ class RegisterRequest(_message.Message):
     features: _containers.RepeatedCompositeFieldContainer[TensorSpec]
     client_send_time: float
     auth_token: str
-    def __init__(self, robot_id: _Optional[str] = ..., task: _Optional[str] = ..., fps: _Optional[float] = ..., h_min: _Optional[int] = ..., h_max: _Optional[int] = ..., weight: _Optional[float] = ..., tier: _Optional[str] = ..., features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., client_send_time: _Optional[float] = ..., auth_token: _Optional[str] = ...) -> None: ...
+    policy_name: str
+    def __init__(self, robot_id: _Optional[str] = ..., task: _Optional[str] = ..., fps: _Optional[float] = ..., h_min: _Optional[int] = ..., h_max: _Optional[int] = ..., weight: _Optional[float] = ..., tier: _Optional[str] = ..., features: _Optional[_Iterable[_Union[TensorSpec, _Mapping]]] = ..., client_send_time: _Optional[float] = ..., auth_token: _Optional[str] = ..., policy_name: _Optional[str] = ...) -> None: ...
 
 class RegisterResponse(_message.Message):
     __slots__ = ("session_id", "action_names", "chunk_size", "action_dim", "server_recv_time", "server_send_time", "policy", "expected_features", "max_message_bytes", "granted", "stream_address")

@@ -70,6 +70,8 @@ class ClientConfig:
         tls_ca: PEM file of the CA that signed the server's certificate (enables TLS).
         auth_token_file: file whose first line is this robot's token.
         log_level: debug, info, warning, error.
+        policy_name: the policy to be served by, where the server serves several
+            (``--policies=FILE``); empty: the server's only one.
     """
 
     robot: RobotConfig
@@ -88,6 +90,7 @@ class ClientConfig:
     tls_ca: str | None = None
     auth_token_file: str | None = None
     log_level: str = "info"
+    policy_name: str = ""
     backoff: Backoff = field(default_factory=Backoff)
 
     def validate(self) -> None:
@@ -235,7 +238,7 @@ def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, An
 
         client = ArmoryClient(
             cfg.server_address,
-            RobotIdentity(default_robot_id(cfg, name), cfg.fps, cfg.h_min, cfg.h_max, cfg.weight, cfg.tier, cfg.task),
+            RobotIdentity(default_robot_id(cfg, name), cfg.fps, cfg.h_min, cfg.h_max, cfg.weight, cfg.tier, cfg.task, cfg.policy_name),
             fmap.wire_features(),
             observe=lambda: _robot_call(cfg.robot, name, lambda: fmap.to_wire(robot.get_observation())),
             act=lambda vector: _robot_call(cfg.robot, name, lambda: robot.send_action(fmap.to_action(vector))),

@@ -67,6 +67,7 @@ class RobotIdentity:
     weight: float = 1.0
     tier: str = "slow"
     task: str = ""
+    policy_name: str = ""  # the policy to be served by, where the server serves several
 
 
 @dataclass
@@ -190,7 +191,10 @@ class ArmoryClient:
             raise ConnectionError(f"server {self.address} is unreachable")
         ident = self.identity
         try:
-            reg = conn.register(ident.robot_id, self.features, ident.fps, ident.h_min, ident.h_max, ident.weight, ident.tier, ident.task)
+            reg = conn.register(
+                ident.robot_id, self.features, ident.fps, ident.h_min, ident.h_max, ident.weight, ident.tier, ident.task,
+                policy_name=ident.policy_name,
+            )  # fmt: skip
         except grpc.RpcError as exc:
             conn.close()
             if exc.code() in RETRYABLE:

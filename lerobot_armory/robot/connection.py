@@ -142,8 +142,10 @@ class Connection:
         tier: str = "slow",
         task: str = "",
         timeout: float = 10.0,
+        policy_name: str = "",
     ) -> Registration:
-        """Register; raises ``grpc.RpcError`` (INVALID_ARGUMENT lists every mismatch)."""
+        """Register; raises ``grpc.RpcError`` (INVALID_ARGUMENT lists every mismatch).
+        ``policy_name`` names the policy to be served by where the server serves several."""
         request = pb.RegisterRequest(
             robot_id=robot_id,
             task=task,
@@ -155,6 +157,7 @@ class Connection:
             features=[pb.TensorSpec(name=n, dtype=d, shape=list(s)) for n, (d, s) in features.items()],
             client_send_time=self.clock(),
             auth_token=self.token,
+            policy_name=policy_name,
         )
         response = self.stub.Register(request, timeout=timeout)
         sync = pb.ClockSync(

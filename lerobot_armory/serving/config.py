@@ -107,9 +107,14 @@ class ServerConfig:
         openpi: ``--openpi.port=8000``: also speak openpi's websocket policy protocol (an
             unchanged openpi client is served batched with the gRPC robots); ``--openpi.keymap``,
             ``--openpi.fps``, ``--openpi.replan_steps``, ``--openpi.tier`` (entrypoints/openpi/).
+        policies: a YAML/JSON file naming several policies served from the one device, in
+            place of ``--policy.path`` (serving/policies_file.py); robots name theirs at
+            registration (``--policy_name``). ``--policy.device``, ``--policy.cpu_threads`` and
+            any ``--policy.<field>`` apply to every policy; openpi clients are served by the first.
     """
 
     policy: PolicyOptions = field(default_factory=PolicyOptions)
+    policies: str | None = None
     engine: EngineOptions = field(default_factory=EngineOptions)
     rtc: RTCOptions = field(default_factory=RTCOptions)
     scheduler: SchedulerConfig = field(default_factory=LookaheadConfig)
@@ -137,6 +142,10 @@ class ServerConfig:
     def validate(self) -> None:
         if self.max_batch_size < 1:
             raise ConfigError("max_batch_size", f"must be >= 1, got {self.max_batch_size}")
+        if self.policies and self.policy.path:
+            raise ConfigError("policies", "give --policies=FILE or --policy.path, not both")
+        if self.policies and self.latency_profile:
+            raise ConfigError("latency_profile", "with --policies every policy is profiled at start-up; drop --latency_profile")
         if not 0 <= self.port <= 65535:
             raise ConfigError("port", f"must be in 0..65535, got {self.port}")
         if self.max_robots < 1:

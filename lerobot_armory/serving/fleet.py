@@ -84,6 +84,7 @@ class Fleet:
         credential: bytes | None = None,
         grant: Grant | None = None,
         register_recv: float | None = None,
+        policy: str | None = None,
     ) -> RobotSession:
         """Add a robot. A robot id already *streaming* is refused; a stale registration of the
         same id (never streamed, or its stream ended) is replaced.
@@ -108,6 +109,8 @@ class Fleet:
                 self._make_room(now)
             link = Link(credential=credential, grant=grant)
             session = RobotSession(uuid.uuid4().hex, spec, task, features, RobotMirror(spec), now, link=link)
+            if policy is not None:
+                session.policy = policy
             if self.history_steps > 1:
                 session.recent = collections.deque(maxlen=self.history_steps)
             session.clock.register_stamps = (now if register_recv is None else register_recv, now)

@@ -30,13 +30,12 @@ a saturated simulated fleet, one robot with h_max 2 at 20 fps, 100 ms against 14
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
 from typing import Any
 
 from lerobot_armory.errors import ConfigError
+from lerobot_armory.serving.config_files import read_config_file
 from lerobot_armory.mirror import MAX_FPS, MAX_WEIGHT, MIN_FPS, TIERS
 from lerobot_armory.serving.messages import Grant
 
@@ -134,20 +133,7 @@ class FleetPolicy:
     @classmethod
     def load(cls, path: str) -> FleetPolicy:
         """Read a YAML (``.yaml``/``.yml``) or JSON policy file; every problem is one line."""
-        try:
-            text = Path(path).read_text()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(FIELD, f"cannot read {path}: {exc}") from None
-        try:
-            if path.endswith((".yaml", ".yml")):
-                import yaml
-
-                data = yaml.safe_load(text)
-            else:
-                data = json.loads(text)
-        except Exception as exc:  # yaml.YAMLError / json.JSONDecodeError: one line either way
-            first = (str(exc).strip().splitlines() or [""])[0]
-            raise ConfigError(FIELD, f"{path} does not parse: {first}") from None
+        data = read_config_file(path, FIELD)
         return cls.from_dict(data, path)
 
     @classmethod

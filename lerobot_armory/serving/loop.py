@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lerobot_armory.arbiter import PolicyArbiter
 from lerobot_armory.dispatch import Dispatcher, Plan
 from lerobot_armory.mirror import Chunk, RobotMirror
 from lerobot_armory.inference_latency import LatencyProfile, OnlineLatency
@@ -25,7 +26,7 @@ from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.engine.faults import Fault, classify
 from lerobot_armory.engine.protocol import Engine, noise_seed
 from lerobot_armory.serving.fleet import Fleet
-from lerobot_armory.serving.session import RobotSession
+from lerobot_armory.serving.session import DEFAULT_POLICY, RobotSession
 from lerobot_armory.serving.messages import ChunkOut, Notice, NoticeKind
 from lerobot_armory.engine.rtc import Prefix
 
@@ -43,10 +44,36 @@ MAX_MODEL_CHUNKS = 16
 
 
 @dataclass
+class ServedPolicy:
+    """One policy the loop serves: its engine, its scheduler (its own ``d_infer(b)`` and batch
+    cap), the dispatcher over its robots and, optionally, the latency model its batches feed."""
+
+    name: str
+    engine: Engine
+    scheduler: Scheduler
+    latency: OnlineLatency | None = None
+    dispatcher: Dispatcher = field(init=False)
+    drift_warned: bool = field(default=False, init=False)
+
+    def __post_init__(self) -> None:
+        if self.latency is not None and self.latency.max_batch_size != self.scheduler.max_batch_size:
+            raise ValueError(
+                f"latency model covers b <= {self.latency.max_batch_size}, the scheduler b <= {self.scheduler.max_batch_size}"
+            )
+        self.dispatcher = Dispatcher(self.scheduler, isolate_failures=True)
+
+    @property
+    def rtc(self) -> bool:
+        """Real-time chunking: the engine guides each chunk by the prefix the mirror predicts."""
+        return self.engine.rtc is not None
+
+
+@dataclass
 class Batch:
     """A dispatched plan joined to the live data of its robots (aligned with ``plan.requests``)."""
 
     plan: Plan
+    policy: ServedPolicy
     sessions: list[RobotSession]
     observations: list[dict[str, np.ndarray]]
     prefixes: list[Prefix | None] | None = None  # with RTC: what each robot executes meanwhile
@@ -66,6 +93,7 @@ class BatchRecord:
     ok: bool = True
     rtc_delays: list[int | None] | None = None  # with RTC: each robot's predicted inference delay
     chunk_ids: list[int] | None = None  # each robot's chunk id (what its ActionChunk carries)
+    policy: str = DEFAULT_POLICY  # the policy that ran the batch
 
 
 @dataclass
@@ -75,6 +103,7 @@ class LoopStats:
     batches: int = 0
     failed_batches: int = 0
     batch_sizes: collections.Counter = field(default_factory=collections.Counter)
+    batches_by_policy: collections.Counter = field(default_factory=collections.Counter)
     infer_ms: dict[int, collections.deque] = field(default_factory=lambda: collections.defaultdict(lambda: collections.deque(maxlen=200)))
     decision_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
     # CPU time of the same decisions: the scheduler's own cost, without waits for the GIL or
@@ -98,6 +127,9 @@ class ServingLoop:
         on_batch: optional callback with each :class:`BatchRecord` (batch logs).
         latency: if given, every served batch's time feeds this model and its table replaces the
             scheduler's ``d_infer`` whenever it changes (None: the table stays as built).
+        policy_name: the name of the policy ``engine`` serves (sessions name it).
+        others: more policies served from the same device. Each batch holds robots of one
+            policy; a :class:`~lerobot_armory.arbiter.PolicyArbiter` picks whose batch runs next.
     """
 
     def __init__(
@@ -107,18 +139,19 @@ class ServingLoop:
         scheduler: Scheduler,
         on_batch: Callable[[BatchRecord], None] | None = None,
         latency: OnlineLatency | None = None,
+        policy_name: str = DEFAULT_POLICY,
+        others: tuple[ServedPolicy, ...] = (),
     ) -> None:
-        if latency is not None and latency.max_batch_size != scheduler.max_batch_size:
-            raise ValueError(f"latency model covers b <= {latency.max_batch_size}, the scheduler b <= {scheduler.max_batch_size}")
         self.fleet = fleet
-        self.engine = engine
-        self.scheduler = scheduler
-        self.dispatcher = Dispatcher(scheduler, isolate_failures=True)
+        first = ServedPolicy(policy_name, engine, scheduler, latency)
+        self.policies: dict[str, ServedPolicy] = {first.name: first}
+        for other in others:
+            if other.name in self.policies:
+                raise ValueError(f"two policies named {other.name!r}")
+            self.policies[other.name] = other
+        self.default_policy = first.name
+        self.arbiter = PolicyArbiter({name: p.dispatcher for name, p in self.policies.items()})
         self.on_batch = on_batch
-        self.latency = latency
-        self._drift_warned = False
-        # Real-time chunking: the engine guides each chunk by the prefix the mirror predicts.
-        self.rtc = engine.rtc is not None
         self._failures_in_a_row = 0
         self.stats = LoopStats(started=fleet.clock())
         self._thread = threading.Thread(target=self._run, name="armory-serving-loop", daemon=True)
@@ -127,7 +160,7 @@ class ServingLoop:
         self.error: BaseException | None = None
         # A policy swap (serving/swap.py): the engine and d_infer table to switch to at the next
         # batch boundary, whether dispatching is held (a drain), and whether a batch is in flight.
-        self._pending: tuple[Engine, list[float] | None] | None = None
+        self._pending: tuple[str, Engine, list[float] | None] | None = None
         self._held = False
         self._busy = False
         self.switched_at_batch: int | None = None  # loop batches served before the last switch
@@ -143,6 +176,23 @@ class ServingLoop:
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
+
+    # The first policy's parts: a server of one policy has only these.
+    @property
+    def engine(self) -> Engine:
+        return self.policies[self.default_policy].engine
+
+    @property
+    def scheduler(self) -> Scheduler:
+        return self.policies[self.default_policy].scheduler
+
+    @property
+    def dispatcher(self) -> Dispatcher:
+        return self.policies[self.default_policy].dispatcher
+
+    @property
+    def latency(self) -> OnlineLatency | None:
+        return self.policies[self.default_policy].latency
 
     # ---- policy swaps (serving/swap.py) ------------------------------------------------------
 
@@ -162,16 +212,17 @@ class ServingLoop:
             self._held = False
             self.fleet.cond.notify_all()
 
-    def switch(self, engine: Engine, d_infer: list[float] | None, timeout: float) -> int | None:
+    def switch(self, engine: Engine, d_infer: list[float] | None, timeout: float, policy: str | None = None) -> int | None:
         """Serve every batch from the next one on with ``engine`` (and ``d_infer`` as the scheduler's
         table, None: unchanged); returns the loop's batch count at the switch once it happened.
 
         The switch happens on the loop's own thread between two batches, under the fleet lock:
         the batch in flight finishes on the old engine and its chunks are queued before it, and
         no batch after it runs on the old engine. None: the loop stopped or did not reach a batch
-        boundary within ``timeout`` (the switch is withdrawn)."""
+        boundary within ``timeout`` (the switch is withdrawn). ``policy``: which policy's engine
+        (None: the first)."""
         with self.fleet.cond:
-            self._pending = (engine, d_infer)
+            self._pending = (policy or self.default_policy, engine, d_infer)
             self.fleet.cond.notify_all()
             done = self.fleet.cond.wait_for(lambda: self._pending is None or self.fleet.stopping, timeout)
             if not done or self._pending is not None:
@@ -182,13 +233,13 @@ class ServingLoop:
     def _apply_switch(self) -> None:
         """Take the pending engine (fleet lock held, loop thread, no batch in flight)."""
         assert self._pending is not None
-        engine, table = self._pending
-        self.engine = engine
-        self.rtc = engine.rtc is not None
+        name, engine, table = self._pending
+        served = self.policies[name]
+        served.engine = engine
         if table is not None:
-            self.scheduler.d_infer[:] = table
-            if self.latency is not None:
-                self.latency.restart(LatencyProfile("swapped", tuple(1000.0 * t for t in table), source="profiled"))
+            served.scheduler.d_infer[:] = table
+            if served.latency is not None:
+                served.latency.restart(LatencyProfile("swapped", tuple(1000.0 * t for t in table), source="profiled"))
         self._failures_in_a_row = 0
         self._last_end = None  # the pause of a drain is not idle time with work waiting
         self.switched_at_batch = self.stats.batches
@@ -226,12 +277,13 @@ class ServingLoop:
                     # a robot without a stored observation has nothing to serve.
                     active = fleet.active()
                     sessions = [s for s in active if s.latest is not None and not fleet.over_share(s, now)]
-                    mirrors = [s.mirror for s in sessions]
-                    if self.dispatcher.has_work(mirrors):
+                    mirrors = self._mirrors_by_policy(sessions)
+                    if self.arbiter.has_work(mirrors):
                         break
                     fleet.cond.wait(0.05 if len(sessions) < len(active) else 0.25)
-                plan = self.dispatcher.plan(mirrors, now)
-                assert plan is not None  # has_work held under the same lock
+                planned = self.arbiter.plan(mirrors, now)
+                assert planned is not None  # has_work held under the same lock
+                name, plan = planned
                 if plan.wait_until is None:
                     break
                 # Dispatch timing: an observation about to land makes the batch better. Every
@@ -251,24 +303,33 @@ class ServingLoop:
             self.stats.failed_decisions += plan.fell_back
             chosen = [by_id[r.robot_id] for r in plan.requests]
             fleet.in_flight = {s.session_id for s in chosen}
-            prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if self.rtc else None
-            steps = self.engine.history_steps
+            served = self.policies[name]
+            prefixes = [_prefix(s, r.mirror, r.chunk) for s, r in zip(chosen, plan.requests, strict=True)] if served.rtc else None
+            steps = served.engine.history_steps
             history = [s.history(steps) for s in chosen] if steps > 1 else None
             self._busy = bool(chosen)
-            return Batch(plan, chosen, [s.latest for s in chosen], prefixes, history)
+            return Batch(plan, served, chosen, [s.latest for s in chosen], prefixes, history)
+
+    def _mirrors_by_policy(self, sessions: list[RobotSession]) -> dict[str, list[RobotMirror]]:
+        """The sessions' mirrors grouped by the policy each robot registered for (registration order)."""
+        out: dict[str, list[RobotMirror]] = {}
+        for s in sessions:
+            out.setdefault(s.policy if s.policy in self.policies else self.default_policy, []).append(s.mirror)
+        return out
 
     def _serve(self, batch: Batch) -> None:
         fleet = self.fleet
         plan = batch.plan
+        engine = batch.policy.engine
         t_start = fleet.clock()
         try:
             tasks = [s.task for s in batch.sessions]
             model_actions = None
             seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
             if batch.prefixes is not None:
-                actions, model_actions = self.engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)
+                actions, model_actions = engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)
             else:
-                actions = self.engine.infer(batch.observations, tasks, seeds, batch.history)
+                actions = engine.infer(batch.observations, tasks, seeds, batch.history)
             if actions.shape[0] != plan.size:
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {plan.size}")
         except Exception as exc:
@@ -277,7 +338,7 @@ class ServingLoop:
         t_done = fleet.clock()
         self._failures_in_a_row = 0
         with fleet.cond:
-            self.dispatcher.complete(plan, t_done)
+            batch.policy.dispatcher.complete(plan, t_done)
             for k, (request, session) in enumerate(zip(plan.requests, batch.sessions, strict=True)):
                 if fleet.sessions.get(session.session_id) is not session:
                     continue  # the robot left while its batch ran: its chunk goes nowhere
@@ -294,18 +355,18 @@ class ServingLoop:
             fleet.in_flight = set()
             self._busy = False
             fleet.charge_device(batch.sessions, t_done - t_start, t_done)
-            self._finish(plan.size, t_start, t_done)
+            self._finish(batch.policy.name, plan.size, t_start, t_done)
             fleet.cond.notify_all()
-        if self.latency is not None:
-            self._learn(plan.size, t_done - t_start)
-        self._record(plan, t_start, t_done, ok=True, prefixes=batch.prefixes)
+        if batch.policy.latency is not None:
+            self._learn(batch.policy, plan.size, t_done - t_start)
+        self._record(batch.policy.name, plan, t_start, t_done, ok=True, prefixes=batch.prefixes)
 
-    def _learn(self, size: int, seconds: float) -> None:
+    def _learn(self, served: ServedPolicy, size: int, seconds: float) -> None:
         """Feed one served batch to the latency model; hand a changed table to the scheduler.
 
         Failed batches are not fed: an exception's timing says nothing about inference.
         """
-        model = self.latency
+        model = served.latency
         assert model is not None
         if not model.observe(size, seconds):
             return  # the published table did not move: the scheduler keeps its list untouched
@@ -313,17 +374,18 @@ class ServingLoop:
         with self.fleet.cond:
             # In place, under the lock every decision holds: schedulers read self.d_infer on each
             # decision (some keep a local alias for its duration), and none sees a half-written table.
-            self.scheduler.d_infer[:] = table
+            served.scheduler.d_infer[:] = table
         worst = model.max_drift()
-        if abs(worst.pct) > DRIFT_WARN_PCT and not self._drift_warned:
-            self._drift_warned = True
+        if abs(worst.pct) > DRIFT_WARN_PCT and not served.drift_warned:
+            served.drift_warned = True
             log.warning(
-                "d_infer drifted %+.0f%% from the start-up profile at b=%d (%.1f -> %.1f ms); the scheduler now uses "
+                "%s: d_infer drifted %+.0f%% from the start-up profile at b=%d (%.1f -> %.1f ms); the scheduler now uses "
                 "the measured table: %s ms",
-                worst.pct, worst.batch_size, worst.startup_ms, worst.current_ms, ", ".join(f"{ms:.1f}" for ms in model.table_ms()),
+                served.name, worst.pct, worst.batch_size, worst.startup_ms, worst.current_ms,
+                ", ".join(f"{ms:.1f}" for ms in model.table_ms()),
             )  # fmt: skip
         elif abs(worst.pct) < DRIFT_WARN_PCT / 2:
-            self._drift_warned = False  # back near the profile: warn again on the next excursion
+            served.drift_warned = False  # back near the profile: warn again on the next excursion
 
     def _fail(self, batch: Batch, exc: Exception, t_start: float) -> None:
         """An engine error hurts only this batch (:mod:`lerobot_armory.engine.faults`).
@@ -344,13 +406,14 @@ class ServingLoop:
         else:
             log.error("inference failed for a batch of %d (%s): %s", plan.size, ", ".join(plan.robot_ids), exc)
         t_end = self.fleet.clock()
+        served = batch.policy
         with self.fleet.cond:
-            self.dispatcher.cancel(plan)
+            served.dispatcher.cancel(plan)
             self.fleet.in_flight = set()
             self._busy = False
             if shrink:
-                self.scheduler.max_batch_size = min(self.scheduler.max_batch_size, plan.size - 1)
-                self.stats.batch_cap = self.scheduler.max_batch_size
+                served.scheduler.max_batch_size = min(served.scheduler.max_batch_size, plan.size - 1)
+                self.stats.batch_cap = served.scheduler.max_batch_size
                 self.stats.oom_batches += 1
             else:
                 self.stats.failed_batches += 1
@@ -365,9 +428,9 @@ class ServingLoop:
                     )
                 if session.move_after_chunk and self.fleet.sessions.get(session.session_id) is session:
                     self.fleet.move_now(session)  # no chunk is coming: the move need not wait
-            self._finish(plan.size, t_start, t_end)
+            self._finish(served.name, plan.size, t_start, t_end)
             self.fleet.cond.notify_all()
-        self._record(plan, t_start, t_end, ok=False)
+        self._record(served.name, plan, t_start, t_end, ok=False)
         if shrink:
             return
         self._failures_in_a_row += 1
@@ -382,16 +445,19 @@ class ServingLoop:
             log.error("stopping: %s", self.error)
             self.fleet.stop()  # the loop ends at its next decision; the server sees loop.error and exits 1
 
-    def _finish(self, size: int, t_start: float, t_end: float) -> None:
+    def _finish(self, policy: str, size: int, t_start: float, t_end: float) -> None:
         """Counters at the end of a batch (lock held)."""
         self.stats.batches += 1
         self.stats.batch_sizes[size] += 1
+        self.stats.batches_by_policy[policy] += 1
         self.stats.infer_ms[size].append((t_end - t_start) * 1000.0)
         self.stats.busy_s += t_end - t_start
         self._last_end = t_end
         self._work_at_last_end = any(s.mirror.is_useful() for s in self.fleet.active())
 
-    def _record(self, plan: Plan, t_start: float, t_end: float, ok: bool, prefixes: list[Prefix | None] | None = None) -> None:
+    def _record(
+        self, policy: str, plan: Plan, t_start: float, t_end: float, ok: bool, prefixes: list[Prefix | None] | None = None
+    ) -> None:
         if self.on_batch is not None:
             chunks = [r.chunk for r in plan.requests]
             self.on_batch(
@@ -405,6 +471,7 @@ class ServingLoop:
                     ok,
                     None if prefixes is None else [None if p is None else p.inference_delay for p in prefixes],
                     [c.chunk_id for c in chunks],
+                    policy,
                 )
             )
 

@@ -30,6 +30,10 @@ from lerobot_armory.serving.security import RateLimiter
 REPORT_RATE_HZ = 20.0
 
 
+# The name of the policy a server started with ``--policy.path`` serves (``--policies=FILE`` names each).
+DEFAULT_POLICY = "default"
+
+
 @dataclass
 class Link:
     """The robot's connection: whether its stream is open, who registered it (a digest of the
@@ -107,6 +111,8 @@ class RobotSession:
     # A cluster's front asked to move this robot to another replica: done right after the chunk
     # in flight is queued, so the robot never loses a chunk it was promised.
     move_after_chunk: bool = False
+    # The policy that serves this robot (the server's only one unless it serves several).
+    policy: str = DEFAULT_POLICY
 
     @property
     def robot_id(self) -> str:

@@ -140,12 +140,19 @@ class PolicySwapper:
             :class:`SwapRefused` (refused: the checkpoint does not fit, say) or anything else
             (failed: a broken directory).
         on_swap: called with the new :class:`LoadedPolicy` right after the switch.
+        policy: the name of the policy it swaps, where the loop serves several (None: the first).
     """
 
     def __init__(
-        self, loop: ServingLoop, current: LoadedPolicy, loader: Loader, on_swap: Callable[[LoadedPolicy], None] | None = None
+        self,
+        loop: ServingLoop,
+        current: LoadedPolicy,
+        loader: Loader,
+        on_swap: Callable[[LoadedPolicy], None] | None = None,
+        policy: str | None = None,
     ) -> None:
         self.loop = loop
+        self.policy = policy
         self.current = current
         self.loader = loader
         self.on_swap = on_swap
@@ -183,7 +190,7 @@ class PolicySwapper:
         try:
             log.info("swap with drain: dispatching paused, releasing %s before loading %s", old.path, path)
             # The loop lets go of the old engine (it dispatches nothing while held), and so does this object.
-            self.loop.switch(_Released(old.engine), None, SWITCH_TIMEOUT_S)
+            self.loop.switch(_Released(old.engine), None, SWITCH_TIMEOUT_S, self.policy)
             self.current = dataclasses.replace(old, engine=_Released(old.engine))
             old_options, old_shape, old_d_infer, old_description = old.options, old.shape, old.d_infer, old.description
             del old
@@ -208,7 +215,7 @@ class PolicySwapper:
             self.loop.resume()
 
     def _switch(self, old: LoadedPolicy, new: LoadedPolicy) -> SwapResult:
-        switched = self.loop.switch(new.engine, new.d_infer, SWITCH_TIMEOUT_S)
+        switched = self.loop.switch(new.engine, new.d_infer, SWITCH_TIMEOUT_S, self.policy)
         if switched is None:
             return SwapResult("failed", "the serving loop stopped before the switch", old.path, new.path)
         self.current = new

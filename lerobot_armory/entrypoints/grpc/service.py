@@ -28,7 +28,7 @@ from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, gran
 from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError
-from lerobot_armory.serving.session import RobotSession
+from lerobot_armory.serving.session import DEFAULT_POLICY, RobotSession
 from lerobot_armory.serving.messages import Notice, NoticeKind
 from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
 from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest, describe_grant
@@ -65,10 +65,14 @@ class ArmoryService(ArmoryServicer):
         max_obs_rate_hz: float = 0.0,
         fleet_policy: FleetPolicy | None = None,
         admission: AdmissionLimiter | None = None,
+        policy_name: str = DEFAULT_POLICY,
+        others: dict[str, PolicyInfo] | None = None,
     ) -> None:
         self.fleet = fleet
         self.admission = admission or AdmissionLimiter()
-        self.policy = policy
+        self.policy = policy  # the first policy's (a swap replaces it)
+        self.policy_name = policy_name
+        self.others = dict(others or {})  # more policies served from the same device, by name
         self.max_message_bytes = max_message_bytes
         self.auth = auth
         self.max_obs_rate_hz = max_obs_rate_hz
@@ -91,46 +95,62 @@ class ArmoryService(ArmoryServicer):
         if refused is not None:
             self.peer_log.warn(context.peer(), refused)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
-        problems = self._check_registration(request)
+        name, info, problems = self._policy_for(request.policy_name)
+        if info is not None:
+            problems = self._check_registration(request, info)
         asked = GrantRequest(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
         grant = None
         if not problems:
             grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
         if problems or grant is None:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
-        spec = RobotSpec(request.robot_id, grant.fps, self.policy.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
+        assert info is not None
+        spec = RobotSpec(request.robot_id, grant.fps, info.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
         features = {f.name: spec_from_proto(f) for f in request.features}
         try:
             session = self.fleet.register(
-                spec, request.task, features, credential.digest if credential else None, grant, register_recv=recv
+                spec, request.task, features, credential.digest if credential else None, grant, register_recv=recv, policy=name
             )
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         if self.max_obs_rate_hz > 0:
             session.link.obs_rate = RateLimiter(self.max_obs_rate_hz)
         log.info(
-            "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]; %s) task=%r",
+            "registered %s (tier=%s weight=%g fps=%g h=[%d,%d]; %s) task=%r%s",
             spec.robot_id, spec.tier, spec.weight, spec.fps, spec.h_min, spec.h_max, describe_grant(asked, grant),
-            request.task[:80],
+            request.task[:80], f" policy={name}" if self.others else "",
         )  # fmt: skip
         assert session.clock.register_stamps is not None
         return pb.RegisterResponse(
             session_id=session.session_id,
-            action_names=self.policy.action_names,
-            chunk_size=self.policy.chunk_size,
-            action_dim=len(self.policy.action_names),
+            action_names=info.action_names,
+            chunk_size=info.chunk_size,
+            action_dim=len(info.action_names),
             server_recv_time=session.clock.register_stamps[0],
             server_send_time=session.clock.register_stamps[1],
-            policy=self.policy.description,
-            expected_features=specs_to_proto(self.policy.wire_features),
+            policy=info.description,
+            expected_features=specs_to_proto(info.wire_features),
             max_message_bytes=self.max_message_bytes,
             granted=grant_to_wire(grant),
         )
 
-    def _check_registration(self, r: pb.RegisterRequest) -> list[str]:
-        """Every problem with a registration (empty: accepted)."""
+    def _policy_for(self, asked: str) -> tuple[str, PolicyInfo | None, list[str]]:
+        """The policy a registration names: (name, its info, []) or (asked, None, [why not])."""
+        served = {self.policy_name: self.policy, **self.others}
+        if not asked and len(served) == 1:
+            return self.policy_name, self.policy, []
+        names = ", ".join(repr(n) for n in served)
+        if not asked:
+            return asked, None, [f"policy_name: this server serves several policies ({names}); name one (--policy_name=NAME)"]
+        info = served.get(asked)
+        if info is None:
+            return asked, None, [f"policy_name: no policy named {asked[:80]!r}; this server serves {names}"]
+        return asked, info, []
+
+    def _check_registration(self, r: pb.RegisterRequest, info: PolicyInfo) -> list[str]:
+        """Every problem with a registration for the policy ``info`` (empty: accepted)."""
         # RobotSpec's own validator, against the policy's chunk size: every problem, not the first.
-        problems = spec_problems(r.robot_id, r.fps, self.policy.chunk_size, r.h_min, r.h_max, r.weight, r.tier)
+        problems = spec_problems(r.robot_id, r.fps, info.chunk_size, r.h_min, r.h_max, r.weight, r.tier)
         if len(r.task) > MAX_TASK:
             problems.append(f"task: text is longer than {MAX_TASK} characters")
         declared = []
@@ -139,7 +159,7 @@ class ArmoryService(ArmoryServicer):
                 problems.append(f"feature {f.name!r}: invalid shape {list(f.shape)}")
             else:
                 declared.append(spec_from_proto(f))
-        problems += check_features(declared, self.policy.wire_features)
+        problems += check_features(declared, info.wire_features)
         return problems
 
     # ---- Stream ------------------------------------------------------------------------------
