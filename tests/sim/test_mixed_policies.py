@@ -163,4 +163,4 @@ def test_plan_refuses_a_mixed_fleet_in_one_line(capsys):
 
 
 def test_the_act_profile_is_a_valid_profile_file():
-    assert load_profile(str(EXAMPLES / "act-h100.json")).latency_s(8) == pytest.approx(0.010)
+    assert load_profile(str(EXAMPLES.parent / "profiles" / "act-h100.json")).latency_s(8) == pytest.approx(0.010)
