@@ -67,7 +67,9 @@ def mixed_fleet(name: str, n: int, scheduler: str) -> Fleet:
                 )  # fmt: skip
     data = {
         "scheduler": scheduler,
-        "policies": {p.name: {"latency_profile": p.latency_profile, "max_batch_size": p.max_batch_size} for p in (SLOW, FAST)},
+        "policies": {
+            p.name: {"latency_profile": p.latency_profile, "max_batch_size": p.max_batch_size} for p in (SLOW, FAST)
+        },
         "robots": groups,
     }
     return fleet_from_dict(data, f"{name}-{n}")
@@ -78,7 +80,9 @@ def policy_demand(fleet: Fleet) -> dict[str, float]:
     out = {}
     for p in fleet.policies:
         groups = tuple(g for g in fleet.groups if g.policy == p.name)
-        alone = Fleet(groups, p.latency_profile, p.max_batch_size, fleet.scheduler, fleet.net_median_ms, fleet.net_sigma)
+        alone = Fleet(
+            groups, p.latency_profile, p.max_batch_size, fleet.scheduler, fleet.net_median_ms, fleet.net_sigma
+        )
         out[p.name] = alone.total_demand() if groups else 0.0
     return out
 
@@ -150,7 +154,8 @@ def table(points: list[dict[str, Any]]) -> str:
     """One row per (fleet, N, scheduler): mean starvation % over seeds, mixed vs each split."""
     header = (
         f"{'fleet':<10} {'N':>3} {'demand':>6} {'sched':<9} | {'ACT mixed':>9} {'even':>6} {'demand':>6} | "
-        f"{'π0.5 mixed':>10} {'even':>6} {'demand':>6} | {'all mixed':>9} {'even':>6} {'demand':>6} | {'mixed best?':<11}"
+        f"{'π0.5 mixed':>10} {'even':>6} {'demand':>6} | {'all mixed':>9} {'even':>6} {'demand':>6} | "
+        f"{'mixed best?':<11}"
     )
     lines = [header, "-" * len(header)]
     for p in points:
@@ -180,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="16,24,32")
     ap.add_argument("--output", default=str(ROOT / "docs" / "results" / "multi_policy" / "sim.json"))
     args = ap.parse_args(argv)
+    if not args.duration_s > WARMUP_S or args.seeds < 1:
+        ap.error(f"--duration_s must exceed the {WARMUP_S:g} s warm-up and --seeds be >= 1")
     for name in args.schedulers.split(","):
         make_scheduler_config(name)  # an unknown scheduler fails before hours of simulation
     points = []
@@ -192,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     print(table(points))
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    command = "PYTHONPATH=. .venv/bin/python benchmarks/mixed_policies.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    given = argv if argv is not None else sys.argv[1:]
+    command = "PYTHONPATH=. .venv/bin/python benchmarks/mixed_policies.py " + " ".join(given)
     out.write_text(json.dumps({"command": command.strip(), "points": points}, indent=2) + "\n")
     print(f"wrote {len(points)} points to {out}")
     return 0

@@ -121,8 +121,9 @@ def fleet_simulator(
         return FleetSimulator(fleet.specs(), scheduler, duration_s, net, net, seed, warmup_s=warmup_s, trace=trace)
     schedulers = {p.name: fleet.scheduler.make(p.profile(), p.max_batch_size) for p in fleet.policies}
     return FleetSimulator(
-        fleet.specs(), schedulers, duration_s, net, net, seed, warmup_s=warmup_s, policy_of=fleet.policy_of(), trace=trace
-    )
+        fleet.specs(), schedulers, duration_s, net, net, seed,
+        warmup_s=warmup_s, policy_of=fleet.policy_of(), trace=trace,
+    )  # fmt: skip
 
 
 def simulate_fleet_file(cfg: SimConfig, seed: int) -> dict[str, Any]:
@@ -182,7 +183,10 @@ def fleet_record(fleet: Fleet, seed: int, result: SimResult, wall_s: float, warm
 def fleet_table(runs: list[dict[str, Any]]) -> str:
     """Readable table of fleet-file runs: one row per policy (and one for the whole fleet),
     averaged over seeds."""
-    header = f"{'fleet / policy':<28} {'robots':>6} {'seeds':>5} {'fast starv%':>11} {'slow starv%':>11} {'avg starv%':>10} {'device s':>9}"
+    header = (
+        f"{'fleet / policy':<28} {'robots':>6} {'seeds':>5} {'fast starv%':>11} {'slow starv%':>11} "
+        f"{'avg starv%':>10} {'device s':>9}"
+    )
     lines = [header, "-" * len(header)]
     n = len(runs)
 

@@ -321,8 +321,9 @@ class FleetSimulator:
                 results[j].first_executed_index["unused"] += unused
         held_s = sum(d.held_s for d in arbiter.dispatchers.values())
         return SimResult(
-            results, batch_sizes, decision_s, T, index_error, held_s, decision_cpu_s, policy_batch_sizes, device_s, batches
-        )
+            results, batch_sizes, decision_s, T, index_error, held_s, decision_cpu_s,
+            policy_batch_sizes, device_s, batches,
+        )  # fmt: skip
 
 
 def _policies(

@@ -13,6 +13,7 @@ from lerobot_armory.sim.cli import main as sim_main
 from lerobot_armory.sim.fleet_file import fleet_from_dict, load_fleet
 from lerobot_armory.sim.plan import main as plan_main
 from lerobot_armory.sim.run import fleet_simulator
+from lerobot_armory.sim.simulator import FleetSimulator
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "fleets"
 FAST = {"fps": 20, "chunk_size": 10, "h_min": 1, "h_max": 6, "tier": "fast", "weight": 3}
@@ -109,7 +110,8 @@ def test_every_batch_is_one_policy_at_its_own_latency(scheduler):
     for name in table:
         sizes = result.policy_batch_sizes[name]
         assert sum(sizes.values()) == sum(b.policy == name for b in result.batches)
-        assert result.device_s[name] == pytest.approx(sum(b.t_done - b.t_start for b in result.batches if b.policy == name))
+        busy = sum(b.t_done - b.t_start for b in result.batches if b.policy == name)
+        assert result.device_s[name] == pytest.approx(busy)
     assert all(r.policy in table for r in result.robots)
 
 
@@ -145,11 +147,13 @@ def test_a_slow_policy_changes_what_the_fast_one_gets():
 
 def test_sim_cli_runs_a_mixed_fleet(tmp_path, capsys):
     out = tmp_path / "mixed.json"
-    sim_main([f"--fleet={EXAMPLES / 'libero-mixed-policies-20.yaml'}", "--duration_s=3", "--seeds=2", f"--output={out}"])
+    fleet = EXAMPLES / "libero-mixed-policies-20.yaml"
+    sim_main([f"--fleet={fleet}", "--duration_s=3", "--seeds=2", f"--output={out}"])
     runs = json.loads(out.read_text())["runs"]
     assert [r["seed"] for r in runs] == [0, 1]
     assert set(runs[0]["policies"]) == {"pi05", "act"}
-    assert runs[0]["policies"]["act"]["robots"] == 10 and runs[0]["policies"]["act"]["latency_profile"].endswith("act-h100.json")
+    act = runs[0]["policies"]["act"]
+    assert act["robots"] == 10 and act["latency_profile"].endswith("act-h100.json")
     text = capsys.readouterr().out
     assert "  pi05" in text and "  act" in text
 
@@ -164,3 +168,25 @@ def test_plan_refuses_a_mixed_fleet_in_one_line(capsys):
 
 def test_the_act_profile_is_a_valid_profile_file():
     assert load_profile(str(EXAMPLES.parent / "profiles" / "act-h100.json")).latency_s(8) == pytest.approx(0.010)
+
+
+def test_sim_cli_bad_mixed_fleet_is_one_line_naming_the_field(tmp_path, capsys):
+    data = mixed()
+    data["robots"][1]["policy"] = "nope"
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(SystemExit) as exc:
+        sim_main([f"--fleet={path}", "--duration_s=2"])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1 and "robots[1].policy: unknown policy 'nope'" in err
+
+
+def test_the_simulator_needs_each_robots_policy():
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    schedulers = {p.name: fleet.scheduler.make(p.profile(), p.max_batch_size) for p in fleet.policies}
+    net = fleet.network()
+    with pytest.raises(ConfigError, match="policy_of"):
+        FleetSimulator(fleet.specs(), schedulers, 2.0, net, net)
+    partial = dict(list(fleet.policy_of().items())[1:])  # the first robot has no policy
+    with pytest.raises(ConfigError, match="pf-000"):
+        FleetSimulator(fleet.specs(), schedulers, 2.0, net, net, policy_of=partial)
