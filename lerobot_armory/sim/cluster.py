@@ -34,7 +34,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import TIERS, RobotSpec
 from lerobot_armory.placement import NoReplica, ReplicaView, make_placement, place_all
-from lerobot_armory.sim.fleet_file import Fleet
+from lerobot_armory.sim.fleet_file import Fleet, require_one_policy
 from lerobot_armory.sim.simulator import FleetSimulator
 
 # A composition: the sorted timing/weight/tier of a replica's robots (ids dropped).
@@ -223,6 +223,7 @@ def simulate_cluster(
     """
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ConfigError("duration_s", f"must be > 0, got {duration_s}")
+    require_one_policy(fleet, "the cluster simulation")
     start = time.perf_counter()
     replicas = place_fleet(fleet, gpus, placement, seed, profiles)
     names = list(profiles) if profiles is not None else [fleet.latency_profile] * gpus

@@ -11,6 +11,21 @@ A fleet file (YAML ``.yaml``/``.yml`` or JSON) describes a fleet by groups of id
       - {count: 40, fps: 20, chunk_size: 10, h_min: 1, h_max: 6, weight: 3, tier: fast}
       - {count: 60, fps: 20, chunk_size: 10, h_min: 1, h_max: 10, tier: slow}
 
+A fleet served by several policies on one device names them (each its profile and batch cap;
+a missing one falls back to the top-level ``latency_profile`` / ``max_batch_size``) and each
+group says which serves it (optional when there is one policy)::
+
+    policies:
+      pi05: {latency_profile: h100-pi05, max_batch_size: 5}
+      act:  {latency_profile: act-h100.json, max_batch_size: 8}
+    robots:
+      - {count: 10, fps: 20, chunk_size: 10, h_min: 1, h_max: 6, policy: pi05}
+      - {count: 10, fps: 20, chunk_size: 10, h_min: 1, h_max: 6, policy: act}
+
+The simulator serves such a fleet on one device through a
+:class:`~lerobot_armory.arbiter.PolicyArbiter`; a fleet with one named policy is the same fleet as
+without ``policies:``. The capacity planner takes one-policy fleets only.
+
 ``weight`` defaults to 1 and ``tier`` to ``slow``; a group may carry a ``name`` (its robots are
 called ``NAME-000``, ``NAME-001``...; default ``g<k>``). Every field is checked: an unknown key or
 a bad value is one :class:`~lerobot_armory.errors.ConfigError` naming the field
@@ -44,8 +59,9 @@ DEFAULT_NET_SIGMA = 0.2
 # A fleet file describes a fleet, not a stress test of the parser: bound what it may ask for.
 MAX_ROBOTS = 100_000
 
-TOP_KEYS = ("latency_profile", "max_batch_size", "scheduler", "network", "max_robots_per_gpu", "robots")
-GROUP_KEYS = ("count", "fps", "chunk_size", "h_min", "h_max", "weight", "tier", "name")
+TOP_KEYS = ("latency_profile", "max_batch_size", "scheduler", "network", "max_robots_per_gpu", "policies", "robots")
+GROUP_KEYS = ("count", "fps", "chunk_size", "h_min", "h_max", "weight", "tier", "name", "policy")
+POLICY_KEYS = ("latency_profile", "max_batch_size")
 NETWORK_KEYS = ("median_ms", "sigma")
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]{0,63}")
 
@@ -68,6 +84,7 @@ class RobotGroup:
     h_max: int
     weight: float = 1.0
     tier: str = "slow"
+    policy: str | None = None  # the policy serving the group (None: the fleet's only policy)
 
     def specs(self) -> list[RobotSpec]:
         """The group's robots, ids ``NAME-000``, ``NAME-001``, ..."""
@@ -78,6 +95,25 @@ class RobotGroup:
             )
             for k in range(self.count)
         ]
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """One policy of a mixed fleet: the model its robots' batches run on the shared device.
+
+    Attributes:
+        name: the name groups refer to (``policy: NAME``).
+        latency_profile: built-in profile name or JSON profile file: its ``d_infer(b)``.
+        max_batch_size: its batch cap.
+    """
+
+    name: str
+    latency_profile: str
+    max_batch_size: int
+
+    def profile(self) -> LatencyProfile:
+        """The policy's latency profile."""
+        return load_profile(self.latency_profile)
 
 
 @dataclass
@@ -92,6 +128,8 @@ class Fleet:
         net_median_ms / net_sigma: one-way network delay, log-normal, uplink and downlink alike.
         max_robots_per_gpu: robots one GPU accepts at most (None: no limit).
         source: the file or shorthand it came from (for messages).
+        policies: the policies sharing each device when there are several (each group names
+            one); empty for the ordinary one-policy fleet, whose profile and cap are the fleet's.
     """
 
     groups: tuple[RobotGroup, ...]
@@ -102,10 +140,28 @@ class Fleet:
     net_sigma: float = DEFAULT_NET_SIGMA
     max_robots_per_gpu: int | None = None
     source: str = "<fleet>"
+    policies: tuple[PolicySpec, ...] = ()
 
     @property
     def robots(self) -> int:
         return sum(g.count for g in self.groups)
+
+    @property
+    def is_mixed(self) -> bool:
+        """Whether several policies share the device (the arbiter's case)."""
+        return len(self.policies) > 1
+
+    def policy_of(self) -> dict[str, str]:
+        """Robot id -> policy name, for a mixed fleet (every group names its policy)."""
+        return {s.robot_id: g.policy for g in self.groups for s in g.specs() if g.policy is not None}
+
+    def policy_counts(self) -> dict[str, int]:
+        """Robots per policy, in the policies' order (a policy no group uses counts 0)."""
+        counts = {p.name: 0 for p in self.policies}
+        for g in self.groups:
+            if g.policy is not None:
+                counts[g.policy] += g.count
+        return counts
 
     def specs(self) -> list[RobotSpec]:
         """Every robot, group by group (the join order is shuffled by the cluster simulation)."""
@@ -136,6 +192,15 @@ class Fleet:
     def describe(self) -> str:
         """One line: size, tiers, profile, cap, scheduler, network."""
         tiers = ", ".join(f"{n} {t}" for t, n in self.tier_counts().items() if n)
+        if self.is_mixed:
+            counts = self.policy_counts()
+            served = "; ".join(
+                f"{p.name}: {counts[p.name]} robots on {p.latency_profile}, b={p.max_batch_size}" for p in self.policies
+            )
+            return (
+                f"{self.source}: {self.robots} robots ({tiers}); {served}; {self.scheduler.label()}, "
+                f"network {self.net_median_ms:g} ms / σ {self.net_sigma:g}"
+            )
         return (
             f"{self.source}: {self.robots} robots ({tiers}); {self.latency_profile}, b={self.max_batch_size}, "
             f"{self.scheduler.label()}, network {self.net_median_ms:g} ms / σ {self.net_sigma:g}"
@@ -210,24 +275,20 @@ def fleet_from_dict(data: Any, source: str = "<dict>") -> Fleet:
     if not isinstance(data, dict):
         raise err("fleet", f"expected a mapping with {', '.join(TOP_KEYS)}, got {type(data).__name__}")
     _no_unknown(data, TOP_KEYS, "", err)
-    if "latency_profile" not in data:
-        raise err("latency_profile", "missing (a built-in profile name or a JSON profile file)")
-    profile_name = data["latency_profile"]
-    if not isinstance(profile_name, str) or not profile_name:
-        raise err("latency_profile", f"must be a profile name or file, got {profile_name!r}")
-    if (
-        not (Path(profile_name).is_absolute() or profile_name in _builtin_names())
-        and (Path(source).parent / profile_name).is_file()
-    ):
-        profile_name = str(Path(source).parent / profile_name)  # a profile file beside the fleet file
-    try:
-        profile = load_profile(profile_name)
-    except ConfigError as exc:
-        raise err("latency_profile", exc.message) from None
-    cap = data.get("max_batch_size")
-    if not (_is_int(cap) and 1 <= cap <= 1024):
-        raise err("max_batch_size", f"must be an integer in [1, 1024], got {cap!r}")
-    scheduler = _scheduler(data.get("scheduler", "edf"), profile, cap, err)
+    policies = _policies(data, source, err)
+    if policies:
+        # the fleet-level profile and cap are the first policy's: one-policy code reads them
+        profile_name, cap = policies[0].latency_profile, policies[0].max_batch_size
+        raw_scheduler = data.get("scheduler", "edf")
+        scheduler = _scheduler(raw_scheduler, policies[0].profile(), cap, err)
+        for p in policies[1:]:  # the one scheduler type is built for every policy: check each
+            _scheduler(raw_scheduler, p.profile(), p.max_batch_size, err)
+    else:
+        if "latency_profile" not in data:
+            raise err("latency_profile", "missing (a built-in profile name or a JSON profile file)")
+        profile_name, profile = _profile(data["latency_profile"], "latency_profile", source, err)
+        cap = _cap(data.get("max_batch_size"), "max_batch_size", err)
+        scheduler = _scheduler(data.get("scheduler", "edf"), profile, cap, err)
     network = data.get("network", {})
     if not isinstance(network, dict):
         raise err("network", f"must be a mapping with {', '.join(NETWORK_KEYS)}, got {network!r}")
@@ -241,11 +302,64 @@ def fleet_from_dict(data: Any, source: str = "<dict>") -> Fleet:
     per_gpu = data.get("max_robots_per_gpu")
     if per_gpu is not None and not (_is_int(per_gpu) and per_gpu >= 1):
         raise err("max_robots_per_gpu", f"must be an integer >= 1, got {per_gpu!r}")
-    groups = _groups(data.get("robots"), err)
-    return Fleet(tuple(groups), profile_name, cap, scheduler, float(median), float(sigma), per_gpu, source)
+    groups = _groups(data.get("robots"), err, [p.name for p in policies])
+    # One named policy is the ordinary fleet: same profile, cap, robots and results.
+    mixed = tuple(policies) if len(policies) > 1 else ()
+    if not mixed:
+        groups = [replace(g, policy=None) for g in groups]
+    return Fleet(tuple(groups), profile_name, cap, scheduler, float(median), float(sigma), per_gpu, source, mixed)
 
 
-def _groups(raw: Any, err) -> list[RobotGroup]:
+def _profile(raw: Any, field_name: str, source: str, err) -> tuple[str, LatencyProfile]:
+    """A profile name or file (a relative file is looked for beside the fleet file), loaded."""
+    if not isinstance(raw, str) or not raw:
+        raise err(field_name, f"must be a profile name or file, got {raw!r}")
+    name = raw
+    if not (Path(name).is_absolute() or name in _builtin_names()) and (Path(source).parent / name).is_file():
+        name = str(Path(source).parent / name)  # a profile file beside the fleet file
+    try:
+        return name, load_profile(name)
+    except ConfigError as exc:
+        raise err(field_name, exc.message) from None
+
+
+def _cap(raw: Any, field_name: str, err) -> int:
+    if not (_is_int(raw) and 1 <= raw <= 1024):
+        raise err(field_name, f"must be an integer in [1, 1024], got {raw!r}")
+    return raw
+
+
+def _policies(data: dict, source: str, err) -> list[PolicySpec]:
+    """The ``policies:`` mapping (empty without one); an entry's missing profile or cap falls
+    back to the top-level one, and a policy with neither is an error naming its field."""
+    raw = data.get("policies")
+    if raw is None:
+        return []
+    if not isinstance(raw, dict) or not raw:
+        raise err("policies", f"must be a non-empty mapping of name -> {{{', '.join(POLICY_KEYS)}}}, got {raw!r}")
+    policies = []
+    for name, entry in raw.items():
+        where = f"policies.{name}"
+        if not (isinstance(name, str) and _NAME.fullmatch(name)):
+            raise err("policies", f"a policy name must be a short identifier (letters, digits, - and _), got {name!r}")
+        if entry is None:
+            entry = {}
+        if not isinstance(entry, dict):
+            raise err(where, f"must be a mapping of {', '.join(POLICY_KEYS)}, got {entry!r}")
+        _no_unknown(entry, POLICY_KEYS, f"{where}.", err)
+        merged = {k: entry.get(k, data.get(k)) for k in POLICY_KEYS}
+        if merged["latency_profile"] is None:
+            raise err(f"{where}.latency_profile", "missing (a built-in profile name or a JSON profile file)")
+        if merged["max_batch_size"] is None:
+            raise err(f"{where}.max_batch_size", "missing (an integer in [1, 1024])")
+        field_of = {k: f"{where}.{k}" if k in entry else k for k in POLICY_KEYS}
+        profile_name, _ = _profile(merged["latency_profile"], field_of["latency_profile"], source, err)
+        cap = _cap(merged["max_batch_size"], field_of["max_batch_size"], err)
+        policies.append(PolicySpec(name, profile_name, cap))
+    return policies
+
+
+def _groups(raw: Any, err, policies: list[str] | None = None) -> list[RobotGroup]:
     if not isinstance(raw, list) or not raw:
         raise err("robots", "must be a non-empty list of robot groups ({count, fps, chunk_size, h_min, h_max, ...})")
     groups, names, total = [], set(), 0
@@ -269,6 +383,7 @@ def _groups(raw: Any, err) -> list[RobotGroup]:
         if name in names:
             raise err(f"{where}.name", f"{name!r} names two groups")
         names.add(name)
+        policy = _group_policy(entry, where, policies or [], err)
         weight, tier = entry.get("weight", 1.0), entry.get("tier", "slow")
         problems = spec_problems(
             f"{name}-0", entry["fps"], entry["chunk_size"], entry["h_min"], entry["h_max"], weight, tier
@@ -286,9 +401,24 @@ def _groups(raw: Any, err) -> list[RobotGroup]:
                 entry["h_max"],
                 float(weight),
                 tier,
+                policy,
             )
         )
     return groups
+
+
+def _group_policy(entry: dict, where: str, policies: list[str], err) -> str | None:
+    """The group's ``policy``: required when the fleet names several, must be one of them."""
+    if "policy" not in entry:
+        if len(policies) > 1:
+            raise err(f"{where}.policy", f"missing (the fleet names several policies: {', '.join(policies)})")
+        return policies[0] if policies else None
+    name = entry["policy"]
+    if not policies:
+        raise err(f"{where}.policy", f"names policy {name!r} but the fleet has no policies: mapping")
+    if name not in policies:
+        raise err(f"{where}.policy", f"unknown policy {name!r} (the fleet's policies: {', '.join(policies)})")
+    return name
 
 
 def _scheduler(raw: Any, profile: LatencyProfile, cap: int, err) -> SchedulerConfig:
@@ -339,9 +469,26 @@ def _is_real(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def require_one_policy(fleet: Fleet, what: str) -> None:
+    """Refuse a mixed fleet where only one-policy fleets are modelled (ConfigError naming ``policies``)."""
+    if fleet.is_mixed:
+        names = ", ".join(p.name for p in fleet.policies)
+        raise ConfigError(
+            "policies",
+            f"{fleet.source} shares each device among several policies ({names}); {what} handles one policy "
+            f"per fleet so far: simulate one device with lerobot-armory-sim --fleet={fleet.source}, "
+            f"or plan each policy's robots as its own fleet",
+        )
+
+
 def with_overrides(fleet: Fleet, latency_profile: str | None = None, max_batch_size: int | None = None) -> Fleet:
     """The fleet on another GPU kind or batch cap (command-line overrides), checked."""
     changes: dict[str, Any] = {}
+    if fleet.is_mixed and (latency_profile or max_batch_size is not None):
+        raise ConfigError(
+            "latency_profile" if latency_profile else "max_batch_size",
+            f"{fleet.source} names several policies: set each one's profile and cap in its policies: entry",
+        )
     if latency_profile:
         load_profile(latency_profile)
         changes["latency_profile"] = latency_profile

@@ -17,6 +17,9 @@ if K + 1 misses, the search goes on above it. Every K tried is printed.
 Each K is a :func:`~lerobot_armory.sim.cluster.simulate_cluster` per seed, with each distinct
 replica composition simulated once per seed and reused across K (see that module). Exit status:
 0 with an answer, 1 if even ``--max_gpus`` misses the target, 2 for a bad fleet file or option.
+A fleet whose devices are shared by several policies (``policies:``) is refused (exit 2): the
+planner's placement and load model are one-policy; ``lerobot-armory-sim --fleet`` simulates one
+such device.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.placement import PLACEMENTS
 from lerobot_armory.sim.cluster import ClusterResult, simulate_cluster
-from lerobot_armory.sim.fleet_file import Fleet, load_fleet, with_overrides
+from lerobot_armory.sim.fleet_file import Fleet, load_fleet, require_one_policy, with_overrides
 
 PROG = "lerobot-armory-plan"
 # Above this many GPUs a plan is a data-centre question, not a simulation to run in seconds.
@@ -265,7 +268,9 @@ class Planner:
 def run(cfg: PlanConfig) -> int:
     """Plan the fleet; prints progress to stderr and the answer and table to stdout. Returns the exit status."""
     cfg.check()
-    fleet = with_overrides(load_fleet(cfg.fleet), cfg.latency_profile, cfg.max_batch_size)
+    fleet = load_fleet(cfg.fleet)
+    require_one_policy(fleet, PROG)  # placement's load model and the replicas are one-policy
+    fleet = with_overrides(fleet, cfg.latency_profile, cfg.max_batch_size)
     profile = fleet.profile()
     started = time.perf_counter()
     demand = fleet.total_demand()

@@ -15,6 +15,7 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.mirror import TIERS
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
+from lerobot_armory.sim.fleet_file import Fleet, load_fleet
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
 from lerobot_armory.sim.simulator import FleetSimulator, SimResult
 
@@ -38,6 +39,9 @@ class SimConfig:
         seeds: number of seeds (runs seed, seed+1, ...).
         seed: first seed.
         output: write the runs as JSON here.
+        fleet: a fleet file (YAML/JSON, possibly several policies sharing the device) or
+            ``preset:NAME:MIX:N[:FAST_WEIGHT]``; when given, the file sets the robots, profiles,
+            batch caps, scheduler and network, and only duration, warm-up, seeds and output apply.
     """
 
     preset: str = "libero"
@@ -54,6 +58,7 @@ class SimConfig:
     seeds: int = 1
     seed: int = 0
     output: str | None = None
+    fleet: str | None = None
 
     def resolved(self) -> SimConfig:
         """Fill preset defaults and check every field (ConfigError names the bad one)."""
@@ -68,6 +73,9 @@ class SimConfig:
             raise ConfigError("duration_s", f"must be > 0, got {self.duration_s}")
         if not (math.isfinite(self.warmup_s) and 0 <= self.warmup_s < self.duration_s):
             raise ConfigError("warmup_s", f"must be in [0, duration_s), got {self.warmup_s}")
+        if self.fleet:
+            load_fleet(self.fleet)  # the fleet file checks itself field by field
+            return self
         cfg = replace(
             self,
             max_batch_size=preset.default_batch_cap(self.mix) if self.max_batch_size is None else self.max_batch_size,
@@ -99,6 +107,108 @@ def simulate(cfg: SimConfig, seed: int) -> dict[str, Any]:
     start = time.perf_counter()
     result = FleetSimulator(specs, scheduler, cfg.duration_s, net, net, seed, warmup_s=cfg.warmup_s).run()
     return run_record(cfg, seed, result, time.perf_counter() - start, profile.is_extrapolated(cfg.max_batch_size))
+
+
+def fleet_simulator(
+    fleet: Fleet, duration_s: float, seed: int, warmup_s: float = 0.0, trace: bool = False
+) -> FleetSimulator:
+    """The simulator of ``fleet`` on one device: its scheduler built for its profile and cap, or,
+    when several policies share the device, one per policy (same type and knobs) built for that
+    policy's profile and cap, arbitrated."""
+    net = fleet.network()
+    if not fleet.is_mixed:
+        scheduler = fleet.scheduler.make(fleet.profile(), fleet.max_batch_size)
+        return FleetSimulator(fleet.specs(), scheduler, duration_s, net, net, seed, warmup_s=warmup_s, trace=trace)
+    schedulers = {p.name: fleet.scheduler.make(p.profile(), p.max_batch_size) for p in fleet.policies}
+    return FleetSimulator(
+        fleet.specs(), schedulers, duration_s, net, net, seed,
+        warmup_s=warmup_s, policy_of=fleet.policy_of(), trace=trace,
+    )  # fmt: skip
+
+
+def simulate_fleet_file(cfg: SimConfig, seed: int) -> dict[str, Any]:
+    """Run one seed of ``cfg.fleet``; returns its JSON run record (:func:`fleet_record`)."""
+    assert cfg.fleet
+    fleet = load_fleet(cfg.fleet)
+    start = time.perf_counter()
+    result = fleet_simulator(fleet, cfg.duration_s, seed, cfg.warmup_s).run()
+    return fleet_record(fleet, seed, result, time.perf_counter() - start, cfg.warmup_s)
+
+
+def fleet_record(fleet: Fleet, seed: int, result: SimResult, wall_s: float, warmup_s: float = 0.0) -> dict[str, Any]:
+    """A fleet-file run as JSON: the whole fleet's starvation, per tier, and per policy (each
+    policy's profile, cap, tiers, batch sizes and the device seconds its batches took)."""
+    policies = fleet.policies or ()
+    per_policy = {}
+    for p in policies:
+        rows = [r for r in result.robots if r.policy == p.name]
+        per_policy[p.name] = {
+            "latency_profile": p.latency_profile,
+            "max_batch_size": p.max_batch_size,
+            "robots": len(rows),
+            "starvation_pct": result.policy_starvation_pct(p.name) if rows else None,
+            "tiers": {
+                t: result.policy_starvation_pct(p.name, t) for t in TIERS if any(r.tier == t for r in rows)
+            },
+            "device_s": result.device_s.get(p.name, 0.0),
+            "batch_sizes": {str(b): c for b, c in sorted(result.policy_batch_sizes.get(p.name, {}).items())},
+        }
+    return {
+        "fleet": fleet.source,
+        "label": fleet.scheduler.label(),
+        "scheduler": fleet.scheduler.type,
+        "robots": fleet.robots,
+        "seed": seed,
+        "latency_profile": None if fleet.is_mixed else fleet.latency_profile,
+        "max_batch_size": None if fleet.is_mixed else fleet.max_batch_size,
+        "net_median_ms": fleet.net_median_ms,
+        "net_sigma": fleet.net_sigma,
+        "duration_s": result.duration_s,
+        "warmup_s": warmup_s,
+        "avg_starvation_pct": result.avg_starvation_pct,
+        "tiers": {
+            t: {"robots": len(result.tier(t)), "starvation_pct": result.tier_starvation_pct(t)}
+            for t in TIERS
+            if result.tier(t)
+        },
+        "policies": per_policy,
+        "executed_s": result.executed_s,
+        "batch_sizes": {str(b): c for b, c in sorted(result.batch_sizes.items())},
+        "decision_ms_p99": result.decision_ms(99),
+        "held_s": result.held_s,
+        "wall_s": wall_s,
+    }
+
+
+def fleet_table(runs: list[dict[str, Any]]) -> str:
+    """Readable table of fleet-file runs: one row per policy (and one for the whole fleet),
+    averaged over seeds."""
+    header = (
+        f"{'fleet / policy':<28} {'robots':>6} {'seeds':>5} {'fast starv%':>11} {'slow starv%':>11} "
+        f"{'avg starv%':>10} {'device s':>9}"
+    )
+    lines = [header, "-" * len(header)]
+    n = len(runs)
+
+    def mean(values: list[float]) -> str:
+        values = [v for v in values if v is not None and not math.isnan(v)]
+        return f"{np.mean(values):.2f}" if values else "-"
+
+    first = runs[0]
+    lines.append(
+        f"{first['label'] + ' (all)':<28} {first['robots']:>6} {n:>5} "
+        f"{mean([r['tiers'].get('fast', {}).get('starvation_pct') for r in runs]):>11} "
+        f"{mean([r['tiers'].get('slow', {}).get('starvation_pct') for r in runs]):>11} "
+        f"{mean([r['avg_starvation_pct'] for r in runs]):>10} {'':>9}"
+    )
+    for name, info in first["policies"].items():
+        rows = [r["policies"][name] for r in runs]
+        lines.append(
+            f"{'  ' + name:<28} {info['robots']:>6} {n:>5} "
+            f"{mean([r['tiers'].get('fast') for r in rows]):>11} {mean([r['tiers'].get('slow') for r in rows]):>11} "
+            f"{mean([r['starvation_pct'] for r in rows]):>10} {np.mean([r['device_s'] for r in rows]):>9.1f}"
+        )
+    return "\n".join(lines)
 
 
 def run_record(cfg: SimConfig, seed: int, result: SimResult, wall_s: float, extrapolated: bool) -> dict[str, Any]:

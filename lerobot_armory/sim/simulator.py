@@ -13,17 +13,23 @@ Both move through the same transition (:func:`~lerobot_armory.mirror.advance`). 
 "the GPU becomes free" and, while the GPU idles, "an observation arrives"; the robots' ticks
 between events are advanced in bulk, which keeps 10 robots × 300 s well under a second of
 simulation for RR and EDF.
+
+Several policies may share the device (a mixed fleet): each has its own scheduler (and so its own
+``d_infer(b)`` and batch cap), every batch holds one policy's robots and takes that policy's
+``d_infer``, and a :class:`~lerobot_armory.arbiter.PolicyArbiter` picks whose batch runs next.
+One policy goes through the same arbiter, which then plans exactly as that policy's dispatcher.
 """
 
 from __future__ import annotations
 
 import heapq
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from lerobot_armory.arbiter import PolicyArbiter
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
@@ -35,6 +41,8 @@ from lerobot_armory.schedulers.base import Scheduler
 MAX_CLOCK_OFFSET_S = 0.5
 # Compare the mirror's predicted index with the truth at every this many decisions.
 FIDELITY_EVERY = 8
+# The policy name of a fleet served by one scheduler.
+DEFAULT_POLICY = "default"
 
 
 @dataclass
@@ -49,6 +57,7 @@ class RobotResult:
     executed_steps: int
     chunks_received: int
     first_executed_index: Counter = field(default_factory=Counter)  # offset -> count; "unused"
+    policy: str = DEFAULT_POLICY
 
     @property
     def starved_steps(self) -> int:
@@ -63,6 +72,16 @@ class RobotResult:
         return self.executed_steps / self.fps
 
 
+@dataclass(frozen=True)
+class BatchTrace:
+    """One batch the device ran (kept only when the simulator is asked to ``trace``)."""
+
+    policy: str
+    t_start: float
+    t_done: float
+    robot_ids: tuple[str, ...]
+
+
 @dataclass
 class SimResult:
     """Everything one simulated run measured."""
@@ -74,10 +93,23 @@ class SimResult:
     mirror_index_error: list[int]  # |predicted - true| index at every decision, for fidelity checks
     held_s: float = 0.0  # time the device waited on purpose (dispatch timing, ``wait_ms``)
     decision_cpu_s: list[float] = field(default_factory=list)  # the decisions' CPU (thread) time
+    policy_batch_sizes: dict[str, Counter] = field(default_factory=dict)  # per policy, as batch_sizes
+    device_s: dict[str, float] = field(default_factory=dict)  # device time each policy's batches took
+    batches: list[BatchTrace] = field(default_factory=list)  # every batch, when traced
 
     @property
     def avg_starvation_pct(self) -> float:
         return float(np.mean([r.starvation_pct for r in self.robots]))
+
+    @property
+    def policies(self) -> list[str]:
+        """The policies that served the fleet (one, ``default``, for a one-scheduler fleet)."""
+        return list(self.policy_batch_sizes) or [DEFAULT_POLICY]
+
+    def policy_starvation_pct(self, policy: str, tier: str | None = None) -> float:
+        """Mean starvation of ``policy``'s robots (of one tier, if given); NaN if it has none."""
+        rows = [r for r in self.robots if r.policy == policy and (tier is None or r.tier == tier)]
+        return float(np.mean([r.starvation_pct for r in rows])) if rows else float("nan")
 
     def tier(self, tier: str) -> list[RobotResult]:
         return [r for r in self.robots if r.tier == tier]
@@ -113,7 +145,9 @@ class FleetSimulator:
 
     Args:
         specs: the robots.
-        scheduler: any registered scheduler (the object the live server would run).
+        scheduler: any registered scheduler (the object the live server would run), or one per
+            policy by name when several policies share the device (then ``policy_of`` says
+            which serves each robot).
         duration_s: simulated seconds.
         uplink / downlink: one-way delay models, drawn per request.
         seed: seeds the network draws, tick phases and clock offsets.
@@ -123,6 +157,8 @@ class FleetSimulator:
         warmup_s: ticks before this time are not scored (``ticks`` and ``executed_steps`` count
             from the first tick at or after it): a steady-state measurement without the cold
             start. Nothing is told to the scheduler: it runs the same either way.
+        policy_of: robot id -> policy name, required with several schedulers.
+        trace: keep every batch in :attr:`SimResult.batches` (tests; costs memory on long runs).
     """
 
     def __init__(
@@ -135,6 +171,8 @@ class FleetSimulator:
         seed: int = 0,
         true_latency: LatencyProfile | None = None,
         warmup_s: float = 0.0,
+        policy_of: Mapping[str, str] | None = None,
+        trace: bool = False,
     ) -> None:
         if not specs:
             raise ConfigError("robots", "the fleet is empty")
@@ -146,7 +184,10 @@ class FleetSimulator:
             raise ConfigError("warmup_s", f"must be in [0, duration_s), got {warmup_s}")
         self.warmup_s = warmup_s
         self.specs = list(specs)
-        self.scheduler = scheduler
+        self.schedulers, self.policy = _policies(self.specs, scheduler, policy_of)
+        if true_latency is not None and len(self.schedulers) > 1:
+            raise ConfigError("true_latency", "a true latency profile is for one policy; several were given")
+        self.trace = trace
         self.duration_s = duration_s
         self.uplink = uplink
         self.downlink = downlink
@@ -179,7 +220,10 @@ class FleetSimulator:
             t0, up, down = -1.0, self.uplink.sample(rng), self.downlink.sample(rng)
             m.estimator.add_exchange(t0 - offset[j], t0 + up, t0 + up, t0 + up + down - offset[j])
 
-        results = [RobotResult(s.robot_id, s.tier, s.weight, s.fps, n_ticks[j] - warm_tick[j], 0, 0) for j, s in enumerate(self.specs)]
+        results = [
+            RobotResult(s.robot_id, s.tier, s.weight, s.fps, n_ticks[j] - warm_tick[j], 0, 0, policy=self.policy[j])
+            for j, s in enumerate(self.specs)
+        ]
         used: list[set[int]] = [set() for _ in self.specs]
 
         def on_use_for(j: int):
@@ -193,15 +237,21 @@ class FleetSimulator:
         hooks = [on_use_for(j) for j in range(n)]
         fed_tick = [-1] * n
         position = {s.robot_id: j for j, s in enumerate(self.specs)}
-        dispatcher = Dispatcher(self.scheduler)
+        # Each policy's robots, in registration order: the arbiter plans among one policy's.
+        by_policy = {name: [m for j, m in enumerate(mirrors) if self.policy[j] == name] for name in self.schedulers}
+        arbiter = PolicyArbiter({name: Dispatcher(s) for name, s in self.schedulers.items()})
         reports: list[tuple[float, int, int, float]] = []  # heap of (server receipt, robot, chunk id, arrival robot clock)
         batch_sizes: Counter = Counter()
+        policy_batch_sizes: dict[str, Counter] = {name: Counter() for name in self.schedulers}
+        device_s = dict.fromkeys(self.schedulers, 0.0)
+        batches: list[BatchTrace] = []
         decision_s: list[float] = []
         decision_cpu_s: list[float] = []
         index_error: list[int] = []
-        d_infer = self.scheduler.d_infer
+        d_infer = {name: s.d_infer for name, s in self.schedulers.items()}
         if self.true_latency is not None:
-            d_infer = self.true_latency.table_s(self.scheduler.max_batch_size)
+            ((name, only),) = self.schedulers.items()
+            d_infer[name] = self.true_latency.table_s(only.max_batch_size)
 
         def run_truth(j: int, k: int) -> None:
             # The scored window starts at the warm-up's tick: note the index there on the way.
@@ -227,13 +277,14 @@ class FleetSimulator:
         t = 0.0
         while t < T:
             sync(t)
-            if dispatcher.has_work(mirrors):
+            if arbiter.has_work(by_policy):
                 if len(decision_s) % FIDELITY_EVERY == 0:  # mirror fidelity: predicted vs true index
                     for j, m in enumerate(mirrors):
                         truth_now = truth[j].index + _executed_between(truth[j], t)
                         index_error.append(abs(m.predicted_index(t) - truth_now))
-                plan = dispatcher.plan(mirrors, t)
-                assert plan is not None
+                picked = arbiter.plan(by_policy, t)
+                assert picked is not None
+                policy, plan = picked
                 decision_s.append(plan.decision_s)
                 decision_cpu_s.append(plan.decision_cpu_s)
                 if plan.wait_until is not None:
@@ -241,8 +292,12 @@ class FleetSimulator:
                     t = min(plan.wait_until, _next_arrival(sorted_arr, t))
                     continue
                 batch_sizes[plan.size] += 1
-                t_done = t + d_infer[plan.size - 1]
-                dispatcher.complete(plan, t_done)
+                policy_batch_sizes[policy][plan.size] += 1
+                t_done = t + d_infer[policy][plan.size - 1]
+                device_s[policy] += t_done - t
+                if self.trace:
+                    batches.append(BatchTrace(policy, t, t_done, tuple(plan.robot_ids)))
+                arbiter.complete(policy, plan, t_done)
                 for req in plan.requests:
                     j, chunk = position[req.robot_id], req.chunk
                     arrival = t_done + float(self.downlink.sample(rng))
@@ -264,7 +319,30 @@ class FleetSimulator:
             unused = results[j].chunks_received - len(used[j])
             if unused > 0:
                 results[j].first_executed_index["unused"] += unused
-        return SimResult(results, batch_sizes, decision_s, T, index_error, dispatcher.held_s, decision_cpu_s)
+        held_s = sum(d.held_s for d in arbiter.dispatchers.values())
+        return SimResult(
+            results, batch_sizes, decision_s, T, index_error, held_s, decision_cpu_s,
+            policy_batch_sizes, device_s, batches,
+        )  # fmt: skip
+
+
+def _policies(
+    specs: Sequence[RobotSpec], scheduler: Scheduler | Mapping[str, Scheduler], policy_of: Mapping[str, str] | None
+) -> tuple[dict[str, Scheduler], list[str]]:
+    """The schedulers by policy and each robot's policy (position by position), checked."""
+    if not isinstance(scheduler, Mapping):
+        return {DEFAULT_POLICY: scheduler}, [DEFAULT_POLICY] * len(specs)
+    if not scheduler:
+        raise ConfigError("policies", "no policy given")
+    if policy_of is None:
+        raise ConfigError("policies", "several policies need policy_of (robot id -> policy name)")
+    policy = []
+    for s in specs:
+        name = policy_of.get(s.robot_id)
+        if name not in scheduler:
+            raise ConfigError("policy", f"robot {s.robot_id}: policy {name!r} is not one of {', '.join(scheduler)}")
+        policy.append(name)
+    return dict(scheduler), policy
 
 
 def _next_arrival(sorted_arr: list[np.ndarray], t: float) -> float:
