@@ -71,7 +71,10 @@ class _Robot:
 class LookaheadScheduler(Scheduler):
     """Lookahead over ``depth`` epochs with per-robot weights (from each robot's spec)."""
 
-    arbitration = "score"  # its score is a rate: robot-seconds gained per device-second
+    # Across policies, by deadline (arbiter.py): its score is robot time gained per device-second,
+    # and a cheap policy's batches always score high, so arbitrating by score gave an ACT beside a
+    # π0.5 the device while the π0.5 robots starved (docs/results/multi_policy).
+    arbitration = "deadline"
 
     def __init__(
         self,

@@ -112,12 +112,23 @@ def test_edf_serves_the_policy_whose_robot_is_due_first():
     assert name == "early"
 
 
-def test_lookahead_compares_gain_per_device_second_across_policies():
-    # The same robots under a fast and a slow policy: the fast one gains the same robot time for
-    # a tenth of the device time, so its batch scores higher and goes first.
-    arb = PolicyArbiter({"slow": Dispatcher(LookaheadScheduler(SLOW, 3)), "fast": Dispatcher(LookaheadScheduler(FAST, 3))})
+class _Scored(EarliestDeadlineScheduler):
+    """EDF's batch, scored by a plugin's own measure (here: minus d_infer of the batch)."""
+
+    arbitration = "score"
+
+    def select(self, robots, now):
+        batch = super().select(robots, now)
+        self.last_score = -self.d_infer[len(batch) - 1]
+        return batch
+
+
+def test_a_scoring_scheduler_gives_the_device_to_the_highest_score():
+    arb = PolicyArbiter({"slow": Dispatcher(_Scored(SLOW, 3)), "fast": Dispatcher(_Scored(FAST, 3))})
     name, plan = arb.plan({"slow": robots("s", 2), "fast": robots("f", 2)}, 0.0)
     assert name == "fast" and plan.requests
+    # Every builtin scheduler but RR arbitrates by deadline (Lookahead's score favours cheap policies).
+    assert [s.arbitration for s in (LookaheadScheduler(FAST, 2), RolloutScheduler(FAST, 2), EarliestDeadlineScheduler(FAST, 2))] == ["deadline"] * 3
 
 
 def test_schedulers_that_arbitrate_differently_cannot_share_a_device():
