@@ -1,12 +1,12 @@
 """Two policies on one device, live: one server serving both (``--policies``) against two servers,
 one per policy, each given part of the device.
 
-The fleet (fixed before any run): libero timing (H = 10, 20 fps, h_min 1, h_max 6 fast / 10 slow),
-``--robots_per_policy`` robots per policy, half of each fast (weight 3). Policy ``pi05`` takes the
-L40S π0.5 profile (73 / 110 / 142 ms at b = 1..3), policy ``act`` ACT's H100 figure (13.8 ms
-at b = 1..3, docs/results/gpu); cap 3 each. Both run the tiny random ACT on the CPU, padded to
-their profile (``EmulatedLatencyEngine``): the device time is the profile's, whatever this
-machine does.
+The fleet: libero timing (H = 10, 20 fps, h_min 1, h_max 6 fast / 10 slow),
+``--robots_per_policy`` robots per policy, half of each fast (weight 3). ``--setup=h100`` (the
+simulator study's profiles): policy ``pi05`` takes openpi's π0.5 on an H100 (42–87 ms at
+b = 1..5, cap 5), ``act`` a flat 10 ms (cap 8); ``--setup=l40s``: π0.5 on an L40S (73 / 110 /
+142 ms, cap 3) and ACT 13.8 ms (cap 3). Both run the tiny random ACT on the CPU, padded to
+their profile (``EmulatedLatencyEngine``; batches where the CPU model ran longer are counted).
 
 - *mixed*: one server, both policies, one device: each batch holds one policy's robots, the
   arbiter picks whose batch runs next.
@@ -19,7 +19,7 @@ Robots run the real client loop (``ArmoryClient``) in threads of this process ov
 gRPC; starvation per policy and tier is what they report. Prints the table, writes JSON, exits 1
 only on an error (a loss is a finding, reported as such).
 
-    .venv/bin/python benchmarks/multi_policy_live.py --duration_s=30 --out=docs/results/multi_policy/live.json
+    .venv/bin/python benchmarks/multi_policy_live.py --setup=h100 --robots_per_policy=8 --out=docs/results/multi_policy/live_h100.json
 """
 
 from __future__ import annotations
@@ -35,16 +35,23 @@ from typing import Any
 
 import numpy as np
 
-FPS, H, H_MIN, H_FAST, H_SLOW, CAP, FAST_WEIGHT = 20.0, 10, 1, 6, 10, 3, 3.0
-PROFILES_MS = {"pi05": (73.0, 109.8, 142.4), "act": (13.8, 13.8, 13.8)}
-SCHEDULERS = ("edf", "lookahead")
+FPS, H, H_MIN, H_FAST, H_SLOW, FAST_WEIGHT = 20.0, 10, 1, 6, 10, 3.0
+# Two device set-ups: "l40s" (the first run: π0.5 on an L40S, ACT's H100 b = 1 figure, cap 3 each)
+# and "h100" (the simulator study's, docs/results/multi_policy: openpi's π0.5 on an H100, cap 5;
+# ACT a flat 10 ms, cap 8).
+SETUPS = {
+    "l40s": {"pi05": ((73.0, 109.8, 142.4), 3), "act": ((13.8, 13.8, 13.8), 3)},
+    "h100": {"pi05": ((42.3, 56.0, 66.1, 79.3, 87.2), 5), "act": ((10.0,) * 8, 8)},
+}
+PROFILES_MS: dict[str, tuple[float, ...]] = {}
+CAPS: dict[str, int] = {}
 
 
 def demand_share(robots_per_policy: int) -> dict[str, float]:
     """Each policy's share of device time its robots need, at full batches: chunks/s × d_infer(cap)/cap."""
     fast = robots_per_policy // 2
     chunks_s = fast * FPS / H_FAST + (robots_per_policy - fast) * FPS / H_SLOW
-    need = {name: chunks_s * ms[CAP - 1] / 1000.0 / CAP for name, ms in PROFILES_MS.items()}
+    need = {name: chunks_s * ms[CAPS[name] - 1] / 1000.0 / CAPS[name] for name, ms in PROFILES_MS.items()}
     total = sum(need.values())
     return {name: n / total for name, n in need.items()}
 
@@ -58,7 +65,7 @@ def engine_for(path: str, profile_ms: tuple[float, ...], name: str) -> tuple[Any
     from lerobot_armory.inference_latency import LatencyProfile
 
     engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
-    engine.warmup(CAP, log_progress=False)
+    engine.warmup(CAPS[name], log_progress=False)
     profile = LatencyProfile(name, profile_ms)
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     return EmulatedLatencyEngine(engine, profile), info, profile
@@ -125,7 +132,17 @@ def main() -> int:
     p.add_argument("--duration_s", type=float, default=30.0)
     p.add_argument("--schedulers", default="edf,lookahead")
     p.add_argument("--out", default=None, help="write the results as JSON here")
+    p.add_argument("--setup", default="h100", choices=tuple(SETUPS), help="profiles and caps (see SETUPS)")
+    p.add_argument(
+        "--time_scale", type=float, default=1.0,
+        help="run the whole fleet this many times slower (profiles x k, fps / k): the same schedule, "
+        "with room for the CPU model to stay inside its profile on a 2-core machine",
+    )  # fmt: skip
     args = p.parse_args()
+    global FPS
+    FPS = FPS / args.time_scale
+    for name, (ms, cap) in SETUPS[args.setup].items():
+        PROFILES_MS[name], CAPS[name] = tuple(x * args.time_scale for x in ms), cap
 
     from lerobot_armory.entrypoints.server import ArmoryServer, ExtraPolicy, tune_process
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
@@ -152,18 +169,20 @@ def main() -> int:
                     (e1, i1, p1), (e2, i2, p2) = (engine_for(paths[n], PROFILES_MS[n], n) for n in PROFILES_MS)
                     names = list(PROFILES_MS)
                     server = ArmoryServer(
-                        e1, i1, p1, scheduler_config(sched), CAP, port=0, fleet_policy=fleet_policy(), policy_name=names[0],
-                        others=(ExtraPolicy(names[1], e2, i2, p2, CAP),),
+                        e1, i1, p1, scheduler_config(sched), CAPS[names[0]], port=0, fleet_policy=fleet_policy(), policy_name=names[0],
+                        others=(ExtraPolicy(names[1], e2, i2, p2, CAPS[names[1]]),),
                     ).start()  # fmt: skip
                     servers.append(server)
+                    emulated = [e1, e2]
                     addresses = {n: server.address for n in names}
                     features = {f.name: (f.dtype, f.shape) for f in i1.wire_features}
                 else:
-                    addresses = {}
+                    addresses, emulated = {}, []
                     for name in PROFILES_MS:
                         scaled = tuple(ms / split[name] for ms in PROFILES_MS[name])
                         engine, info, profile = engine_for(paths[name], scaled, name)
-                        server = ArmoryServer(engine, info, profile, scheduler_config(sched), CAP, port=0, fleet_policy=fleet_policy()).start()
+                        emulated.append(engine)
+                        server = ArmoryServer(engine, info, profile, scheduler_config(sched), CAPS[name], port=0, fleet_policy=fleet_policy()).start()
                         servers.append(server)
                         addresses[name] = server.address
                         features = {f.name: (f.dtype, f.shape) for f in info.wire_features}
@@ -171,15 +190,19 @@ def main() -> int:
             finally:
                 for server in servers:
                     server.stop(0.5)
-            row = {"scheduler": sched, "setup": setup, "shares": split, **summarise(stats)}
+            # Batches the CPU model ran past its profile (then the device time is the model's, not the profile's).
+            overruns = {"batches": sum(e.batches for e in emulated), "overruns": sum(e.overruns for e in emulated)}
+            row = {"scheduler": sched, "setup": setup, "shares": split, **summarise(stats), **overruns}
             rows.append(row)
             print(
-                f"{sched:10s} {setup:13s} " + "  ".join(f"{k} {v:5.1f}%" for k, v in row.items() if "/" in k or k == "all"),
+                f"{sched:10s} {setup:13s} " + "  ".join(f"{k} {v:5.1f}%" for k, v in row.items() if "/" in k or k == "all")
+                + f"  (overran the profile: {row['overruns']} of {row['batches']} batches)",
                 flush=True,
             )
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"command": " ".join(sys.argv), "profiles_ms": PROFILES_MS, "rows": rows}, indent=2) + "\n")
+        meta = {"command": " ".join(sys.argv), "profiles_ms": PROFILES_MS, "caps": CAPS, "fps": FPS, "time_scale": args.time_scale}
+        Path(args.out).write_text(json.dumps({**meta, "rows": rows}, indent=2) + "\n")
         print(f"wrote {args.out}")
     return 0
 

@@ -146,3 +146,10 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     # A checkpoint whose features differ from the policy it replaces is refused.
     refused = server.swappers["sorting"].swap(str(root / "kitchen"))
     assert refused.result == "refused" and server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
+
+
+def test_a_cluster_refuses_several_policies_in_one_line():
+    from lerobot_armory.entrypoints.cluster.cli import ClusterConfig
+
+    with pytest.raises(ConfigError, match="one policy for now"):
+        ClusterConfig(policies="policies.yaml").validate()

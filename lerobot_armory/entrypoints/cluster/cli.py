@@ -76,6 +76,9 @@ class ClusterConfig(ServerConfig):
 
     def validate(self) -> None:
         super().validate()
+        if self.policies:
+            # The front places robots by one policy's load model and swaps one policy per replica.
+            raise ConfigError("policies", "a cluster serves one policy for now; serve several with lerobot-armory-server --policies=FILE")
         if self.replicas < 1:
             raise ConfigError("replicas", f"must be >= 1, got {self.replicas}")
         if self.replica.num_gpus < 0 or self.replica.num_cpus < 0:
