@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
@@ -34,15 +35,7 @@ def run(cfg: SimConfig) -> list[dict]:
             f"larger batches are extrapolated linearly from the last two points",
             file=sys.stderr,
         )
-    runs = []
-    for k in range(cfg.seeds):
-        record = simulate(cfg, cfg.seed + k)
-        runs.append(record)
-        print(
-            f"[{k + 1}/{cfg.seeds}] seed={cfg.seed + k} {record['label']}: avg starvation "
-            f"{record['avg_starvation_pct']:.2f}% ({record['wall_s']:.2f} s wall)",
-            file=sys.stderr,
-        )
+    runs = _every_seed(cfg, simulate)
     print(table(runs))
     _write(cfg, runs)
     return runs
@@ -50,17 +43,23 @@ def run(cfg: SimConfig) -> list[dict]:
 
 def _run_fleet(cfg: SimConfig) -> list[dict]:
     """Every seed of a fleet file (one or several policies on one device), with its table."""
+    runs = _every_seed(cfg, simulate_fleet_file)
+    print(fleet_table(runs))
+    _write(cfg, runs)
+    return runs
+
+
+def _every_seed(cfg: SimConfig, run: Callable[[SimConfig, int], dict]) -> list[dict]:
+    """``run(cfg, seed)`` for each of the ``cfg.seeds`` seeds, with a progress line each."""
     runs = []
     for k in range(cfg.seeds):
-        record = simulate_fleet_file(cfg, cfg.seed + k)
+        record = run(cfg, cfg.seed + k)
         runs.append(record)
         print(
             f"[{k + 1}/{cfg.seeds}] seed={cfg.seed + k} {record['label']}: avg starvation "
             f"{record['avg_starvation_pct']:.2f}% ({record['wall_s']:.2f} s wall)",
             file=sys.stderr,
         )
-    print(fleet_table(runs))
-    _write(cfg, runs)
     return runs
 
 
