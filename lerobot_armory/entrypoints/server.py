@@ -123,13 +123,11 @@ class ArmoryServer:
             getattr(engine, "path", ""), getattr(engine, "device", None), getattr(engine, "cpu_threads", None),
             list(getattr(engine, "overrides", [])),
         )  # fmt: skip
-        shape = PolicyShape(tuple(policy.wire_features), len(policy.action_names), policy.chunk_size, engine.history_steps)
-        current = LoadedPolicy(options, engine, shape, None, policy.description)
+        current = _served_now(options, engine, policy)
         self.swapper = PolicySwapper(self.loop, current, loader or policy_loader(max_batch_size), self._swapped, policy_name)
         self.swappers = {policy_name: self.swapper}
         for o in others:
-            o_shape = PolicyShape(tuple(o.info.wire_features), len(o.info.action_names), o.info.chunk_size, o.engine.history_steps)
-            o_current = LoadedPolicy(o.options or PolicyOptions(getattr(o.engine, "path", "")), o.engine, o_shape, None, o.info.description)
+            o_current = _served_now(o.options or PolicyOptions(getattr(o.engine, "path", "")), o.engine, o.info)
             self.swappers[o.name] = PolicySwapper(
                 self.loop, o_current, loader or policy_loader(o.max_batch_size), self._other_swapped(o.name), o.name
             )
@@ -272,6 +270,12 @@ class ExtraPolicy:
     profile: LatencyProfile
     max_batch_size: int
     options: PolicyOptions | None = None
+
+
+def _served_now(options: PolicyOptions, engine: Engine, info: PolicyInfo) -> LoadedPolicy:
+    """The policy a swapper starts from: what is served now (its d_infer is the scheduler's)."""
+    shape = PolicyShape(tuple(info.wire_features), len(info.action_names), info.chunk_size, engine.history_steps)
+    return LoadedPolicy(options, engine, shape, None, info.description)
 
 
 def tune_process() -> None:
