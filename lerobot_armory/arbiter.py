@@ -32,6 +32,8 @@ from lerobot_armory.dispatch import Dispatcher, Plan, Proposal
 from lerobot_armory.mirror import RobotMirror
 
 RULES = ("rotate", "deadline", "score")
+# The name of the policy of a server or simulated fleet that serves one (``--policy.path``).
+DEFAULT_POLICY = "default"
 
 
 class PolicyArbiter:

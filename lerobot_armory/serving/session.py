@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lerobot_armory.arbiter import DEFAULT_POLICY
 from lerobot_armory.feature_spec import FeatureSpec
 from lerobot_armory.mirror import RobotMirror, RobotSpec
 from lerobot_armory.serving.messages import Grant
@@ -28,10 +29,6 @@ from lerobot_armory.serving.security import RateLimiter
 
 # Execution reports: a robot sends ~5 a second; more are dropped before any work.
 REPORT_RATE_HZ = 20.0
-
-
-# The name of the policy a server started with ``--policy.path`` serves (``--policies=FILE`` names each).
-DEFAULT_POLICY = "default"
 
 
 @dataclass

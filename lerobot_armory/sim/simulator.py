@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lerobot_armory.arbiter import PolicyArbiter
+from lerobot_armory.arbiter import DEFAULT_POLICY, PolicyArbiter
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
@@ -41,8 +41,6 @@ from lerobot_armory.schedulers.base import Scheduler
 MAX_CLOCK_OFFSET_S = 0.5
 # Compare the mirror's predicted index with the truth at every this many decisions.
 FIDELITY_EVERY = 8
-# The policy name of a fleet served by one scheduler.
-DEFAULT_POLICY = "default"
 
 
 @dataclass
