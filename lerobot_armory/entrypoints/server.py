@@ -133,7 +133,8 @@ class ArmoryServer:
             )
         for swapper in self.swappers.values():
             swapper.listeners.append(self.metrics.on_swap)
-        self.metrics.set_policy(options.path)
+        for swapper in self.swappers.values():
+            self.metrics.set_policy(swapper.current.path)
         self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line, self.swappers)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None

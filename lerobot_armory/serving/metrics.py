@@ -138,23 +138,37 @@ class ServerMetrics:
         self.swap_seconds = Gauge(
             "armory_policy_swap_seconds", "Duration of the last successful swap (load + warm-up + profile + switch)", registry=self.registry
         )
-        self.policy = Gauge("armory_policy_info", "The checkpoint served now (value 1; its path is the label)", ["path"], registry=self.registry)
+        self.policy = Gauge(
+            "armory_policy_info", "The checkpoints served now (value 1 each; the path is the label)", ["path"], registry=self.registry
+        )
+        # Several policies on one device (--policies): what each one's batches took.
+        self.policy_batches = Counter("armory_policy_batches", "Batches run, by policy", ["policy"], registry=self.registry)
+        self.policy_device = Counter(
+            "armory_policy_device_seconds", "Device time of the batches run, by policy", ["policy"], registry=self.registry
+        )
 
-    def set_policy(self, path: str) -> None:
-        self.policy.clear()
+    def set_policy(self, path: str, replaces: str | None = None) -> None:
+        """``path`` is served now (in place of ``replaces``, if given; other policies' paths stay)."""
+        if replaces is not None and replaces != path:
+            try:
+                self.policy.remove(replaces)
+            except KeyError:
+                pass  # not shown (yet): nothing to take down
         self.policy.labels(path=path).set(1)
 
     def on_swap(self, result: SwapResult) -> None:
         self.swaps.labels(result=result.result).inc()
         if result.ok:
             self.swap_seconds.set(result.seconds)
-            self.set_policy(result.new_path)
+            self.set_policy(result.new_path, replaces=result.old_path)
 
     def on_batch(self, record: BatchRecord) -> None:
         size = len(record.robots)
         self.batch_size.observe(size)
         self.inference.labels(batch_size=str(size)).observe(record.t_end - record.t_start)
         self.decision.observe(record.decision_ms / 1000.0)
+        self.policy_batches.labels(policy=record.policy).inc()
+        self.policy_device.labels(policy=record.policy).inc(max(0.0, record.t_end - record.t_start))
 
     def serve(self, port: int, host: str) -> tuple[int, Callable[[], None]]:
         """Start the HTTP endpoint; returns the port it bound (``port=0``: a free one, picked by

@@ -102,6 +102,10 @@ def test_two_policies_serve_one_fleet_each_batch_of_one_policy(two_policy_server
         assert len(r.robots) <= (2 if r.policy == "sorting" else 3)  # each policy's own cap
     assert server.loop.stats.batches_by_policy["sorting"] > 0 and server.loop.stats.batches_by_policy["kitchen"] > 0
     assert "batches=kitchen:" in server.status_line()
+    metric = server.metrics.registry.get_sample_value
+    for name in ("kitchen", "sorting"):
+        assert metric("armory_policy_batches_total", {"policy": name}) == server.loop.stats.batches_by_policy[name]
+        assert metric("armory_policy_device_seconds_total", {"policy": name}) > 0
 
 
 def test_policies_file_problems_are_one_line_each(tmp_path):
@@ -133,8 +137,14 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     server, _, records, root = two_policy_server
     make_demo_policy(DemoPolicyConfig(output=str(root / "sorting-v2"), **{**TINY, "state_dim": 3, "seed": 2}))
     kitchen_engine = server.loop.policies["kitchen"].engine
+    info = server.metrics.registry.get_sample_value
+    assert info("armory_policy_info", {"path": str(root / "kitchen")}) == info("armory_policy_info", {"path": str(root / "sorting")}) == 1.0
     result = server.swappers["sorting"].swap(str(root / "sorting-v2"))
     assert result.result == "ok", result.message
+    # Metrics show both policies' checkpoints: the swapped one's new path, the other's unchanged.
+    assert info("armory_policy_info", {"path": str(root / "sorting-v2")}) == 1.0
+    assert info("armory_policy_info", {"path": str(root / "sorting")}) is None
+    assert info("armory_policy_info", {"path": str(root / "kitchen")}) == 1.0
     assert server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
     assert server.loop.policies["kitchen"].engine is kitchen_engine and server.swappers["kitchen"].current.path == str(root / "kitchen")
     # New registrations for the swapped policy are told its new checkpoint.
