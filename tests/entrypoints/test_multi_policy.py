@@ -163,3 +163,19 @@ def test_a_cluster_refuses_several_policies_in_one_line():
 
     with pytest.raises(ConfigError, match="one policy for now"):
         ClusterConfig(policies="policies.yaml").validate()
+
+
+def test_a_hostile_policy_name_is_refused_in_one_short_line_and_hurts_nobody(two_policy_server):
+    server, _, _, _ = two_policy_server
+    batches = server.loop.stats.batches
+    conn = Connection(server.address)
+    try:
+        for name in ("x" * 100_000, "kitchen\n" * 50, "../../etc/passwd", "\x00"):
+            with pytest.raises(grpc.RpcError) as err:
+                conn.register("hostile", KITCHEN, 10.0, 1, 5, policy_name=name)
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and len(err.value.details()) < 400
+        ok = conn.register("after-hostile", KITCHEN, 10.0, 1, 5, policy_name="kitchen")
+        assert ok.action_dim == 2 and server.loop.alive and server.loop.error is None
+    finally:
+        conn.close()
+    assert server.loop.stats.batches >= batches
