@@ -13,6 +13,7 @@ Shutdown finishes the in-flight batch, tells every robot, and exits 0.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import signal
@@ -131,10 +132,9 @@ class ArmoryServer:
             self.swappers[o.name] = PolicySwapper(
                 self.loop, o_current, loader or policy_loader(o.max_batch_size), self._other_swapped(o.name), o.name
             )
-        for swapper in self.swappers.values():
-            swapper.listeners.append(self.metrics.on_swap)
-        for swapper in self.swappers.values():
-            self.metrics.set_policy(swapper.current.path)
+        for name, swapper in self.swappers.items():
+            swapper.listeners.append(functools.partial(self.metrics.on_swap, policy=name))
+            self.metrics.set_policy(name, swapper.current.path)
         self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line, self.swappers)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None

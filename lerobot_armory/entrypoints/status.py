@@ -50,13 +50,13 @@ def render(text: str) -> str:
     robots: dict[str, dict[str, float | str]] = defaultdict(dict)
     fleet: dict[str, float] = {}
     batch_sum = batch_count = 0.0
-    policy_path: str | None = None
+    paths: dict[str, str] = {}  # policy name -> the path it serves
     swaps: dict[str, int] = {}
     for family in text_string_to_metric_families(text):
         for sample in family.samples:
             rid = sample.labels.get("robot_id")
             if sample.name == "armory_policy_info" and sample.value == 1:
-                policy_path = sample.labels.get("path")
+                paths[sample.labels.get("policy", "")] = sample.labels.get("path", "")
             elif sample.name == "armory_policy_swaps_total":
                 swaps[sample.labels.get("result", "?")] = int(sample.value)
             elif rid is not None:
@@ -89,10 +89,15 @@ def render(text: str) -> str:
         f"device busy {fleet.get('armory_device_busy_seconds_total', 0):.1f} s, "
         f"idle with work waiting {1000 * fleet.get('armory_device_idle_with_work_seconds_total', 0):.0f} ms"
     )
-    if policy_path is not None:
+    if paths:
+        served = (
+            f"policy {next(iter(paths.values()))}"
+            if len(paths) == 1
+            else "policies " + ", ".join(f"{name}={path}" for name, path in sorted(paths.items()))
+        )
         last = fleet.get("armory_policy_swap_seconds")
         lines.append(
-            f"policy {policy_path}; swaps ok {swaps.get('ok', 0)}, refused {swaps.get('refused', 0)}, failed {swaps.get('failed', 0)}"
+            f"{served}; swaps ok {swaps.get('ok', 0)}, refused {swaps.get('refused', 0)}, failed {swaps.get('failed', 0)}"
             + (f", last took {last:.2f} s" if last else "")
         )
     return "\n".join(lines)

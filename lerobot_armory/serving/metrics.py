@@ -139,7 +139,10 @@ class ServerMetrics:
             "armory_policy_swap_seconds", "Duration of the last successful swap (load + warm-up + profile + switch)", registry=self.registry
         )
         self.policy = Gauge(
-            "armory_policy_info", "The checkpoints served now (value 1 each; the path is the label)", ["path"], registry=self.registry
+            "armory_policy_info",
+            "The checkpoints served now (value 1 each; labels: the policy's name and its path)",
+            ["policy", "path"],
+            registry=self.registry,
         )
         # Several policies on one device (--policies): what each one's batches took.
         self.policy_batches = Counter("armory_policy_batches", "Batches run, by policy", ["policy"], registry=self.registry)
@@ -147,20 +150,22 @@ class ServerMetrics:
             "armory_policy_device_seconds", "Device time of the batches run, by policy", ["policy"], registry=self.registry
         )
 
-    def set_policy(self, path: str, replaces: str | None = None) -> None:
-        """``path`` is served now (in place of ``replaces``, if given; other policies' paths stay)."""
+    def set_policy(self, policy: str, path: str, replaces: str | None = None) -> None:
+        """Policy ``policy`` serves ``path`` now (in place of ``replaces``, if given; other
+        policies' samples stay, even where two serve the same path)."""
         if replaces is not None and replaces != path:
             try:
-                self.policy.remove(replaces)
+                self.policy.remove(policy, replaces)
             except KeyError:
                 pass  # not shown (yet): nothing to take down
-        self.policy.labels(path=path).set(1)
+        self.policy.labels(policy=policy, path=path).set(1)
 
-    def on_swap(self, result: SwapResult) -> None:
+    def on_swap(self, result: SwapResult, policy: str) -> None:
+        """A swap of ``policy`` ended with ``result``."""
         self.swaps.labels(result=result.result).inc()
         if result.ok:
             self.swap_seconds.set(result.seconds)
-            self.set_policy(result.new_path, replaces=result.old_path)
+            self.set_policy(policy, result.new_path, replaces=result.old_path)
 
     def on_batch(self, record: BatchRecord) -> None:
         size = len(record.robots)

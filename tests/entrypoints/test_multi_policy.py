@@ -138,13 +138,22 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     make_demo_policy(DemoPolicyConfig(output=str(root / "sorting-v2"), **{**TINY, "state_dim": 3, "seed": 2}))
     kitchen_engine = server.loop.policies["kitchen"].engine
     info = server.metrics.registry.get_sample_value
-    assert info("armory_policy_info", {"path": str(root / "kitchen")}) == info("armory_policy_info", {"path": str(root / "sorting")}) == 1.0
+    def served(policy: str, path: Path) -> float | None:
+        return info("armory_policy_info", {"policy": policy, "path": str(path)})
+
+    assert served("kitchen", root / "kitchen") == served("sorting", root / "sorting") == 1.0
     result = server.swappers["sorting"].swap(str(root / "sorting-v2"))
     assert result.result == "ok", result.message
     # Metrics show both policies' checkpoints: the swapped one's new path, the other's unchanged.
-    assert info("armory_policy_info", {"path": str(root / "sorting-v2")}) == 1.0
-    assert info("armory_policy_info", {"path": str(root / "sorting")}) is None
-    assert info("armory_policy_info", {"path": str(root / "kitchen")}) == 1.0
+    assert served("sorting", root / "sorting-v2") == 1.0
+    assert served("sorting", root / "sorting") is None
+    assert served("kitchen", root / "kitchen") == 1.0
+    from prometheus_client import generate_latest
+
+    from lerobot_armory.entrypoints.status import render
+
+    view = render(generate_latest(server.metrics.registry).decode())
+    assert f"policies kitchen={root / 'kitchen'}, sorting={root / 'sorting-v2'}; swaps ok 1" in view
     assert server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
     assert server.loop.policies["kitchen"].engine is kitchen_engine and server.swappers["kitchen"].current.path == str(root / "kitchen")
     # New registrations for the swapped policy are told its new checkpoint.

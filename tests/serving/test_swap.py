@@ -142,7 +142,7 @@ def test_live_swap_under_a_streaming_fleet(engine, new_engine, demo_policy_dir, 
         assert new == sorted(new) and new[-1], new
     text = server.metrics.registry.get_sample_value("armory_policy_swaps_total", {"result": "ok"})
     assert text == 1.0
-    assert server.metrics.registry.get_sample_value("armory_policy_info", {"path": str(new_dir)}) == 1.0
+    assert server.metrics.registry.get_sample_value("armory_policy_info", {"policy": "default", "path": str(new_dir)}) == 1.0
     view = render(generate_latest(server.metrics.registry).decode())
     assert f"policy {new_dir}; swaps ok 1, refused 0, failed 0, last took" in view
 
@@ -268,3 +268,21 @@ def test_openpi_clients_connecting_after_a_swap_are_told_the_new_policy(engine, 
         assert str(new_dir) in handshake()["policy"]
     finally:
         server.stop(grace_s=0.5)
+
+
+def test_two_policies_on_one_path_each_keep_their_info_sample_through_a_swap():
+    import time
+
+    from lerobot_armory.serving.fleet import Fleet
+    from lerobot_armory.serving.loop import LoopStats
+    from lerobot_armory.serving.metrics import ServerMetrics
+    from lerobot_armory.serving.swap import SwapResult
+
+    metrics = ServerMetrics(Fleet(time.monotonic), LoopStats(), max_batch_size=2)
+    metrics.set_policy("kitchen", "/ckpt/base")
+    metrics.set_policy("sorting", "/ckpt/base")
+    metrics.on_swap(SwapResult("ok", "swapped", "/ckpt/base", "/ckpt/sorting-v2", 1.0), policy="sorting")
+    info = metrics.registry.get_sample_value
+    assert info("armory_policy_info", {"policy": "kitchen", "path": "/ckpt/base"}) == 1.0  # the other keeps its sample
+    assert info("armory_policy_info", {"policy": "sorting", "path": "/ckpt/sorting-v2"}) == 1.0
+    assert info("armory_policy_info", {"policy": "sorting", "path": "/ckpt/base"}) is None
