@@ -135,6 +135,10 @@ class ReplicaView:
             :class:`RobotTable`, whose changes invalidate the summed load).
         healthy: whether it answers its health checks (placement skips it when not).
         max_robots: robots it accepts at most.
+        capacity_of: when several policies share the replica's device, each robot's own policy's
+            capacity (its ``d_infer`` and cap); None: every robot's is ``capacity``. A robot's
+            chunk costs what a batch of *its* policy costs, so a π0.5 robot weighs more than an
+            ACT robot of the same timing.
     """
 
     replica_id: str
@@ -142,6 +146,7 @@ class ReplicaView:
     robots: dict[str, RobotSpec] = field(default_factory=RobotTable)
     healthy: bool = True
     max_robots: int = 64
+    capacity_of: Callable[[RobotSpec], Capacity] | None = None
 
     def __setattr__(self, name: str, value: object) -> None:
         if name == "robots" and not isinstance(value, RobotTable):
@@ -151,20 +156,24 @@ class ReplicaView:
     def _sums(self) -> tuple[float, dict[str, float], dict[float, float]]:
         """(total demand, demand per tier, weight-at-or-above memo), recomputed after a change."""
         robots = self.robots
-        key = (robots.serial, robots.version, self.capacity)  # type: ignore[attr-defined]
+        key = (robots.serial, robots.version, self.capacity, self.capacity_of)  # type: ignore[attr-defined]
         memo = self.__dict__.get("_memo")
         if memo is None or memo[0] != key:
             by_tier: dict[str, float] = {}
             for s in robots.values():
-                by_tier[s.tier] = by_tier.get(s.tier, 0.0) + demand(s, self.capacity)
+                by_tier[s.tier] = by_tier.get(s.tier, 0.0) + self.demand(s)
             memo = (key, (sum(by_tier.values()), by_tier, {}))
             self.__dict__["_memo"] = memo
         return memo[1]
 
+    def demand(self, spec: RobotSpec) -> float:
+        """Device seconds per second ``spec`` needs from this replica (:func:`demand` at its policy's capacity)."""
+        return demand(spec, self.capacity if self.capacity_of is None else self.capacity_of(spec))
+
     def utilization(self, extra: RobotSpec | None = None) -> float:
         """Predicted utilization, with ``extra`` placed too when given."""
         total = self._sums()[0]
-        return total + (demand(extra, self.capacity) if extra is not None else 0.0)
+        return total + (self.demand(extra) if extra is not None else 0.0)
 
     def tier_utilization(self, tier: str) -> float:
         """Predicted utilization of this replica's robots of ``tier``."""
@@ -260,7 +269,7 @@ class MirrorAwarePlacement(Placement):
 
     def _choose(self, spec: RobotSpec, candidates: Sequence[ReplicaView]) -> str:
         def key(r: ReplicaView) -> tuple[float, float, int, str]:
-            own = demand(spec, r.capacity)
+            own = r.demand(spec)
             load = r.utilization() + own + r.tier_utilization(spec.tier) + own
             return (round(load, 9), r.weight_at_or_above(spec.weight), len(r.robots), r.replica_id)
 
@@ -345,7 +354,7 @@ def rebalance(replicas: Sequence[ReplicaView], min_gain: float = 0.05) -> Move |
     before = source.utilization()
     best: tuple[float, Move] | None = None
     for robot_id, spec in sorted(source.robots.items()):
-        left = before - demand(spec, source.capacity)
+        left = before - source.demand(spec)
         for target in healthy:
             if target is source or not target.open:
                 continue

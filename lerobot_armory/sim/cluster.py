@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import random
 import time
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,11 +34,12 @@ from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.mirror import TIERS, RobotSpec
 from lerobot_armory.placement import NoReplica, ReplicaView, make_placement, place_all
-from lerobot_armory.sim.fleet_file import Fleet, require_one_policy
+from lerobot_armory.sim.fleet_file import Fleet
 from lerobot_armory.sim.simulator import FleetSimulator
 
-# A composition: the sorted timing/weight/tier of a replica's robots (ids dropped).
-Composition = tuple[tuple[str, float, int, int, int, float], ...]
+# A composition: the sorted timing/weight/tier (and, when several policies share each GPU, the
+# policy) of a replica's robots, ids dropped.
+Composition = tuple[tuple[str, float, int, int, int, float, str | None], ...]
 # Per-robot (tier, starved steps, ticks) of one simulated composition, in the composition's order.
 Outcome = tuple[tuple[str, int, int], ...]
 
@@ -159,17 +160,24 @@ def place_fleet(
     """Place the fleet (joining in its seeded order) on ``gpus`` replicas; returns the replica views.
 
     ``profiles`` gives each replica its own latency profile (heterogeneous GPUs); default: every
-    replica runs the fleet's profile.
+    replica runs the fleet's profile. When several policies share each GPU (a mixed fleet), every
+    replica serves every policy, and each robot is charged its own policy's cost.
     """
     if not isinstance(gpus, int) or gpus < 1:
         raise ConfigError("gpus", f"must be an integer >= 1, got {gpus!r}")
     if profiles is not None and len(profiles) != gpus:
         raise ConfigError("profiles", f"need one latency profile per GPU ({gpus}), got {len(profiles)}")
+    if profiles is not None and fleet.is_mixed:
+        raise ConfigError("profiles", f"{fleet.source} names each policy's profile; one profile per GPU does not apply")
     names = list(profiles) if profiles is not None else [fleet.latency_profile] * gpus
     capacities = {name: fleet.capacity(name) for name in set(names)}
+    capacity_of = fleet.capacity_of()  # one object for every view: placement memoizes on it
     limit = fleet.max_robots_per_gpu or fleet.robots
     width = max(2, len(str(gpus - 1)))
-    replicas = [ReplicaView(f"gpu{k:0{width}d}", capacities[names[k]], max_robots=limit) for k in range(gpus)]
+    replicas = [
+        ReplicaView(f"gpu{k:0{width}d}", capacities[names[k]], max_robots=limit, capacity_of=capacity_of)
+        for k in range(gpus)
+    ]
     try:
         place_all(join_order(fleet, seed), replicas, make_placement(placement, seed))
     except NoReplica:
@@ -179,21 +187,34 @@ def place_fleet(
     return replicas
 
 
-def composition(specs: Sequence[RobotSpec]) -> Composition:
-    """A replica's robots without their ids, sorted (replicas with equal compositions behave alike)."""
-    return tuple(sorted((s.tier, s.fps, s.chunk_size, s.h_min, s.h_max, s.weight) for s in specs))
+def composition(specs: Sequence[RobotSpec], policy_of: Mapping[str, str] | None = None) -> Composition:
+    """A replica's robots without their ids, sorted (replicas with equal compositions behave alike);
+    ``policy_of`` (robot id -> policy) when several policies share the GPU."""
+    rows = [
+        (s.tier, s.fps, s.chunk_size, s.h_min, s.h_max, s.weight, policy_of[s.robot_id] if policy_of else None)
+        for s in specs
+    ]
+    return tuple(sorted(rows, key=lambda row: (row[:6], row[6] or "")))
 
 
 def simulate_composition(
     comp: Composition, fleet: Fleet, profile: LatencyProfile, duration_s: float, seed: int
 ) -> Outcome:
-    """Simulate one replica holding ``comp`` (canonical ids ``r0000``...) with a fresh scheduler."""
+    """Simulate one replica holding ``comp`` (canonical ids ``r0000``...) with fresh schedulers
+    (one per policy, arbitrated, when several policies share the GPU)."""
     specs = [
-        RobotSpec(f"r{k:04d}", fps, h, h_min, h_max, w, tier) for k, (tier, fps, h, h_min, h_max, w) in enumerate(comp)
+        RobotSpec(f"r{k:04d}", fps, h, h_min, h_max, w, tier)
+        for k, (tier, fps, h, h_min, h_max, w, _) in enumerate(comp)
     ]
-    scheduler = fleet.scheduler.make(profile, fleet.max_batch_size)  # one per replica: schedulers keep state
     net = fleet.network()
-    result = FleetSimulator(specs, scheduler, duration_s, net, net, seed).run()
+    if fleet.is_mixed:
+        schedulers = {p.name: fleet.scheduler.make(p.profile(), p.max_batch_size) for p in fleet.policies}
+        policy_of = {s.robot_id: str(row[6]) for s, row in zip(specs, comp)}
+        sim = FleetSimulator(specs, schedulers, duration_s, net, net, seed, policy_of=policy_of)
+    else:
+        scheduler = fleet.scheduler.make(profile, fleet.max_batch_size)  # one per replica: schedulers keep state
+        sim = FleetSimulator(specs, scheduler, duration_s, net, net, seed)
+    result = sim.run()
     return tuple((r.tier, r.starved_steps, r.ticks) for r in result.robots)
 
 
@@ -223,11 +244,11 @@ def simulate_cluster(
     """
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise ConfigError("duration_s", f"must be > 0, got {duration_s}")
-    require_one_policy(fleet, "the cluster simulation")
     start = time.perf_counter()
     replicas = place_fleet(fleet, gpus, placement, seed, profiles)
     names = list(profiles) if profiles is not None else [fleet.latency_profile] * gpus
     loaded = {name: fleet.profile(name) for name in set(names)}
+    policy_of = fleet.policy_of() if fleet.is_mixed else None
     local: dict[Any, Outcome] = {}
     memo = cache if cache is not None else local
     runs = 0
@@ -237,13 +258,14 @@ def simulate_cluster(
         tier_robots = {t: sum(s.tier == t for s in specs) for t in TIERS if any(s.tier == t for s in specs)}
         out = ReplicaResult(view.replica_id, names[k], [s.robot_id for s in specs], tier_robots, view.utilization())
         if specs:
-            comp = composition(specs)
+            comp = composition(specs, policy_of)
             if distinct_only:
                 key = (
                     comp,
                     names[k],
                     fleet.max_batch_size,
                     repr(fleet.scheduler),
+                    fleet.policies,
                     fleet.net_median_ms,
                     fleet.net_sigma,
                     duration_s,

@@ -24,7 +24,8 @@ group says which serves it (optional when there is one policy)::
 
 The simulator serves such a fleet on one device through a
 :class:`~lerobot_armory.arbiter.PolicyArbiter`; a fleet with one named policy is the same fleet as
-without ``policies:``. The capacity planner takes one-policy fleets only.
+without ``policies:``. The capacity planner and the cluster simulation place such a fleet on GPUs
+that each serve every policy, charging each robot its own policy's cost.
 
 ``weight`` defaults to 1 and ``tier`` to ``slow``; a group may carry a ``name`` (its robots are
 called ``NAME-000``, ``NAME-001``...; default ``g<k>``). Every field is checked: an unknown key or
@@ -42,6 +43,7 @@ import json
 import math
 import re
 from dataclasses import dataclass, field, replace
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -178,10 +180,28 @@ class Fleet:
         """One GPU's :class:`~lerobot_armory.placement.Capacity` at the fleet's batch cap and network median."""
         return Capacity(tuple(self.profile(profile).table_s(self.max_batch_size)), self.net_median_ms / 1000.0)
 
+    def policy_capacities(self) -> dict[str, Capacity]:
+        """Each policy's capacity on the shared device (its profile at its cap), for a mixed fleet."""
+        one_way = self.net_median_ms / 1000.0
+        return {p.name: Capacity(tuple(p.profile().table_s(p.max_batch_size)), one_way) for p in self.policies}
+
+    def capacity_of(self) -> Callable[[RobotSpec], Capacity] | None:
+        """For a mixed fleet, robot -> its policy's capacity (what placement charges each robot);
+        None for a one-policy fleet (every robot costs the GPU's capacity)."""
+        if not self.is_mixed:
+            return None
+        return _PolicyCapacity(self.policy_capacities(), self.policy_of())
+
+    def group_demand(self, group: RobotGroup, profile: str | None = None) -> float:
+        """Predicted device seconds per second one robot of ``group`` needs (its policy's capacity when mixed)."""
+        if self.is_mixed:
+            assert group.policy is not None  # every group of a mixed fleet names its policy (checked at load)
+            return demand(group.specs()[0], self.policy_capacities()[group.policy])
+        return demand(group.specs()[0], self.capacity(profile))
+
     def total_demand(self, profile: str | None = None) -> float:
         """Predicted GPUs' worth of device time the whole fleet needs (the placement load model)."""
-        cap = self.capacity(profile)
-        return sum(g.count * demand(g.specs()[0], cap) for g in self.groups if g.count)
+        return sum(g.count * self.group_demand(g, profile) for g in self.groups if g.count)
 
     def tier_counts(self) -> dict[str, int]:
         counts = dict.fromkeys(TIERS, 0)
@@ -497,3 +517,18 @@ def with_overrides(fleet: Fleet, latency_profile: str | None = None, max_batch_s
             raise ConfigError("max_batch_size", f"must be >= 1, got {max_batch_size}")
         changes["max_batch_size"] = max_batch_size
     return replace(fleet, **changes) if changes else fleet
+
+
+@dataclass(frozen=True, eq=False)
+class _PolicyCapacity:
+    """Robot -> its policy's :class:`Capacity`, hashable by identity (placement memoizes on it).
+
+    Robots are looked up by id: the cluster simulation renames robots (``r0000``...) only after
+    placing them, so ids here are the fleet's own.
+    """
+
+    capacities: dict[str, Capacity]
+    policy_of: dict[str, str]
+
+    def __call__(self, spec: RobotSpec) -> Capacity:
+        return self.capacities[self.policy_of[spec.robot_id]]

@@ -17,9 +17,12 @@ if K + 1 misses, the search goes on above it. Every K tried is printed.
 Each K is a :func:`~lerobot_armory.sim.cluster.simulate_cluster` per seed, with each distinct
 replica composition simulated once per seed and reused across K (see that module). Exit status:
 0 with an answer, 1 if even ``--max_gpus`` misses the target, 2 for a bad fleet file or option.
-A fleet whose devices are shared by several policies (``policies:``) is refused (exit 2): the
-planner's placement and load model are one-policy; ``lerobot-armory-sim --fleet`` simulates one
-such device.
+A fleet whose devices are shared by several policies (``policies:``) is planned on GPUs that
+each serve every policy (each must hold every policy's weights): placement charges each robot its
+own policy's ``d_infer``, and each GPU is simulated with one scheduler per policy and the
+:class:`~lerobot_armory.arbiter.PolicyArbiter` between them, as ``lerobot-armory-sim --fleet``
+simulates one such device. ``--latency_profile`` and ``--max_batch_size`` do not apply to it
+(each policy names its own in the file).
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.placement import PLACEMENTS
 from lerobot_armory.sim.cluster import ClusterResult, simulate_cluster
-from lerobot_armory.sim.fleet_file import Fleet, load_fleet, require_one_policy, with_overrides
+from lerobot_armory.sim.fleet_file import Fleet, load_fleet, with_overrides
 
 PROG = "lerobot-armory-plan"
 # Above this many GPUs a plan is a data-centre question, not a simulation to run in seconds.
@@ -269,19 +272,20 @@ def run(cfg: PlanConfig) -> int:
     """Plan the fleet; prints progress to stderr and the answer and table to stdout. Returns the exit status."""
     cfg.check()
     fleet = load_fleet(cfg.fleet)
-    require_one_policy(fleet, PROG)  # placement's load model and the replicas are one-policy
     fleet = with_overrides(fleet, cfg.latency_profile, cfg.max_batch_size)
     profile = fleet.profile()
     started = time.perf_counter()
     demand = fleet.total_demand()
     lower_bound = max(1, math.ceil(demand - 1e-9))
     print(f"[{PROG}] {fleet.describe()}", file=sys.stderr)
-    if profile.is_extrapolated(fleet.max_batch_size):
-        print(
-            f"[{PROG}] note: {profile.name} is measured up to b={profile.measured_sizes}; larger batches are "
-            "extrapolated linearly from the last two points",
-            file=sys.stderr,
-        )
+    served = [(p.profile(), p.max_batch_size) for p in fleet.policies] if fleet.is_mixed else [(profile, fleet.max_batch_size)]
+    for prof, cap in served:
+        if prof.is_extrapolated(cap):
+            print(
+                f"[{PROG}] note: {prof.name} is measured up to b={prof.measured_sizes}; larger batches are "
+                "extrapolated linearly from the last two points",
+                file=sys.stderr,
+            )
     print(
         f"[{PROG}] load model: {demand:.2f} GPUs of device time -> start at K={min(lower_bound, cfg.max_gpus)}",
         file=sys.stderr,
@@ -300,7 +304,7 @@ def run(cfg: PlanConfig) -> int:
     target = f"fast-tier starvation ≤ {cfg.target_fast_pct:g} %"
     if cfg.target_slow_pct is not None:
         target += f" and slow-tier ≤ {cfg.target_slow_pct:g} %"
-    gpu_kind = f"{profile.name} (b={fleet.max_batch_size}, {fleet.scheduler.label()})"
+    gpu_kind = gpu_description(fleet)
     if answer is None:
         point = planner.points[(cfg.placement, cfg.max_gpus)]
         what = f"fast {_pc(point.fast_pct)}, slow {_pc(point.slow_pct)}" if point.placeable else "the robots do not fit"
@@ -348,8 +352,13 @@ def run(cfg: PlanConfig) -> int:
         out = {
             "fleet": cfg.fleet,
             "fleet_description": fleet.describe(),
-            "latency_profile": profile.name,
-            "max_batch_size": fleet.max_batch_size,
+            "latency_profile": None if fleet.is_mixed else profile.name,
+            "max_batch_size": None if fleet.is_mixed else fleet.max_batch_size,
+            "policies": {
+                p.name: {"latency_profile": p.profile().name, "max_batch_size": p.max_batch_size} for p in fleet.policies
+            }
+            if fleet.is_mixed
+            else None,
             "scheduler": fleet.scheduler.label(),
             "placement": cfg.placement,
             "target_fast_pct": cfg.target_fast_pct,
@@ -370,6 +379,14 @@ def run(cfg: PlanConfig) -> int:
         Path(cfg.output).write_text(json.dumps(out, indent=1) + "\n")
         print(f"wrote {cfg.output}")
     return 0 if answer is not None else 1
+
+
+def gpu_description(fleet: Fleet) -> str:
+    """What one GPU of the plan runs: its profile and cap, or every policy's when several share it."""
+    if fleet.is_mixed:
+        served = " + ".join(f"{p.name} {p.profile().name} b={p.max_batch_size}" for p in fleet.policies)
+        return f"{served} ({fleet.scheduler.label()}, arbitrated)"
+    return f"{fleet.profile().name} (b={fleet.max_batch_size}, {fleet.scheduler.label()})"
 
 
 def table(planner: Planner, answer: int | None) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,8 @@ import pytest
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
 from lerobot_armory.sim.cli import main as sim_main
+from lerobot_armory.placement import demand
+from lerobot_armory.sim.cluster import composition, place_fleet, simulate_cluster
 from lerobot_armory.sim.fleet_file import fleet_from_dict, load_fleet
 from lerobot_armory.sim.plan import main as plan_main
 from lerobot_armory.sim.run import fleet_simulator
@@ -158,12 +161,91 @@ def test_sim_cli_runs_a_mixed_fleet(tmp_path, capsys):
     assert "  pi05" in text and "  act" in text
 
 
-def test_plan_refuses_a_mixed_fleet_in_one_line(capsys):
+def test_placement_charges_each_robot_its_own_policys_cost():
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    caps = fleet.policy_capacities()
+    pf, gf = fleet.specs()[0], fleet.specs()[6]  # a fast π0.5 robot and a fast GR00T robot, same timing
+    replicas = place_fleet(fleet, 2, "mirror_aware", seed=0)
+    view = replicas[0]
+    assert view.demand(pf) == pytest.approx(demand(pf, caps["pi05"]))
+    assert view.demand(gf) == pytest.approx(demand(gf, caps["groot"]))
+    assert view.demand(pf) != pytest.approx(view.demand(gf))
+    # the load model sums each robot at its own policy's cost, and so does the fleet's total
+    assert sum(v.utilization() for v in replicas) == pytest.approx(fleet.total_demand())
+
+
+def test_mirror_aware_balances_the_load_at_each_policys_cost():
+    data = mixed()
+    data["robots"] = [{"name": "p", "count": 4, "policy": "pi05", **FAST}, {"name": "g", "count": 4, "policy": "groot", **FAST}]
+    fleet = fleet_from_dict(data, "f.yaml")
+    heaviest = max(demand(s, c) for s in fleet.specs() for c in fleet.policy_capacities().values())
+    for seed in range(5):
+        # greedy on predicted load, each robot at its policy's cost: the GPUs end within one robot
+        loads = [v.utilization() for v in place_fleet(fleet, 2, "mirror_aware", seed=seed)]
+        assert max(loads) - min(loads) <= heaviest + 1e-9, (seed, loads)
+    blind = [v.utilization() for v in place_fleet(fleet, 2, "least_loaded", seed=0)]
+    assert sum(blind) == pytest.approx(fleet.total_demand())
+
+
+def test_a_cluster_of_one_gpu_serves_the_whole_mixed_fleet_on_one_device():
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    one = simulate_cluster(fleet, 1, seed=0, duration_s=10.0)
+    alone = fleet_simulator(fleet, 10.0, seed=0).run()
+    assert one.replicas[0].robots == fleet.robots
+    # the same robots, ticks and (per composition) simulation: the ticks agree exactly
+    assert sum(one.replicas[0].ticks.values()) == sum(r.ticks for r in alone.robots)
+
+
+def test_compositions_differ_by_policy():
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    pf, gf = fleet.specs()[0], fleet.specs()[6]
+    policy_of = fleet.policy_of()
+    assert composition([pf]) == composition([replace(gf, robot_id=pf.robot_id)])  # same timing
+    assert composition([pf], policy_of) != composition([gf], policy_of)
+
+
+def test_plan_a_mixed_fleet(tmp_path, capsys):
+    out = tmp_path / "plan.json"
     with pytest.raises(SystemExit) as exc:
-        plan_main([f"--fleet={EXAMPLES / 'libero-mixed-policies-20.yaml'}"])
+        plan_main([f"--fleet={EXAMPLES / 'libero-mixed-policies-20.yaml'}", "--duration_s=10", f"--output={out}"])
+    code = exc.value.code
+    text = capsys.readouterr().out
+    record = json.loads(out.read_text())
+    assert code == 0 and record["answer"] >= 1
+    assert set(record["policies"]) == {"pi05", "act"} and record["latency_profile"] is None
+    assert "pi05 h100-pi05 b=5 + act" in text and "arbitrated" in text
+
+
+def test_a_heavier_policy_mix_needs_at_least_as_many_gpus(tmp_path):
+    def fleet_file(pi05: int, act: int) -> Path:
+        data = {
+            "scheduler": "edf",
+            "policies": {"pi05": {"latency_profile": "h100-pi05", "max_batch_size": 5},
+                         "act": {"latency_profile": str(EXAMPLES.parent / "profiles" / "act-h100.json"), "max_batch_size": 8}},
+            "robots": [{"name": "p", "count": pi05, "policy": "pi05", **FAST},
+                       {"name": "a", "count": act, "policy": "act", **FAST}],
+        }  # fmt: skip
+        path = tmp_path / f"f{pi05}.json"
+        path.write_text(json.dumps(data))
+        return path
+
+    answers = []
+    for pi05, act in ((6, 30), (30, 6)):
+        out = tmp_path / f"plan{pi05}.json"
+        with pytest.raises(SystemExit):
+            plan_main([f"--fleet={fleet_file(pi05, act)}", "--duration_s=10", "--seeds=1", f"--output={out}"])
+        answers.append(json.loads(out.read_text()))
+    light, heavy = answers
+    assert heavy["total_demand_gpus"] > 2 * light["total_demand_gpus"]
+    assert heavy["answer"] > light["answer"]
+
+
+def test_plan_refuses_a_profile_override_for_a_mixed_fleet_in_one_line(capsys):
+    with pytest.raises(SystemExit) as exc:
+        plan_main([f"--fleet={EXAMPLES / 'libero-mixed-policies-20.yaml'}", "--latency_profile=h100-pi05"])
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and len(err.splitlines()) == 1
-    assert "policies:" in err and "lerobot-armory-sim --fleet=" in err
+    assert "policies: entry" in err
 
 
 def test_the_act_profile_is_a_valid_profile_file():
