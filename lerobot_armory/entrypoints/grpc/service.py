@@ -102,7 +102,8 @@ class ArmoryService(ArmoryServicer):
             credential = self.auth.identify(request.robot_id, request.auth_token)
             if credential is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
-        refused = self.admission.check(self._admitted_host(request.robot_id, context), credential.digest if credential else None)
+        host = self._admitted_host(request.robot_id, context)
+        refused = self.admission.check(host, credential.digest if credential else None)
         if refused is not None:
             self.peer_log.warn(context.peer(), refused)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
@@ -159,7 +160,9 @@ class ArmoryService(ArmoryServicer):
         if isinstance(proof, str) and self.forwarding.verify(named, robot_id, proof):
             return named
         # Neither the host named nor the proof is echoed: what a peer sends is not logged verbatim.
-        self.peer_log.warn(context.peer(), "registration names a forwarded host without the front's proof: counted against this peer")
+        self.peer_log.warn(
+            context.peer(), "registration names a forwarded host without the front's proof: counted against this peer"
+        )
         return peer
 
     def _policy_for(self, asked: str) -> tuple[str, PolicyInfo | None, list[str]]:
