@@ -13,8 +13,9 @@ that names a host of its own choosing gains nothing.
 
 The key is made by the front when it starts and handed to each replica over the cluster's control
 plane (Ray's actor calls, or the process itself), never over the robots' network: only proofs
-travel there. A proof binds one host to one robot id, so one captured on an unencrypted link
-spends only that host's budget for that robot id (that link carries robots' tokens too: use TLS).
+travel there. A proof binds one host to one robot id, so one captured on an unencrypted link can
+only register that robot id again, against that host's budget (that link carries robots' tokens
+too: use TLS).
 The key never appears in a log line, a metric or an error message; :class:`ForwardingKey`'s
 ``repr`` hides it.
 """
