@@ -20,7 +20,9 @@ Rows:
   refusals by reason (at least as many of each as the attacker saw).
 - ``front_register_flood_hosts``: the same flood from 8 addresses (127.0.0.10-17), as an attacker
   with several hosts (or an IPv6 prefix) sends it: each address has its own per-host budget at
-  the front, and every registration reaches a replica from the front's own address. Same test.
+  the front, and every registration reaches a replica from the front's own address (since the
+  front proves each robot's host to the replicas, they count that host: serving/forwarding.py).
+  Same test.
 - ``front_lying_registrations``: 4 honest robots stream; from 2 s on, one registration a second
   that lies (fps 1000 and h_max 1, then fps 20 and h_max 1, alternately, fresh ids) and never
   opens its stream; honest newcomers join at 4 s and 8 s, at the same instants as two of the lies

@@ -19,6 +19,12 @@ SESSION_KEY = "armory-session"
 # RegisterRequest.auth_token, so that a session id alone does not open a stream.
 TOKEN_KEY = "armory-token"
 
+# Register metadata keys with which a cluster front names the robot host it forwards a registration
+# for, and proves it (serving/forwarding.py): a replica holding the front's key counts the
+# registration against that host; without a valid proof both are ignored.
+FORWARDED_FOR_KEY = "x-armory-forwarded-for"
+FORWARD_PROOF_KEY = "x-armory-forward-proof"
+
 # Largest message either side sends or accepts unless told otherwise (the server's
 # --max_message_mb, Connection(max_message_bytes=...)). An observation carries camera frames,
 # raw unless the robot JPEG-encodes them: gRPC's own 4 MiB refuses a single raw 1080p RGB frame

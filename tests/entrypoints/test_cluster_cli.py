@@ -73,6 +73,7 @@ def test_the_front_restarts_and_no_running_robot_notices(ray_head, tmp_path):
         assert wait_for(lambda: "front listening" in (tmp_path / "front2.log").read_text(), timeout=120)
         log = (tmp_path / "front2.log").read_text()
         assert "robots=steady" in log  # the new front found the replicas by name, with the robot on one
+        assert "did not take the front's forwarding key" not in log  # they took the new front's key, over Ray
         stats = robot.join()
         assert robot.client.reconnects == 0 and stats["outages_s"] == []
         assert stats["starvation_pct"] < 10.0, stats

@@ -48,6 +48,7 @@ def test_a_killed_replica_actor_loses_no_robot_and_ray_restarts_it(ray_cluster):
     front, replicas, _ = ray_cluster
     robots = start_fleet(front.address, n=6, duration_s=14.0)
     assert wait_for(lambda: len(front.front.placements()) == 6, timeout=10)
+    assert all(s.keyed for s in front.front.state.values())  # the front's forwarding key, through Ray
     where = front.front.placements()
     assert sorted(Counter(where.values()).values()) == [2, 2, 2], where
     assert sorted(Counter(rid for robot, rid in where.items() if int(robot[-1]) % 2 == 0).values()) == [1, 1, 1], where
@@ -61,6 +62,7 @@ def test_a_killed_replica_actor_loses_no_robot_and_ray_restarts_it(ray_cluster):
     # Ray restarted the replica: the front sees it up again, at its new port
     assert wait_for(lambda: front.front.state[victim].view.healthy, timeout=60), front.front.describe()
     assert front.front.state[victim].address != old_address
+    assert front.front.state[victim].keyed  # the restarted actor (a new instance) was handed the key again
     stats = {r.client.identity.robot_id: (r, r.join()) for r in robots}
     for robot_id in moved:
         r, s = stats[robot_id]

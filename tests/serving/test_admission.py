@@ -1,13 +1,17 @@
-"""Admission in the serving core: registration limits per peer and credential, and a full fleet's
-slot going to a newcomer rather than to a robot that has stopped asking."""
+"""Admission in the serving core: registration limits per peer and credential, the proofs with
+which a cluster front names a forwarded robot's host, and a full fleet's slot going to a newcomer
+rather than to a robot that has stopped asking."""
 
 from __future__ import annotations
+
+import pickle
 
 import pytest
 
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 from lerobot_armory.serving.fleet import Fleet, FleetError
+from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.messages import Notice, NoticeKind
 
 
@@ -48,6 +52,25 @@ def _streaming(fleet: Fleet, robot_id: str):
     session = fleet.register(RobotSpec(robot_id, 20.0, 10, 1, 10), "", {})
     fleet.attach(session.session_id)
     return session
+
+
+def test_a_forwarding_proof_holds_for_its_host_and_robot_only_and_hides_its_key():
+    secret = bytes(range(32))
+    key = ForwardingKey(secret)
+    proof = key.proof("10.0.0.1", "arm-1")
+    assert key.verify("10.0.0.1", "arm-1", proof)
+    assert not key.verify("10.0.0.2", "arm-1", proof) and not key.verify("10.0.0.1", "arm-2", proof)
+    assert not key.verify("10.0.0.1", "arm-1", ForwardingKey(bytes(32)).proof("10.0.0.1", "arm-1"))
+    # host and robot id cannot trade characters: "10.0.0.1" + "2x" is not "10.0.0.12" + "x"
+    assert key.proof("10.0.0.1", "2x") != key.proof("10.0.0.12", "x")
+    for forged in ("", "zz", "é" * 64, proof.upper(), proof + "0"):  # garbage is refused, never raises
+        assert not key.verify("10.0.0.1", "arm-1", forged)
+    assert secret.hex() not in repr(key) and secret.hex() not in str(key)
+    again = pickle.loads(pickle.dumps(key))  # how Ray hands it to a replica
+    assert again.verify("10.0.0.1", "arm-1", proof)
+    with pytest.raises(ValueError):
+        ForwardingKey(b"short")
+    assert ForwardingKey.generate().proof("h", "r") != ForwardingKey.generate().proof("h", "r")
 
 
 def test_a_full_fleet_gives_the_slot_of_a_robot_that_stopped_asking_to_a_newcomer():

@@ -10,7 +10,10 @@ pending move's target, else the placement policy over the healthy replicas), for
 robot's ``RegisterRequest`` to it unchanged (the replica checks features, tokens and the fleet
 policy as a single server does) and returns the replica's answer with ``stream_address`` set. A
 replica that does not answer is marked down and the next choice is tried, so a robot whose
-replica died is placed on a live one at its first re-registration.
+replica died is placed on a live one at its first re-registration. The forwarded registration
+names the robot's host, with a proof made with the front's forwarding key
+(:mod:`lerobot_armory.serving.forwarding`), which the front hands to every replica instance it
+meets: a replica's per-host registration limit then counts each robot host, not the front's.
 
 Rebalancing: when robots joined or left since the last refresh, the front asks
 :func:`~lerobot_armory.placement.rebalance` for one move and tells the source replica to release
@@ -55,10 +58,12 @@ from lerobot_armory.placement import (
 )
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
+from lerobot_armory.proto.limits import FORWARD_PROOF_KEY, FORWARDED_FOR_KEY
 from lerobot_armory.entrypoints.grpc.hardening import Malformed
 from lerobot_armory.serving.peer_log import ThrottledLog
 from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_server
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
+from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.security import OperatorTokens
 
 log = logging.getLogger(__name__)
@@ -83,7 +88,8 @@ MOVE_COOLDOWN_S = 30.0
 # rebalances one robot at a time, each time against the load the replicas then report.
 MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
-# What a replica's refusal says when its per-host registration limit refused (serving/admission.py).
+# What a replica's refusal says when its registration limit refused (serving/admission.py): per
+# robot host (the one the front proves) or per credential.
 REPLICA_RATE = "too many registrations from"
 # How long one replica may take to load, warm up and switch to a new checkpoint.
 SWAP_TIMEOUT_S = 900.0
@@ -131,6 +137,7 @@ class ReplicaState:
     policy: Policy | None = None  # what it serves, as last reported
     swaps: dict[str, int] = field(default_factory=dict)  # its own swaps by result
     instance: str = ""  # changes when the replica restarts
+    keyed: bool = False  # this instance holds the front's forwarding key: registrations name the robot's host
 
 
 @dataclass
@@ -155,8 +162,13 @@ class ClusterFront(ArmoryServicer):
         options: FrontOptions | None = None,
         clock: Callable[[], float] = time.monotonic,
         channel_factory: Callable[[str], grpc.Channel] | None = None,
+        forwarding: ForwardingKey | None = None,
     ) -> None:
         self.replicas = replicas
+        # Proves to the replicas which robot host a forwarded registration is from (made here, at
+        # the front's start: a front started again over running replicas hands them its own).
+        self.forwarding = forwarding or ForwardingKey.generate()
+        self._keyed: dict[str, tuple[str, bool]] = {}  # replica -> (instance handed the key, whether it took it)
         self.options = options or FrontOptions()
         self.options.validate()
         self.clock = clock
@@ -210,6 +222,7 @@ class ClusterFront(ArmoryServicer):
             except Exception as exc:  # noqa: BLE001 - one replica's bad answer must not stop the others' refresh
                 log.warning("replica %s answered its load check with %s: %s; counted as down", rid, type(exc).__name__, exc)
                 answers[rid] = None
+        self._hand_key(answers)
         now = self.clock()
         with self.lock:
             for rid, answer in answers.items():
@@ -235,6 +248,7 @@ class ClusterFront(ArmoryServicer):
                     log.info("replica %s restarted", rid)
                     self._behind.add(rid)
                 state.instance = instance
+                state.keyed = self._keyed.get(rid) == (instance, True)
                 state.view.healthy = rid not in self.syncing
                 if not was and state.view.healthy:
                     log.info("replica %s is up at %s", rid, state.address)
@@ -259,6 +273,32 @@ class ClusterFront(ArmoryServicer):
             self._release(move, now)
         for rid in catch_up:
             threading.Thread(target=self._catch_up, args=(rid,), name=f"armory-front-sync-{rid}", daemon=True).start()
+
+    def _hand_key(self, answers: dict[str, dict[str, Any] | None]) -> None:
+        """Give the forwarding key to each replica instance that answered and has not had it (a new
+        one, or one restarted). Outside the lock: these are replica calls. One that does not answer
+        counts as down; one that cannot take it (a replica of an older version) is told nothing it
+        could not check: its per-host limit counts this front's host, as before."""
+        for rid, answer in answers.items():
+            if answer is None:
+                continue
+            instance = str(answer.get("instance", ""))
+            if rid in self._keyed and self._keyed[rid][0] == instance:
+                continue
+            try:
+                self.replicas.set_forwarding_key(rid, self.forwarding, self.options.call_timeout_s)
+            except ReplicaDown:
+                answers[rid] = None
+                continue
+            except Exception as exc:  # noqa: BLE001 - the key is an improvement; the replica still serves
+                # The exception's type only: its text could quote the call's arguments.
+                log.warning(
+                    "replica %s did not take the front's forwarding key (%s): its registration limit counts every "
+                    "robot registering through this front as one host", rid, type(exc).__name__,
+                )  # fmt: skip
+                self._keyed[rid] = (instance, False)
+                continue
+            self._keyed[rid] = (instance, True)
 
     # ---- the cluster's policy: rolling swaps, restarted replicas ----------------------------
 
@@ -491,7 +531,8 @@ class ClusterFront(ArmoryServicer):
         if isinstance(request, Malformed):
             self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
-        refused = self.admission.check(peer_host(context.peer()))
+        host = peer_host(context.peer())
+        refused = self.admission.check(host)
         if refused is not None:
             self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "rate", refused)
         answers: list[tuple[str, grpc.StatusCode, str]] = []  # (replica, code, details) of the replicas that said no
@@ -499,6 +540,7 @@ class ClusterFront(ArmoryServicer):
             with self.lock:
                 state = self.state[rid]
                 address = state.address if state.view.healthy else ""
+                keyed = state.keyed
                 spec = self._spec(request)
                 if address and spec is not None:
                     # Reserved before the call: robots registering at the same moment (the robots
@@ -510,7 +552,8 @@ class ClusterFront(ArmoryServicer):
             remaining = context.time_remaining()
             timeout = self.options.call_timeout_s if remaining is None else max(0.05, min(self.options.call_timeout_s, remaining))
             try:
-                response = self._stub(address).Register(request, timeout=timeout)
+                metadata = self._forwarded_for(host, request.robot_id) if keyed else None
+                response = self._stub(address).Register(request, timeout=timeout, metadata=metadata)
             except grpc.RpcError as exc:
                 self._unreserve(rid, request.robot_id)
                 if exc.code() in TRY_ANOTHER:
@@ -532,8 +575,9 @@ class ClusterFront(ArmoryServicer):
         if answers and all(code == grpc.StatusCode.RESOURCE_EXHAUSTED for _, code, _ in answers):
             what = "; ".join(f"{rid}: {details}" for rid, _, details in answers)
             if any(REPLICA_RATE in details for _, _, details in answers):
-                # A replica limits registrations per host, and every registration reaches it from
-                # this front's host: its limit is spent by all the front's robots together.
+                # A replica's own registration limit refused: per robot host (the front's limit
+                # lets that host through), per credential, or per this front's host on a replica
+                # that did not take the forwarding key.
                 self._refuse(
                     context, grpc.StatusCode.RESOURCE_EXHAUSTED, "replica_rate",
                     f"the replicas take no more registrations through this front for now ({what})",
@@ -543,6 +587,10 @@ class ClusterFront(ArmoryServicer):
             what = "; ".join(f"{rid}: {code.name}: {details}" for rid, code, details in answers)
             self._refuse(context, grpc.StatusCode.UNAVAILABLE, "unavailable", f"no replica could take this robot now ({what}); retry")
         self._refuse(context, grpc.StatusCode.UNAVAILABLE, "down", "no replica is up; retry")
+
+    def _forwarded_for(self, host: str, robot_id: str) -> tuple[tuple[str, str], ...]:
+        """The metadata naming the robot's host to a keyed replica, with its proof."""
+        return ((FORWARDED_FOR_KEY, host), (FORWARD_PROOF_KEY, self.forwarding.proof(host, robot_id)))
 
     def _refuse(self, context: grpc.ServicerContext, code: grpc.StatusCode, why: str, message: str) -> None:
         """Refuse a registration: counted by reason (``armory_front_registrations_refused_total``),

@@ -49,7 +49,7 @@ class FrontCollector(Collector):
         refused_f = CounterMetricFamily(
             "armory_front_registrations_refused",
             "Registrations the front refused, by reason: rate (the front's per-host limit), replica_rate (the replicas' "
-            "per-host limit, which counts every registration through the front), full (every replica full of robots "
+            "own limit: per robot host, as the front proves it, or per credential), full (every replica full of robots "
             "that ask), unavailable (replicas answered but none could take it), down (no replica up)",
             labels=["reason"],
         )

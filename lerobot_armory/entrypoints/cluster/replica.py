@@ -4,9 +4,10 @@ A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.entrypoints.ser
 user's options on a free port. It adds three calls for the front: ``info`` (where it listens,
 its ``d_infer`` table, the policy it serves), ``load`` (info plus the robots it serves, from its
 own fleet: the front rebuilds its whole view from these, so a restarted front loses nothing),
-``release`` (move a robot away between two of its chunks) and ``swap`` (load another checkpoint
+``release`` (move a robot away between two of its chunks), ``swap`` (load another checkpoint
 beside the served one and switch between batches, as ``lerobot-armory-admin swap`` does on a
-single server: the front rolls a swap replica by replica).
+single server: the front rolls a swap replica by replica) and ``set_forwarding_key`` (the key with
+which the front proves which robot host a forwarded registration is from: serving/forwarding.py).
 
 :class:`ArmoryReplica` is a plain class; Ray runs it as an actor (:class:`RayReplicas`), tests
 and single-host setups can hold it in-process (:class:`LocalReplicas`). The front sees either
@@ -27,6 +28,7 @@ from typing import Any, Protocol
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.entrypoints.server import ArmoryServer, build_server
 from lerobot_armory.serving.config import ServerConfig
+from lerobot_armory.serving.forwarding import ForwardingKey
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +101,13 @@ class ArmoryReplica:
         """Serve ``path`` from the next batch (serving/swap.py); its :class:`SwapResult` as a dict."""
         return dataclasses.asdict(self.server.swapper.swap(path, overrides, drain))
 
+    def set_forwarding_key(self, key: ForwardingKey) -> None:
+        """Count registrations the front forwards against the robot host it proves with ``key``
+        (it replaces any earlier front's). Given by the front, over the control plane, to every
+        replica instance it meets: one Ray restarted and one a front started again found keep the
+        per-host limit per robot host."""
+        self.server.service.forwarding = key
+
     def stop(self) -> None:
         """Stop serving (robots are told, as on a server's shutdown)."""
         self.server.stop()
@@ -138,6 +147,10 @@ class ReplicaSet(Protocol):
         """The replica's :meth:`ArmoryReplica.swap` (:class:`ReplicaDown` if it does not answer)."""
         ...
 
+    def set_forwarding_key(self, replica_id: str, key: ForwardingKey, timeout: float) -> None:
+        """The replica's :meth:`ArmoryReplica.set_forwarding_key` (:class:`ReplicaDown` if it does not answer)."""
+        ...
+
 
 class LocalReplicas:
     """Replicas held in this process (tests, and one host without Ray). ``kill`` stops one."""
@@ -162,6 +175,9 @@ class LocalReplicas:
 
     def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
         return self._get(replica_id).swap(path, overrides, drain)
+
+    def set_forwarding_key(self, replica_id: str, key: ForwardingKey, timeout: float) -> None:
+        self._get(replica_id).set_forwarding_key(key)
 
     def kill(self, replica_id: str) -> None:
         """Stop a replica abruptly (its robots' streams end)."""
@@ -197,3 +213,6 @@ class RayReplicas:
 
     def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
         return self._call(replica_id, "swap", path, overrides, drain, timeout=timeout)
+
+    def set_forwarding_key(self, replica_id: str, key: ForwardingKey, timeout: float) -> None:
+        self._call(replica_id, "set_forwarding_key", key, timeout=timeout)

@@ -25,8 +25,16 @@ from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminServicer, ArmoryServicer
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_admin_to_server, add_armory_to_server
 from lerobot_armory.entrypoints.grpc.translate import clock_sync_from_wire, grant_to_wire, report_from_wire, to_wire
-from lerobot_armory.proto.limits import SERVER_KEEPALIVE_OPTIONS, SERVICE_NAME, SESSION_KEY, TOKEN_KEY
+from lerobot_armory.proto.limits import (
+    FORWARD_PROOF_KEY,
+    FORWARDED_FOR_KEY,
+    SERVER_KEEPALIVE_OPTIONS,
+    SERVICE_NAME,
+    SESSION_KEY,
+    TOKEN_KEY,
+)
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
+from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError
 from lerobot_armory.serving.session import DEFAULT_POLICY, RobotSession
 from lerobot_armory.serving.messages import Notice, NoticeKind
@@ -78,6 +86,9 @@ class ArmoryService(ArmoryServicer):
         self.max_obs_rate_hz = max_obs_rate_hz
         self.fleet_policy = fleet_policy or FleetPolicy.builtin()
         self.peer_log = ThrottledLog(log)  # one line per misbehaving peer per 10 s, no tracebacks
+        # A cluster replica's: the key its front proves forwarded hosts with (None: a single server,
+        # which counts every registration against its own peer).
+        self.forwarding: ForwardingKey | None = None
 
     # ---- Register ----------------------------------------------------------------------------
 
@@ -91,7 +102,8 @@ class ArmoryService(ArmoryServicer):
             credential = self.auth.identify(request.robot_id, request.auth_token)
             if credential is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
-        refused = self.admission.check(peer_host(context.peer()), credential.digest if credential else None)
+        host = self._admitted_host(request.robot_id, context)
+        refused = self.admission.check(host, credential.digest if credential else None)
         if refused is not None:
             self.peer_log.warn(context.peer(), refused)
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
@@ -133,6 +145,25 @@ class ArmoryService(ArmoryServicer):
             max_message_bytes=self.max_message_bytes,
             granted=grant_to_wire(grant),
         )
+
+    def _admitted_host(self, robot_id: str, context: grpc.ServicerContext) -> str:
+        """The host a registration counts against: the robot's own when this replica's front names
+        it with a valid proof (serving/forwarding.py), else the peer's (a single server: always)."""
+        peer = peer_host(context.peer())
+        if self.forwarding is None:
+            return peer
+        metadata = dict(context.invocation_metadata())
+        named = metadata.get(FORWARDED_FOR_KEY)
+        if not isinstance(named, str):
+            return peer
+        proof = metadata.get(FORWARD_PROOF_KEY)
+        if isinstance(proof, str) and self.forwarding.verify(named, robot_id, proof):
+            return named
+        # Neither the host named nor the proof is echoed: what a peer sends is not logged verbatim.
+        self.peer_log.warn(
+            context.peer(), "registration names a forwarded host without the front's proof: counted against this peer"
+        )
+        return peer
 
     def _policy_for(self, asked: str) -> tuple[str, PolicyInfo | None, list[str]]:
         """The policy a registration names: (name, its info, []) or (asked, None, [why not])."""
