@@ -40,8 +40,8 @@ from lerobot_armory.sim.simulator import FleetSimulator
 # A composition: the sorted timing/weight/tier (and, when several policies share each GPU, the
 # policy) of a replica's robots, ids dropped.
 Composition = tuple[tuple[str, float, int, int, int, float, str | None], ...]
-# Per-robot (tier, starved steps, ticks) of one simulated composition, in the composition's order.
-Outcome = tuple[tuple[str, int, int], ...]
+# Per-robot (tier, policy or None, starved steps, ticks) of one simulated composition, in its order.
+Outcome = tuple[tuple[str, str | None, int, int], ...]
 
 
 @dataclass
@@ -56,6 +56,8 @@ class ReplicaResult:
         predicted_utilization: the placement model's utilization (1 = device busy all the time).
         starved / ticks: per tier, starved control ticks and all ticks of its robots.
         simulated: False when its outcome was reused from an identical composition.
+        policy_starved / policy_ticks: the same per (policy, tier), when several policies share
+            the GPU (empty otherwise).
     """
 
     replica_id: str
@@ -66,6 +68,8 @@ class ReplicaResult:
     starved: dict[str, int] = field(default_factory=dict)
     ticks: dict[str, int] = field(default_factory=dict)
     simulated: bool = True
+    policy_starved: dict[tuple[str, str], int] = field(default_factory=dict)
+    policy_ticks: dict[tuple[str, str], int] = field(default_factory=dict)
 
     @property
     def robots(self) -> int:
@@ -104,6 +108,17 @@ class ClusterResult:
         ticks = sum(r.ticks.get(tier, 0) for r in self.replicas)
         return 100.0 * sum(r.starved.get(tier, 0) for r in self.replicas) / ticks if ticks else math.nan
 
+    @property
+    def policies(self) -> list[str]:
+        """The policies whose robots it served, when several share each GPU (empty otherwise)."""
+        return sorted({p for r in self.replicas for p, _ in r.policy_ticks})
+
+    def policy_tier_starvation_pct(self, policy: str, tier: str) -> float:
+        """Starvation of ``policy``'s robots of ``tier`` over every replica, in % (NaN without such robots)."""
+        ticks = sum(r.policy_ticks.get((policy, tier), 0) for r in self.replicas)
+        starved = sum(r.policy_starved.get((policy, tier), 0) for r in self.replicas)
+        return 100.0 * starved / ticks if ticks else math.nan
+
     def worst_replica_pct(self, tier: str = "fast") -> float:
         """The highest starvation of ``tier`` on any one replica (NaN without such robots)."""
         values = [r.tier_starvation_pct(tier) for r in self.replicas if r.ticks.get(tier)]
@@ -125,6 +140,9 @@ class ClusterResult:
             "seed": self.seed,
             "duration_s": self.duration_s,
             "tiers": {t: _num(self.tier_starvation_pct(t)) for t in TIERS},
+            "policies": {
+                p: {t: _num(self.policy_tier_starvation_pct(p, t)) for t in TIERS} for p in self.policies
+            },
             "worst_replica_fast_pct": _num(self.worst_replica_pct("fast")),
             "max_predicted_utilization": max(self.utilizations),
             "wall_s": self.wall_s,
@@ -215,7 +233,7 @@ def simulate_composition(
         scheduler = fleet.scheduler.make(profile, fleet.max_batch_size)  # one per replica: schedulers keep state
         sim = FleetSimulator(specs, scheduler, duration_s, net, net, seed)
     result = sim.run()
-    return tuple((r.tier, r.starved_steps, r.ticks) for r in result.robots)
+    return tuple((r.tier, row[6], r.starved_steps, r.ticks) for r, row in zip(result.robots, comp, strict=True))
 
 
 def simulate_cluster(
@@ -280,8 +298,11 @@ def simulate_cluster(
                 # Its own seed per replica: independent network draws and tick phases.
                 outcome = simulate_composition(comp, fleet, loaded[names[k]], duration_s, seed * 1_000_003 + k + 1)
                 runs += 1
-            for tier, starved, ticks in outcome:
+            for tier, policy, starved, ticks in outcome:
                 out.starved[tier] = out.starved.get(tier, 0) + starved
                 out.ticks[tier] = out.ticks.get(tier, 0) + ticks
+                if policy is not None:
+                    out.policy_starved[(policy, tier)] = out.policy_starved.get((policy, tier), 0) + starved
+                    out.policy_ticks[(policy, tier)] = out.policy_ticks.get((policy, tier), 0) + ticks
         results.append(out)
     return ClusterResult(placement, gpus, seed, duration_s, results, time.perf_counter() - start, runs)

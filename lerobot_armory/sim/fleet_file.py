@@ -489,18 +489,6 @@ def _is_real(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def require_one_policy(fleet: Fleet, what: str) -> None:
-    """Refuse a mixed fleet where only one-policy fleets are modelled (ConfigError naming ``policies``)."""
-    if fleet.is_mixed:
-        names = ", ".join(p.name for p in fleet.policies)
-        raise ConfigError(
-            "policies",
-            f"{fleet.source} shares each device among several policies ({names}); {what} handles one policy "
-            f"per fleet so far: simulate one device with lerobot-armory-sim --fleet={fleet.source}, "
-            f"or plan each policy's robots as its own fleet",
-        )
-
-
 def with_overrides(fleet: Fleet, latency_profile: str | None = None, max_batch_size: int | None = None) -> Fleet:
     """The fleet on another GPU kind or batch cap (command-line overrides), checked."""
     changes: dict[str, Any] = {}

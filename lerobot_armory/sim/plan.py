@@ -22,7 +22,8 @@ each serve every policy (each must hold every policy's weights): placement charg
 own policy's ``d_infer``, and each GPU is simulated with one scheduler per policy and the
 :class:`~lerobot_armory.arbiter.PolicyArbiter` between them, as ``lerobot-armory-sim --fleet``
 simulates one such device. ``--latency_profile`` and ``--max_batch_size`` do not apply to it
-(each policy names its own in the file).
+(each policy names its own in the file). The targets then hold for every policy's robots, not
+only for the fleet's mean: a cheap policy's robots must not hide another's starving.
 """
 
 from __future__ import annotations
@@ -119,6 +120,10 @@ class Point:
     def slow_pct(self) -> float:
         return self._mean([r.tier_starvation_pct("slow") for r in self.runs]) if self.placeable else math.inf
 
+    def policy_pct(self, policy: str, tier: str) -> float:
+        """``policy``'s robots of ``tier``: starvation, mean over seeds (several policies per GPU)."""
+        return self._mean([r.policy_tier_starvation_pct(policy, tier) for r in self.runs]) if self.placeable else math.inf
+
     @property
     def worst_fast_pct(self) -> float:
         return self._mean([r.worst_replica_pct("fast") for r in self.runs]) if self.placeable else math.inf
@@ -143,6 +148,8 @@ class Point:
             "fast_pct": _num(self.fast_pct),
             "slow_pct": _num(self.slow_pct),
             "worst_replica_fast_pct": _num(self.worst_fast_pct),
+            "policies": {p: {"fast_pct": _num(self.policy_pct(p, "fast")), "slow_pct": _num(self.policy_pct(p, "slow"))}
+                         for p in (self.runs[0].policies if self.runs else [])},
             "per_seed": [
                 {
                     "seed": r.seed,
@@ -186,6 +193,7 @@ class Planner:
         self.points: dict[tuple[str, int], Point] = {}
         self.order: list[int] = []  # Ks in the order the search tried them
         self.has_fast = fleet.tier_counts()["fast"] > 0
+        self.policies = [p.name for p in fleet.policies] if fleet.is_mixed else []
 
     def evaluate(self, gpus: int, placement: str | None = None, quiet: bool = False) -> Point:
         placement = placement or self.cfg.placement
@@ -208,6 +216,7 @@ class Planner:
             verdict = "meets" if self.meets(point) else "misses"
             what = (
                 f"fast {_pc(point.fast_pct)}, slow {_pc(point.slow_pct)}, worst GPU fast {_pc(point.worst_fast_pct)}"
+                + self.by_policy(point)
                 if point.placeable
                 else f"cannot place {fleet.robots} robots at {fleet.max_robots_per_gpu} per GPU"
             )
@@ -218,11 +227,24 @@ class Planner:
             )
         return point
 
+    def by_policy(self, point: Point) -> str:
+        """``; pi05 fast 4.1 %, act fast 0.2 %`` when several policies share each GPU, else empty."""
+        parts = [f"{p} fast {_pc(point.policy_pct(p, 'fast'))}" for p in self.policies]
+        return "; " + ", ".join(parts) if parts else ""
+
     def meets(self, point: Point) -> bool:
+        """Whether ``point`` meets the targets: the fleet's tiers, and when several policies share
+        each GPU, every policy's tiers too (a cheap policy's robots must not hide another's
+        starving behind a fleet-wide mean)."""
         if not point.placeable:
             return False
-        fast_ok = not self.has_fast or point.fast_pct <= self.cfg.target_fast_pct
-        slow_ok = self.cfg.target_slow_pct is None or not (point.slow_pct > self.cfg.target_slow_pct)
+        groups = [(point.fast_pct, point.slow_pct)]
+        groups += [(point.policy_pct(p, "fast"), point.policy_pct(p, "slow")) for p in self.policies]
+        return all(self._ok(fast, slow) for fast, slow in groups)
+
+    def _ok(self, fast: float, slow: float) -> bool:
+        fast_ok = not self.has_fast or not (fast > self.cfg.target_fast_pct)  # NaN: no fast robots here
+        slow_ok = self.cfg.target_slow_pct is None or not (slow > self.cfg.target_slow_pct)
         return fast_ok and slow_ok
 
     def ok(self, gpus: int) -> bool:
@@ -307,7 +329,11 @@ def run(cfg: PlanConfig) -> int:
     gpu_kind = gpu_description(fleet)
     if answer is None:
         point = planner.points[(cfg.placement, cfg.max_gpus)]
-        what = f"fast {_pc(point.fast_pct)}, slow {_pc(point.slow_pct)}" if point.placeable else "the robots do not fit"
+        what = (
+            f"fast {_pc(point.fast_pct)}, slow {_pc(point.slow_pct)}{planner.by_policy(point)}"
+            if point.placeable
+            else "the robots do not fit"
+        )
         lines = [
             (
                 f"even --max_gpus={cfg.max_gpus} GPUs of {gpu_kind} miss {target}: {what} at K={cfg.max_gpus} "
@@ -321,13 +347,13 @@ def run(cfg: PlanConfig) -> int:
         above = planner.points.get((cfg.placement, answer + 1))
         checks = []
         if below is not None:
-            checks.append(f"K={answer - 1} misses (fast {_pc(below.fast_pct)})")
+            checks.append(f"K={answer - 1} misses (fast {_pc(below.fast_pct)}{planner.by_policy(below)})")
         if above is not None:
-            checks.append(f"K={answer + 1} meets (fast {_pc(above.fast_pct)})")
+            checks.append(f"K={answer + 1} meets (fast {_pc(above.fast_pct)}{planner.by_policy(above)})")
         lines = [
             (
                 f"this fleet needs {answer} GPUs of {gpu_kind} for {target}: expected fast {_pc(point.fast_pct)}, "
-                f"slow {_pc(point.slow_pct)} (seeds {', '.join(map(str, seeds))}: fast {per_seed} %; worst GPU fast "
+                f"slow {_pc(point.slow_pct)}{planner.by_policy(point)} (seeds {', '.join(map(str, seeds))}: fast {per_seed} %; worst GPU fast "
                 f"{_pc(point.worst_fast_pct)}); predicted utilization mean {point.utilization_mean:.2f}, max "
                 f"{point.utilization_max:.2f} ({cfg.placement} placement; load-model lower bound {lower_bound})"
             ),
@@ -394,6 +420,7 @@ def table(planner: Planner, answer: int | None) -> str:
     cfg = planner.cfg
     others = [n for n in PLACEMENTS if n != cfg.placement and any(p == n for p, _ in planner.points)]
     header = f"{'K':>5} {'fast %':>8} {'slow %':>8} {'worst GPU fast %':>16} {'util mean/max':>13} {'robots/GPU':>10} {'target':>7}"
+    header += "".join(f" {(p + ' fast %'):>14}" for p in planner.policies)
     header += "".join(f" {('fast% ' + n):>18}" for n in others)
     lines = [header, "-" * len(header)]
     for k in sorted(set(planner.order)):
@@ -406,9 +433,9 @@ def table(planner: Planner, answer: int | None) -> str:
             row = (
                 f"{k:>5} {_pct(p.fast_pct, 8)} {_pct(p.slow_pct, 8)} {_pct(p.worst_fast_pct, 16)} "
                 f"{p.utilization_mean:>6.2f}/{p.utilization_max:<6.2f} {spread:>10} {mark:>7}"
-            )
+            ) + "".join(f" {_pct(p.policy_pct(name, 'fast'), 14)}" for name in planner.policies)
         else:
-            row = f"{k:>5} {'-':>8} {'-':>8} {'-':>16} {'-':>13} {'full':>10} {mark:>7}"
+            row = f"{k:>5} {'-':>8} {'-':>8} {'-':>16} {'-':>13} {'full':>10} {mark:>7}" + f" {'-':>14}" * len(planner.policies)
         for n in others:
             q = planner.points.get((n, k))
             row += f" {_pct(q.fast_pct, 18)}" if q is not None and q.placeable else f" {'-':>18}"

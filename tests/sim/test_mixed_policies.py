@@ -272,3 +272,18 @@ def test_the_simulator_needs_each_robots_policy():
     partial = dict(list(fleet.policy_of().items())[1:])  # the first robot has no policy
     with pytest.raises(ConfigError, match="pf-000"):
         FleetSimulator(fleet.specs(), schedulers, 2.0, net, net, policy_of=partial)
+
+
+def test_the_plan_target_holds_for_every_policy_not_only_the_fleet_mean():
+    from lerobot_armory.sim.plan import Planner, PlanConfig, Point
+
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    runs = [simulate_cluster(fleet, 1, seed=s, duration_s=10.0) for s in (0, 1)]
+    point = Point(1, "mirror_aware", runs)
+    by_policy = {p: point.policy_pct(p, "fast") for p in ("pi05", "groot")}
+    worst, best = max(by_policy.values()), min(by_policy.values())
+    assert best < point.fast_pct < worst  # the fleet's mean sits between its policies
+    between = (point.fast_pct + worst) / 2  # met by the fleet's mean, missed by the worst policy
+    assert not Planner(fleet, PlanConfig(target_fast_pct=between)).meets(point)
+    assert Planner(fleet, PlanConfig(target_fast_pct=worst + 0.01)).meets(point)
+    assert runs[0].record()["policies"].keys() == {"pi05", "groot"}
