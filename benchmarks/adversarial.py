@@ -67,6 +67,10 @@ ALL_SCENARIOS = (
     "never_reads", "slot_squat", "identity", "clock_step", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage",
     "share_liar", "openpi_never_reads",
 )  # fmt: skip
+# Honest controls, run only when named: share_lean is share_liar's client without the lie (it
+# claims only what it executed), to tell what the lie buys from what a lean, fast client gets.
+CONTROLS = ("share_lean",)
+SHARE_SCENARIOS = ("share_liar", "share_lean")
 # Attacks on something every scheduler shares (memory, sockets, slots, credentials, parsing) run
 # once, under the first of these that is selected; the others run under every scheduler.
 ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage", "openpi_never_reads")
@@ -579,8 +583,8 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
     if record.get("machine_busy_pct", 0) > 90:
         notes.append(f"machine {record['machine_busy_pct']:.0f}% busy")
     extra = record.get("attack", {}).get("extra", {})
-    if spec.scenario == "share_liar":
-        share_row(row, extra, robots, base_robots, cfg, failures, notes)
+    if spec.scenario in SHARE_SCENARIOS:
+        share_row(row, extra, robots, base_robots, cfg, failures, notes, limit=spec.scenario == "share_liar")
     if spec.scenario == "priority_flood" and "granted weight" in extra:
         notes.append(f"granted weight {extra['granted weight']:g}")
     if spec.scenario == "never_reads" and "sent MiB" in extra:
@@ -633,10 +637,11 @@ def chunks_per_s(robots: list[dict[str, Any]], robot_id: str, start: float) -> f
 
 def share_row(
     row: dict[str, Any], extra: dict[str, Any], robots: list[dict[str, Any]], base_robots: list[dict[str, Any]], cfg: Config,
-    failures: list[str], notes: list[str],
+    failures: list[str], notes: list[str], limit: bool = True,
 ) -> None:
     """share_liar: the liar's chunks/s against its honest twin's in the same run (same registration),
-    and the baseline's stand-in for reference."""
+    and the baseline's stand-in for reference; ``limit``: a ratio above ``SHARE_LIMIT`` fails the
+    row (not for the honest control, share_lean, whose ratio is what a lean client gets)."""
     liar = extra.get("chunks/s")
     twin = chunks_per_s(robots, "twin", cfg.warmup_s)
     standin = chunks_per_s(base_robots, "standin", cfg.warmup_s)
@@ -645,10 +650,11 @@ def share_row(
     if row["share_ratio"] is None:
         failures.append("share not measured (no chunks for the liar or its twin)")
         return
-    if row["share_ratio"] > SHARE_LIMIT:
+    if limit and row["share_ratio"] > SHARE_LIMIT:
         failures.append(f"liar got {liar:.2f} chunks/s vs {twin:.2f} for its honest twin ({row['share_ratio']:.2f}x > {SHARE_LIMIT:g}x)")
     ref = f", stand-in in the baseline {standin:.2f}" if standin is not None else ""
-    notes.append(f"liar {liar:.2f} vs honest twin {twin:.2f} chunks/s ({row['share_ratio']:.2f}x){ref}")
+    who = "liar" if limit else "lean honest client"
+    notes.append(f"{who} {liar:.2f} vs honest twin {twin:.2f} chunks/s ({row['share_ratio']:.2f}x){ref}")
 
 
 # ---- planning and reporting ----------------------------------------------------------------------
@@ -673,7 +679,7 @@ def token_file(work: Path) -> tuple[Path, dict[str, Any]]:
 def plan(cfg: Config, work: Path) -> list[RunSpec]:
     """Baselines first (one per scheduler and cap needed), then every scenario row."""
     scenarios = [s.strip() for s in cfg.scenarios.split(",") if s.strip()]
-    unknown = sorted(set(scenarios) - set(ALL_SCENARIOS))
+    unknown = sorted(set(scenarios) - set(ALL_SCENARIOS) - set(CONTROLS))
     if unknown:
         sys.exit(f"adversarial: unknown scenario(s) {', '.join(unknown)}; known: {', '.join(ALL_SCENARIOS)}")
     schedulers = [s.strip() for s in cfg.schedulers.split(",") if s.strip()]
@@ -684,11 +690,11 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
     runs: list[RunSpec] = []
     for name in scenarios:
         scheds = [single] if name in ONCE else schedulers
-        if name == "share_liar" and not cfg.quick:
+        if name in SHARE_SCENARIOS and not cfg.quick:
             scheds = [s for s in SCHEDULERS if s in schedulers or s == "rollout"]
         for sched in scheds:
             base = RunSpec(name, sched, attack=None if name == "clock_step" else name)
-            if name == "share_liar":
+            if name in SHARE_SCENARIOS:
                 base.standin = SHARE_REGISTRATION
                 base.duration_s = 2 * cfg.duration_s  # ~50 chunks a robot: a ratio worth reading
             if name == "clock_ahead":

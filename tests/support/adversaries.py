@@ -40,6 +40,7 @@ import resource
 import socket
 import struct
 import sys
+import functools
 import threading
 import time
 from collections import Counter
@@ -716,6 +717,7 @@ def share_liar(
     h_min: int = 0,
     h_max: int = 10,
     token: str = "",
+    honest: bool = False,
 ) -> AttackReport:
     """Tries to buy service with lies the server cannot see directly: registers ``fps`` and
     ``h_min`` like a robot that may be served at once, then sends ``rate_hz`` observations a
@@ -723,11 +725,18 @@ def share_liar(
     it received (the index at the end of its newest chunk), and reports every chunk's arrival
     truthfully so its delay estimate stays good. It executes nothing. ``report.extra`` gets its
     chunks per second from its first chunk to the end (``chunks/s``), to compare with an honest
-    robot of the same registration."""
-    report = report or AttackReport("share_liar")
+    robot of the same registration.
+
+    ``honest=True`` is the control (``share_lean``): the same lean client, the same 190
+    observations a second stamped now, but claiming only what it really executed: one action
+    per tick of its own ``fps`` clock, when a chunk that had arrived by that tick covers it. The
+    liar and this robot differ only by the lie, where the armory_sim twin also differs by its
+    client (images rendered, a control loop that sees a chunk at its next tick)."""
+    report = report or AttackReport("share_lean" if honest else "share_liar")
     lock = threading.Lock()
     state = {"end": 0, "first": None, "last": None, "n": 0}
     arrivals: list[tuple[int, float]] = []
+    held: list[tuple[int, float]] = []  # (i_start, arrival) of every chunk received (honest)
 
     def on_message(msg: pb.ServerMessage) -> None:
         if msg.WhichOneof("kind") != "chunk":
@@ -738,18 +747,27 @@ def share_liar(
             state["first"] = state["first"] if state["first"] is not None else now
             state["last"], state["n"] = now, state["n"] + 1
             arrivals.append((msg.chunk.chunk_id, now))
+            held.append((msg.chunk.i_start, now))
 
     robot = Robot(address, features, report, "atk-share", fps=fps, h_min=h_min, h_max=h_max, token=token)
     obs = Observations(features)
     index = 0
     start = time.monotonic()
+    next_tick = start  # the honest control's execution clock
     for k in ticks(rate_hz, stop):
         stream = robot.connect(stop, on_message=on_message)
         if stream is None:
             break
         now = time.monotonic()
         with lock:
-            index = max(index, state["end"])
+            if honest:
+                while next_tick <= now:  # each tick since the last loop executes one action if it can
+                    if any(s <= index < s + h_max and t <= next_tick for s, t in held):
+                        index += 1
+                    next_tick += 1.0 / fps
+                held[:] = [(s, t) for s, t in held if s + h_max > index]
+            else:
+                index = max(index, state["end"])
             fresh, arrivals[:] = list(arrivals), []
         stream.send(obs(index, now))
         if fresh or k % 20 == 0:
@@ -1411,6 +1429,7 @@ SCENARIOS: dict[str, Callable[..., AttackReport]] = {
     "priority_flood": priority_flood,
     "clock_ahead": clock_ahead,
     "share_liar": share_liar,
+    "share_lean": functools.partial(share_liar, honest=True),
     "huge_report": huge_report,
     "never_reads": never_reads,
     "slot_squat": slot_squat,
