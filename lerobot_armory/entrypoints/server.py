@@ -212,6 +212,7 @@ class ArmoryServer:
             {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,
              "action_names": self.policy.action_names},
             self._host, self._max_message_bytes, self._fleet_policy, self._auth, self._tls, self.admission,
+            next(iter(self.swappers)),  # the first policy serves openpi clients, by its name
         ).start()  # fmt: skip
         return self.openpi.port
 

@@ -188,3 +188,33 @@ def test_a_hostile_policy_name_is_refused_in_one_short_line_and_hurts_nobody(two
     finally:
         conn.close()
     assert server.loop.stats.batches >= batches
+
+
+def test_openpi_clients_are_served_by_the_first_policy_by_its_name(two_policy_server):
+    """openpi clients cannot name a policy: their sessions carry the first policy's name, not an
+    implicit default, and their batches run on it."""
+    from websockets.sync.client import connect
+
+    from lerobot_armory.entrypoints.openpi.codec import pack, unpack
+    from lerobot_armory.serving.config import OpenpiOptions
+
+    server, _, records, _ = two_policy_server
+    port = server.serve_openpi(OpenpiOptions(port=0))
+    try:
+        with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+            unpack(ws.recv(), 1 << 20)
+            shapes = {f.name: f.shape for f in server.policy.wire_features}
+            image = np.zeros(shapes["observation.images.front"], np.uint8)
+            ws.send(pack({"observation/state": np.zeros(2, np.float32), "observation/image": image, "prompt": "x"}))
+            raw = ws.recv(timeout=30)
+            assert isinstance(raw, bytes), raw  # a str is the server's refusal
+            reply = unpack(raw, 1 << 20)
+            with server.fleet.cond:
+                sessions = [s for s in server.fleet.active() if s.spec.robot_id.startswith("openpi")]
+            assert [s.policy for s in sessions] == ["kitchen"]
+            robot = sessions[0].spec.robot_id
+        assert reply["actions"].shape[1] == server.loop.policies["kitchen"].engine.action_dim
+        assert {r.policy for r in records if robot in r.robots} == {"kitchen"}
+    finally:
+        server.openpi.stop()
+        server.openpi = None

@@ -140,8 +140,11 @@ class OpenpiEndpoint:
         auth: AuthTokens | None = None,
         tls: tuple[bytes, bytes] | None = None,
         admission: AdmissionLimiter | None = None,
+        policy_name: str | None = None,
     ) -> None:
         self.fleet = fleet
+        # The policy openpi clients are served by (they cannot name one): the server's first.
+        self.policy_name = policy_name
         self.admission = admission or AdmissionLimiter()
         self.waiting = 0  # connections open that have not asked yet (the event loop's thread only)
         self.refused = collections.Counter()  # why connections were refused, by reason
@@ -240,7 +243,9 @@ class OpenpiEndpoint:
         spec = RobotSpec(robot_id, grant.fps, self.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
         features = {f.name: f for f in self.keymap.features}
         now = self.fleet.clock()
-        session = self.fleet.register(spec, "", features, credential.digest if credential else None, grant, register_recv=now)
+        session = self.fleet.register(
+            spec, "", features, credential.digest if credential else None, grant, register_recv=now, policy=self.policy_name
+        )
         # Its clock is ours: complete the registration exchange with zero offset and no delay.
         assert session.clock.register_stamps is not None
         b, s = session.clock.register_stamps
