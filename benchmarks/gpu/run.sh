@@ -68,7 +68,8 @@ for s in "$@"; do
     live20) step live20 200 live 20 ;;
     vs_async) step vs_async 560 vs_async 1,4 ;;
     vs_async8) step vs_async8 560 vs_async 8 ;;
-    *) echo "unknown step $s (env smoke graphs buckets compiled efficiency live4 live10 live20 vs_async vs_async8)" | tee -a "$LOG" ;;
+    faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
+    *) echo "unknown step $s (env smoke graphs buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).
