@@ -165,6 +165,16 @@ class Fleet:
                 counts[g.policy] += g.count
         return counts
 
+    def only(self, policy: str) -> Fleet:
+        """The robots of ``policy`` alone, as a one-policy fleet on GPUs of their own (its profile
+        and cap, the same scheduler and network)."""
+        p = next((p for p in self.policies if p.name == policy), None)
+        if p is None:
+            raise ConfigError("policies", f"{self.source} has no policy {policy!r}")
+        groups = tuple(replace(g, policy=None) for g in self.groups if g.policy == policy)
+        return Fleet(groups, p.latency_profile, p.max_batch_size, self.scheduler, self.net_median_ms, self.net_sigma,
+                     self.max_robots_per_gpu, f"{self.source}[{policy}]")  # fmt: skip
+
     def specs(self) -> list[RobotSpec]:
         """Every robot, group by group (the join order is shuffled by the cluster simulation)."""
         return [s for g in self.groups for s in g.specs()]

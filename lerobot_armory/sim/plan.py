@@ -187,8 +187,8 @@ def _pct(x: float, width: int = 0) -> str:
 class Planner:
     """Evaluates K (cached) and searches for the fewest GPUs meeting the targets."""
 
-    def __init__(self, fleet: Fleet, cfg: PlanConfig) -> None:
-        self.fleet, self.cfg = fleet, cfg
+    def __init__(self, fleet: Fleet, cfg: PlanConfig, quiet: bool = False) -> None:
+        self.fleet, self.cfg, self.quiet = fleet, cfg, quiet
         self.cache: dict[Any, Any] = {}  # composition outcomes, shared by every K and placement
         self.points: dict[tuple[str, int], Point] = {}
         self.order: list[int] = []  # Ks in the order the search tried them
@@ -212,7 +212,7 @@ class Planner:
         self.points[key] = point
         if placement == cfg.placement:
             self.order.append(gpus)
-        if not quiet:
+        if not (quiet or self.quiet):
             verdict = "meets" if self.meets(point) else "misses"
             what = (
                 f"fast {_pc(point.fast_pct)}, slow {_pc(point.slow_pct)}, worst GPU fast {_pc(point.worst_fast_pct)}"
@@ -316,6 +316,7 @@ def run(cfg: PlanConfig) -> int:
     if not planner.has_fast:
         print(f"[{PROG}] note: the fleet has no fast robots; the fast-tier target holds trivially", file=sys.stderr)
     answer = planner.search(lower_bound)
+    split = plan_split(fleet, cfg) if fleet.is_mixed else None
     if cfg.compare_placements:
         for name in PLACEMENTS:
             if name != cfg.placement:
@@ -368,6 +369,8 @@ def run(cfg: PlanConfig) -> int:
     lines.append(
         f"searched K (in order): {', '.join(map(str, planner.order))}; {wall:.1f} s wall, {cfg.duration_s:g} s simulated per GPU"
     )
+    if split is not None:
+        lines.append(split_line(answer, split))
     print("\n".join(lines))
     print()
     print(table(planner, answer))
@@ -400,11 +403,42 @@ def run(cfg: PlanConfig) -> int:
             if answer is not None
             else None,
             "wall_s": wall,
+            "split": split,
         }
         Path(cfg.output).parent.mkdir(parents=True, exist_ok=True)
         Path(cfg.output).write_text(json.dumps(out, indent=1) + "\n")
         print(f"wrote {cfg.output}")
-    return 0 if answer is not None else 1
+    return 0 if answer is not None or (split is not None and split["total"] is not None) else 1
+
+
+def plan_split(fleet: Fleet, cfg: PlanConfig) -> dict[str, Any]:
+    """A mixed fleet planned the other way: each policy's robots on GPUs of their own, searched as
+    one-policy fleets with the same targets. Returns ``{"gpus": {policy: K or None}, "total": sum
+    or None}``; progress goes to stderr."""
+    gpus: dict[str, int | None] = {}
+    for p in fleet.policies:
+        alone = fleet.only(p.name)
+        if not alone.robots:
+            gpus[p.name] = 0
+            continue
+        planner = Planner(alone, cfg, quiet=True)
+        gpus[p.name] = planner.search(max(1, math.ceil(alone.total_demand() - 1e-9)))
+        print(f"[{PROG}] one set of GPUs per policy: {p.name}'s {alone.robots} robots alone need {gpus[p.name]} GPUs", file=sys.stderr)
+    total = None if None in gpus.values() else sum(g or 0 for g in gpus.values())
+    return {"gpus": gpus, "total": total}
+
+
+def split_line(mixed: int | None, split: dict[str, Any]) -> str:
+    """The comparison line: every GPU serving every policy against one set of GPUs per policy."""
+    parts = " + ".join(f"{name} {k if k is not None else '?'}" for name, k in split["gpus"].items())
+    total = split["total"]
+    if mixed is None and total is None:
+        verdict = "neither meets the target within --max_gpus"
+    elif total is None or (mixed is not None and mixed <= total):
+        verdict = "every GPU serving every policy needs " + ("as many" if mixed == total else "fewer")
+    else:
+        verdict = "one set of GPUs per policy needs fewer"
+    return f"one set of GPUs per policy instead: {parts} = {total if total is not None else '?'} GPUs; {verdict}"
 
 
 def gpu_description(fleet: Fleet) -> str:

@@ -214,6 +214,19 @@ def test_plan_a_mixed_fleet(tmp_path, capsys):
     assert code == 0 and record["answer"] >= 1
     assert set(record["policies"]) == {"pi05", "act"} and record["latency_profile"] is None
     assert "pi05 h100-pi05 b=5 + act" in text and "arbitrated" in text
+    # and the other way: each policy's robots on GPUs of their own, compared in one line
+    split = record["split"]
+    assert set(split["gpus"]) == {"pi05", "act"} and split["total"] == sum(split["gpus"].values())
+    assert f"one set of GPUs per policy instead: pi05 {split['gpus']['pi05']} + act {split['gpus']['act']}" in text
+
+
+def test_one_policys_robots_alone_are_a_one_policy_fleet():
+    fleet = fleet_from_dict(mixed(), "f.yaml")
+    alone = fleet.only("groot")
+    assert not alone.is_mixed and alone.robots == 6 and alone.latency_profile == "l40s-groot" and alone.max_batch_size == 5
+    assert [s.robot_id for s in alone.specs()] == [s.robot_id for s in fleet.specs() if fleet.policy_of()[s.robot_id] == "groot"]
+    with pytest.raises(ConfigError, match="no policy 'nope'"):
+        fleet.only("nope")
 
 
 def test_a_heavier_policy_mix_needs_at_least_as_many_gpus(tmp_path):
