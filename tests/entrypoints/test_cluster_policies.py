@@ -19,9 +19,11 @@ import grpc
 import pytest
 
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+from lerobot_armory.entrypoints.cluster.cli import ClusterConfig, preflight
 from lerobot_armory.entrypoints.cluster.front import PENDING_S, ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, LocalReplicas
 from lerobot_armory.entrypoints.server import ServerConfig
+from lerobot_armory.errors import ConfigError
 from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.placement import Capacity, demand
 from lerobot_armory.proto import armory_pb2 as pb
@@ -275,3 +277,18 @@ def test_a_rolling_swap_of_one_policy_leaves_the_other_on_every_replica(two_poli
     assert wait_for(lambda: front.front.state["r0"].view.healthy, timeout=5)
     assert restarted.loop.policies["kitchen"].engine is kitchen and restarted.swappers["kitchen"].counts.by_result["ok"] == 0
 
+
+def test_a_cluster_takes_a_policies_file_and_a_bad_one_is_one_line(tmp_path):
+    good = tmp_path / "policies.yaml"
+    good.write_text("kitchen:\n  path: /m/kitchen\nsorting:\n  path: /m/sorting\n  max_batch_size: 2\n")
+    cfg = ClusterConfig(policies=str(good), replicas=2)
+    preflight(cfg)  # no refusal: a cluster serves several policies
+    assert cfg.replica_config().policies == str(good)
+    assert cfg.served() == "kitchen=/m/kitchen, sorting=/m/sorting"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kitchen:\n  path: /m/kitchen\n  colour: blue\n")
+    with pytest.raises(ConfigError, match="policies") as err:
+        preflight(ClusterConfig(policies=str(bad)))
+    assert "unknown key(s) colour" in str(err.value) and len(str(err.value).splitlines()) == 1
+    with pytest.raises(ConfigError, match="not both"):
+        preflight(ClusterConfig(policies=str(good), policy=PolicyOptions("x")))

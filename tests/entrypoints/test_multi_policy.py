@@ -169,13 +169,6 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     assert refused.result == "refused" and server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
 
 
-def test_a_cluster_refuses_several_policies_in_one_line():
-    from lerobot_armory.entrypoints.cluster.cli import ClusterConfig
-
-    with pytest.raises(ConfigError, match="one policy for now"):
-        ClusterConfig(policies="policies.yaml").validate()
-
-
 def test_a_hostile_policy_name_is_refused_in_one_short_line_and_hurts_nobody(two_policy_server):
     server, _, _, _ = two_policy_server
     batches = server.loop.stats.batches
