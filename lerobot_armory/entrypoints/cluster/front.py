@@ -136,8 +136,10 @@ class RobotPolicies:
     """Robot -> its policy's :class:`Capacity` on one replica (``ReplicaView.capacity_of``).
 
     Hashable by identity (placement memoizes a replica's load on it): the front makes a new one
-    whenever the replica's robots or capacities change. A robot not in ``policy_of``, or of a
-    policy the replica does not report, is charged at ``default`` (the main policy's).
+    whenever the replica's robots or capacities change. ``policy_of`` is the front's cluster-wide
+    map (a robot that placement or a move considers for this replica is charged at its own policy
+    here too), never changed in place. A robot not in it, or of a policy the replica does not
+    report, is charged at ``default`` (the main policy's).
     """
 
     capacities: Mapping[str, Capacity]
@@ -346,7 +348,10 @@ class ClusterFront(ArmoryServicer):
 
     def _learn_names(self, answers: dict[str, dict[str, Any] | None]) -> None:
         """Under the lock: the main policy's name and every policy's, from the replicas that answered."""
-        up = [self.state[rid] for rid in sorted(answers) if answers[rid] is not None]
+        up = [
+            self.state[rid] for rid, answer in sorted(answers.items())
+            if answer is not None and answer.get("alive", True) and self.state[rid].capacities
+        ]  # fmt: skip
         if not up:
             return  # nobody answered: what was known stays
         self.main = up[0].main
