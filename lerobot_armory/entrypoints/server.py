@@ -129,9 +129,9 @@ class ArmoryServer:
         self.swappers = {policy_name: self.swapper}
         for o in others:
             o_current = _served_now(o.options or PolicyOptions(getattr(o.engine, "path", "")), o.engine, o.info)
-            self.swappers[o.name] = PolicySwapper(
-                self.loop, o_current, loader or policy_loader(o.max_batch_size), self._other_swapped(o.name), o.name
-            )
+            # Its own loader (its cap, the server's engine options): not the first policy's.
+            o_loader = o.loader or loader or policy_loader(o.max_batch_size)
+            self.swappers[o.name] = PolicySwapper(self.loop, o_current, o_loader, self._other_swapped(o.name), o.name)
         for name, swapper in self.swappers.items():
             swapper.listeners.append(functools.partial(self.metrics.on_swap, policy=name))
             self.metrics.set_policy(name, swapper.current.path)
@@ -264,6 +264,7 @@ class ExtraPolicy:
         profile: its ``d_infer(b)``.
         max_batch_size: its batch cap.
         options: how it was loaded (a swap of it reuses the device and threads).
+        loader: what a swap of it loads with (None: the server's ``loader``, else one for its cap).
     """
 
     name: str
@@ -272,6 +273,7 @@ class ExtraPolicy:
     profile: LatencyProfile
     max_batch_size: int
     options: PolicyOptions | None = None
+    loader: Loader | None = None
 
 
 def _served_now(options: PolicyOptions, engine: Engine, info: PolicyInfo) -> LoadedPolicy:
@@ -404,7 +406,9 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         options = _options_of(cfg, entry)
         o_engine, o_serving, o_profile, _ = _load_policy(cfg, options, cap, profile_file=False)
         o_info = PolicyInfo(o_engine.description, o_engine.wire_features, o_engine.action_names, o_engine.chunk_size)
-        others.append(ExtraPolicy(entry.name, o_serving, o_info, o_profile, cap, options))
+        # A swap of it warms up and profiles b = 1..its own cap (or emulates), as its start did.
+        o_loader = policy_loader(cap, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile)
+        others.append(ExtraPolicy(entry.name, o_serving, o_info, o_profile, cap, options, o_loader))
     first_cap = (entries[0].max_batch_size if entries else None) or cfg.max_batch_size
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
     operators = OperatorTokens.load(cfg.operator_token_file, auth) if cfg.operator_token_file else None

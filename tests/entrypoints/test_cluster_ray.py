@@ -83,3 +83,19 @@ def test_a_chunk_from_a_ray_replica_equals_a_single_server_s(ray_cluster):
         np.testing.assert_array_equal(via_cluster, alone)
     finally:
         single.stop()
+
+
+def test_a_roll_through_ray_replicas_swaps_the_policy_it_names(ray_cluster, tmp_path):
+    front, replicas, planner = ray_cluster
+    # The replica actor is told which policy to swap; one it does not serve is refused in one line.
+    answer = replicas.swap("armory-replica-0", planner, [], False, 60.0, policy_name="bakery")
+    assert answer["result"] == "refused" and answer["message"] == "no policy named 'bakery': armory-replica-0 serves 'default'"
+    refused = front.front.roll(planner, [], policy_name="bakery")
+    assert refused.result == "refused" and refused.message == "no policy named 'bakery': the cluster serves 'default'"
+    again = make_planner(tmp_path / "planner-v2")
+    rolled = front.front.roll(again, [], timeout=120.0, policy_name="default")
+    assert rolled.result == "ok", rolled.message
+    assert rolled.switched == ["armory-replica-0", "armory-replica-1", "armory-replica-2"]
+    assert wait_for(lambda: {s.policy for s in front.front.state.values()} == {(again, ())}, timeout=5)
+    for rid in replicas.ids():
+        assert replicas.load(rid, 10.0)["policies"]["default"]["path"] == again

@@ -155,6 +155,8 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     view = render(generate_latest(server.metrics.registry).decode())
     assert f"policies kitchen={root / 'kitchen'}, sorting={root / 'sorting-v2'}; swaps ok 1" in view
     assert server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
+    # Loaded for its own cap (2), not the first policy's (3): its scheduler's table has 2 entries.
+    assert len(server.loop.policies["sorting"].scheduler.d_infer) == 2
     assert server.loop.policies["kitchen"].engine is kitchen_engine and server.swappers["kitchen"].current.path == str(root / "kitchen")
     # New registrations for the swapped policy are told its new checkpoint.
     conn = Connection(server.address)
@@ -165,13 +167,6 @@ def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
     # A checkpoint whose features differ from the policy it replaces is refused.
     refused = server.swappers["sorting"].swap(str(root / "kitchen"))
     assert refused.result == "refused" and server.loop.policies["sorting"].engine.path == str(root / "sorting-v2")
-
-
-def test_a_cluster_refuses_several_policies_in_one_line():
-    from lerobot_armory.entrypoints.cluster.cli import ClusterConfig
-
-    with pytest.raises(ConfigError, match="one policy for now"):
-        ClusterConfig(policies="policies.yaml").validate()
 
 
 def test_a_hostile_policy_name_is_refused_in_one_short_line_and_hurts_nobody(two_policy_server):

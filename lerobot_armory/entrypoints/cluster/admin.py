@@ -1,7 +1,10 @@
 """The operator's RPCs on a cluster front (``ArmoryAdmin``, as on a single server).
 
-``SwapPolicy`` rolls the swap replica by replica (:meth:`ClusterFront.roll`); ``Status`` reports
-the cluster's policy, its rolls by result and, per replica, the path it serves and its own swaps.
+``SwapPolicy`` rolls the swap of one policy replica by replica (:meth:`ClusterFront.roll`; on a
+cluster of several policies the request names one, as on a single server); ``Status`` reports the
+cluster's policy, its rolls by result and, per replica, the path it serves and its own swaps. With
+several policies, ``policy`` lists the cluster's as ``name=path, ...`` and the status line each
+replica's (``policy_path`` stays the main policy's).
 Same operator tokens (``--operator_token_file``) as the replicas; none configured: refused.
 """
 
@@ -32,11 +35,14 @@ class FrontAdminService(ArmoryAdminServicer):
 
     def SwapPolicy(self, request: pb.SwapRequest, context: grpc.ServicerContext) -> pb.SwapResponse:  # noqa: N802
         authorise(self.operators, context, self.peer_log)
-        check_swap_request(request, context)
-        log.info("operator %s asks to roll the cluster to %s%s", context.peer(), request.policy_path, " (drain)" if request.drain else "")
+        name = check_swap_request(request, context, self.front.policy_names())
+        log.info(
+            "operator %s asks to roll the cluster's policy %s to %s%s", context.peer(), name, request.policy_path,
+            " (drain)" if request.drain else "",
+        )  # fmt: skip
         remaining = context.time_remaining()
         timeout = 900.0 if remaining is None else max(1.0, remaining)
-        r = self.front.roll(request.policy_path, list(request.overrides), request.drain, timeout)
+        r = self.front.roll(request.policy_path, list(request.overrides), request.drain, timeout, policy_name=name)
         return pb.SwapResponse(result=r.result, message=r.message, old_path=r.old_path, new_path=r.new_path, seconds=r.seconds)
 
     def Status(self, request: pb.AdminStatusRequest, context: grpc.ServicerContext) -> pb.AdminStatusResponse:  # noqa: N802
@@ -51,10 +57,22 @@ class FrontAdminService(ArmoryAdminServicer):
                 for rid, s in sorted(front.state.items())
             ]
             rolls = dict(front.rolls)
-            policy = front.policy
+            names = front.policy_names()
+            paths = {name: front.cluster_path(name) for name in names}
+            known = all(name in front.policies for name in names)
+            served = {rid: dict(s.served) for rid, s in sorted(front.state.items())}
         up = sum(r.up for r in replicas)
+        line = f"cluster front: {up}/{len(replicas)} replicas up"
+        if len(names) > 1:  # ReplicaStatus has room for one path: the others are told here
+            policy = "cluster policies: " + ", ".join(f"{name}={paths[name]}" for name in names)
+            line += "".join(
+                f"; {rid} serves " + ", ".join(f"{name}={path}" for name, (path, _) in policies.items())
+                for rid, policies in served.items() if policies
+            )  # fmt: skip
+        else:
+            policy = "cluster policy"
         return pb.AdminStatusResponse(
-            policy_path=policy[0] if policy else front.cluster_path(), policy="cluster policy" if policy else "cluster policy not known yet",
+            policy_path=paths[names[0]], policy=policy if known else f"{policy} not known yet",
             robots=sum(r.robots for r in replicas), swaps_ok=rolls["ok"], swaps_refused=rolls["refused"],
-            swaps_failed=rolls["failed"], status_line=f"cluster front: {up}/{len(replicas)} replicas up", replicas=replicas,
+            swaps_failed=rolls["failed"], status_line=line, replicas=replicas,
         )  # fmt: skip

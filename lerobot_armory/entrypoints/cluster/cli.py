@@ -2,12 +2,18 @@
 
     lerobot-armory-cluster --policy.path=lerobot/pi05_base --replicas=4 --port=8080
     lerobot-armory-cluster --policy.path=... --replicas=8 --ray.address=auto --replica.host=0.0.0.0
+    lerobot-armory-cluster --policies=policies.yaml --replicas=4   # every replica serves every policy
 
 Every ``lerobot-armory-server`` option applies to each replica (``--policy.*``, ``--scheduler.*``,
 ``--max_batch_size``, ``--fleet.policy``, ``--auth_token_file`` ...); ``--port`` is the front's, and so
 is ``--metrics_port`` (the front's registrations placed and refused by reason, its moves, its view of
 the replicas; the replicas publish no metrics port of their own).
 Robots use ``--server_address=`` the front and nothing else changes.
+
+``--policies=FILE`` (as on the server): every replica serves every policy of the file (the file
+and the checkpoints must be readable at the same paths on every node). Robots name theirs with
+``--policy_name``; the front charges each robot its own policy's load on each replica, and
+``lerobot-armory-admin swap --policy_name=NAME`` rolls that policy replica by replica.
 
 Ray places the replicas (one GPU each by default), restarts one that dies, and keeps them when
 this process exits if they run in a cluster started with ``ray start --head``
@@ -19,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import signal
 import sys
 import threading
@@ -34,6 +41,7 @@ from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, RayReplica
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.serving.config import ServerConfig, parse_server_args
 from lerobot_armory.serving.logs import configure_logging
+from lerobot_armory.serving.policies_file import load_policies
 from lerobot_armory.serving.security import AuthTokens, OperatorTokens, read_tls
 
 log = logging.getLogger("lerobot_armory.cluster")
@@ -76,9 +84,6 @@ class ClusterConfig(ServerConfig):
 
     def validate(self) -> None:
         super().validate()
-        if self.policies:
-            # The front places robots by one policy's load model and swaps one policy per replica.
-            raise ConfigError("policies", "a cluster serves one policy for now; serve several with lerobot-armory-server --policies=FILE")
         if self.replicas < 1:
             raise ConfigError("replicas", f"must be >= 1, got {self.replicas}")
         if self.replica.num_gpus < 0 or self.replica.num_cpus < 0:
@@ -92,7 +97,24 @@ class ClusterConfig(ServerConfig):
         base["port"] = 0
         base["metrics_port"] = None  # --metrics_port is the front's
         base["status_interval_s"] = 0.0
+        if self.policies:  # read by each replica, whose working directory may not be this one
+            base["policies"] = os.path.abspath(self.policies)
         return ServerConfig(**base)
+
+    def served(self) -> str:
+        """What each replica serves, for the start-up lines: the path, or ``name=path, ...``."""
+        if not self.policies:
+            return str(self.policy.path)
+        return ", ".join(f"{e.name}={e.path}" for e in load_policies(self.policies))
+
+
+def preflight(cfg: ClusterConfig) -> None:
+    """Every check that needs no Ray and no model: a bad option, fleet policy file or policies
+    file is one line here, not K tracebacks in the replicas."""
+    cfg.validate()
+    cfg.fleet.load()
+    if cfg.policies:
+        load_policies(cfg.policies)
 
 
 def start_replicas(cfg: ClusterConfig) -> RayReplicas:
@@ -107,6 +129,7 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
             f"{cfg.replicas} replicas x {cfg.replica.num_gpus:g} GPU need {need:g} GPUs and the Ray cluster has {gpus:g}; "
             "add nodes (ray start --address=...), lower --replicas, or use --replica.num_gpus=0 for CPU replicas",
         )
+    names = [e.name for e in load_policies(cfg.policies)] if cfg.policies else []
     actor = ray.remote(ArmoryReplica)
     handles: dict[str, Any] = {}
     detached = cfg.ray.address is not None
@@ -129,6 +152,14 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
         for ref in done:
             rid = next(r for r, v in pending.items() if v == ref)
             info = ray.get(ref)  # a replica that failed to start raises here with its own error
+            if cfg.policies and set(info.get("policies", ())) != set(names):
+                # get_if_exists found a replica of an earlier cluster serving other policies.
+                raise ConfigError(
+                    "replicas",
+                    f"{rid} already runs in Ray namespace {cfg.ray.namespace!r} serving the policies "
+                    f"{', '.join(info.get('policies', ())) or info['policy']}, not {', '.join(names)}: stop the old cluster's "
+                    "replicas first, or use another --ray.namespace",
+                )
             if cfg.policy.path and cfg.policy.path not in info["policy"]:
                 # get_if_exists found a replica of an earlier cluster: it keeps its own options.
                 raise ConfigError(
@@ -136,12 +167,14 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
                     f"{rid} already runs in Ray namespace {cfg.ray.namespace!r} serving {info['policy']}, not "
                     f"{cfg.policy.path}: stop the old cluster's replicas first, or use another --ray.namespace",
                 )
-            print(f"  replica {rid} serving at {info['address']} (pid {info['pid']}, {info['policy']})", flush=True)
+            what = ", ".join(f"{n}: {p['description']}" for n, p in info["policies"].items()) if cfg.policies else info["policy"]
+            print(f"  replica {rid} serving at {info['address']} (pid {info['pid']}, {what})", flush=True)
             del pending[rid]
         if pending and time.monotonic() - started > START_TIMEOUT_S:
             raise ConfigError("replicas", f"{len(pending)} replicas did not start in {START_TIMEOUT_S:.0f} s: {', '.join(pending)}")
         if pending and not done:
-            print(f"  waiting for {len(pending)} replicas to load the policy ({time.monotonic() - started:.0f} s)...", flush=True)
+            what = "policies" if cfg.policies else "policy"
+            print(f"  waiting for {len(pending)} replicas to load the {what} ({time.monotonic() - started:.0f} s)...", flush=True)
     extra = sorted(
         name for name in ray.util.list_named_actors() if name.startswith(NAME_PREFIX) and name not in handles
     )
@@ -156,15 +189,14 @@ def start_replicas(cfg: ClusterConfig) -> RayReplicas:
 
 def run(cfg: ClusterConfig) -> None:
     """Start (or attach to) the replicas, serve the front until a signal."""
-    cfg.validate()
-    cfg.fleet.load()  # a bad fleet policy file is one line here, not K tracebacks in the replicas
+    preflight(cfg)
     configure_logging(cfg.log_level, cfg.log_format)
     try:
         import ray
     except ImportError:
         raise ConfigError("replicas", "the cluster needs Ray: pip install 'lerobot-armory[cluster]'") from None
     ray.init(address=cfg.ray.address, namespace=cfg.ray.namespace, include_dashboard=False, log_to_driver=True)
-    print(f"lerobot-armory-cluster: starting {cfg.replicas} replicas of {cfg.policy.path} on Ray ...", flush=True)
+    print(f"lerobot-armory-cluster: starting {cfg.replicas} replicas of {cfg.served()} on Ray ...", flush=True)
     replicas = start_replicas(cfg)
     tls = read_tls(cfg.tls_cert, cfg.tls_key)
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None

@@ -20,12 +20,18 @@ Rebalancing: when robots joined or left since the last refresh, the front asks
 that robot, which it does between two of the robot's chunks (``Notice.MOVED``); the robot
 re-registers here and is steered to the target.
 
+Several policies (``--policies=FILE``): every replica serves every policy of the file. Each robot
+is charged at *its* policy's ``d_infer`` and cap on each replica (``ReplicaView.capacity_of``): its
+policy is the one its registration names (empty or unknown: the main one, the file's first) while
+its placement is pending, and the one its replica reports once it streams.
+
 Swapping the checkpoint (:meth:`ClusterFront.roll`, ``lerobot-armory-admin swap --address=FRONT``):
-one replica at a time, each loading beside its old engine and switching between two batches (as a
-single server does); the roll stops at the first replica that refuses or fails, and the replicas
-after it keep the old checkpoint. Robots are never moved by a swap. The front remembers the
-cluster's policy (path and overrides) and brings a replica that restarted (Ray restarts a dead
-replica with the options the cluster started with) to it before placing robots there.
+one policy, one replica at a time, each loading beside its old engine and switching between two
+batches (as a single server does); the roll stops at the first replica that refuses or fails, and
+the replicas after it keep the old checkpoint. Robots are never moved by a swap. The front
+remembers the cluster's policy per name (path and overrides) and brings a replica that restarted
+(Ray restarts a dead replica with the options the cluster started with) to every one of them
+before placing robots there.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import collections
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -65,6 +71,7 @@ from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_se
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.security import OperatorTokens
+from lerobot_armory.serving.session import DEFAULT_POLICY
 
 log = logging.getLogger(__name__)
 
@@ -124,20 +131,54 @@ class FrontOptions:
             raise ConfigError("cluster.one_way_ms", f"must be >= 0, got {self.one_way_ms}")
 
 
+@dataclass(frozen=True, eq=False)
+class RobotPolicies:
+    """Robot -> its policy's :class:`Capacity` on one replica (``ReplicaView.capacity_of``).
+
+    Hashable by identity (placement memoizes a replica's load on it): the front makes a new one
+    whenever the replica's robots or capacities change. ``policy_of`` is the front's cluster-wide
+    map (a robot that placement or a move considers for this replica is charged at its own policy
+    here too), never changed in place. A robot not in it, or of a policy the replica does not
+    report, is charged at ``default`` (the main policy's).
+    """
+
+    capacities: Mapping[str, Capacity]
+    policy_of: Mapping[str, str]
+    default: Capacity
+
+    def __call__(self, spec: RobotSpec) -> Capacity:
+        name = self.policy_of.get(spec.robot_id)
+        return self.capacities.get(name, self.default) if name is not None else self.default
+
+    def placing(self, robot_ids: Iterable[str], policy: str) -> RobotPolicies:
+        """The same, with ``robot_ids`` (a newcomer, and the registrations counted as its equals) of ``policy``."""
+        return RobotPolicies(self.capacities, {**self.policy_of, **dict.fromkeys(robot_ids, policy)}, self.default)
+
+
 @dataclass
 class ReplicaState:
     """The front's view of one replica."""
 
     view: ReplicaView
     address: str = ""
-    chunk_size: int = 0
+    chunk_size: int = 0  # the main policy's
     status: str = ""
     pending: dict[str, tuple[RobotSpec, float]] = field(default_factory=dict)  # placed here, not yet reported
     reported: dict[str, RobotSpec] = field(default_factory=dict)
-    policy: Policy | None = None  # what it serves, as last reported
-    swaps: dict[str, int] = field(default_factory=dict)  # its own swaps by result
+    main: str = DEFAULT_POLICY  # the name of its main (first) policy
+    served: dict[str, Policy] = field(default_factory=dict)  # policy name -> what it serves, as last reported
+    capacities: dict[str, Capacity] = field(default_factory=dict)  # policy name -> its d_infer and cap
+    chunk_sizes: dict[str, int] = field(default_factory=dict)  # policy name -> its chunk size
+    reported_policy: dict[str, str] = field(default_factory=dict)  # robot -> its policy, as last reported
+    pending_policy: dict[str, str] = field(default_factory=dict)  # robot -> the policy it registered for (pending only)
+    swaps: dict[str, int] = field(default_factory=dict)  # its own swaps by result, every policy's
     instance: str = ""  # changes when the replica restarts
     keyed: bool = False  # this instance holds the front's forwarding key: registrations name the robot's host
+
+    @property
+    def policy(self) -> Policy | None:
+        """What it serves as its main policy, as last reported."""
+        return self.served.get(self.main)
 
 
 @dataclass
@@ -151,6 +192,7 @@ class RollResult:
     new_path: str
     seconds: float = 0.0
     switched: list[str] = field(default_factory=list)  # replicas now on the new path, in order
+    policy: str = ""  # the name of the policy rolled
 
 
 class ClusterFront(ArmoryServicer):
@@ -192,12 +234,17 @@ class ClusterFront(ArmoryServicer):
         self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
         self.placed: collections.Counter[str] = collections.Counter()  # registrations accepted, by replica
         self.moves_made = 0  # robots released for a move (self.moves keeps only the recent ones)
-        # The cluster's policy: what every replica should serve, and what a restarted one is brought
-        # to. None until known: the replicas' own when they all agree, or a roll's.
-        self.policy: Policy | None = None
+        # The cluster's policies by name: what every replica should serve, and what a restarted one
+        # is brought to. A name is absent until known: the replicas' own when they all agree, or a roll's.
+        self.policies: dict[str, Policy] = {}
+        self.main = DEFAULT_POLICY  # the main policy's name (robots naming none), as the replicas report it
+        self.names: tuple[str, ...] = ()  # the policies the replicas serve, the main one first
+        # Robot -> its policy, for the robots the replicas report and those pending (replaced, never
+        # changed in place: each replica's view charges its robots through it, RobotPolicies).
+        self.policy_of: dict[str, str] = {}
         self.rolls: dict[str, int] = {"ok": 0, "refused": 0, "failed": 0}
         self._roll_lock = threading.Lock()  # one roll (or restarted replica's catch-up) at a time
-        self.syncing: set[str] = set()  # replicas being brought to self.policy: no robot is placed there
+        self.syncing: set[str] = set()  # replicas being brought to self.policies: no robot is placed there
         self._behind: set[str] = set()  # replicas a roll skipped (down): brought to the policy when back
 
     # ---- the view ----------------------------------------------------------------------------
@@ -231,18 +278,17 @@ class ClusterFront(ArmoryServicer):
                 if answer is None or not answer.get("alive", True):
                     state.view.healthy = False
                     state.reported = {}
+                    state.reported_policy = {}
                     if was:
                         log.warning("replica %s is down; its robots will be placed elsewhere", rid)
                     continue
                 state.address = answer["address"]
                 state.chunk_size = int(answer["chunk_size"])
                 state.status = answer.get("status", "")
-                state.view.capacity = Capacity(tuple(answer["latency_s"]), self.options.one_way_ms / 1000.0)
+                self._read_policies(state, answer)
                 state.view.max_robots = int(answer["max_robots"])
                 state.reported = {r["robot_id"]: spec_of(r) for r in answer["robots"]}
-                if "policy_path" in answer:
-                    state.policy = (answer["policy_path"], tuple(answer.get("policy_overrides", ())))
-                    state.swaps = dict(answer.get("swaps", {}))
+                state.reported_policy = {r["robot_id"]: str(r.get("policy") or state.main) for r in answer["robots"]}
                 instance = answer.get("instance", "")
                 if state.instance and instance != state.instance:
                     log.info("replica %s restarted", rid)
@@ -253,7 +299,12 @@ class ClusterFront(ArmoryServicer):
                 if not was and state.view.healthy:
                     log.info("replica %s is up at %s", rid, state.address)
                 state.pending = {k: v for k, v in state.pending.items() if k not in state.reported and v[1] > now}
-                self._rebuild(state)
+                state.pending_policy = {k: v for k, v in state.pending_policy.items() if k in state.pending}
+            self._learn_names(answers)
+            self._learn_robot_policies()
+            for rid, answer in answers.items():
+                if answer is not None and answer.get("alive", True):
+                    self._rebuild(self.state[rid])
             # Membership: who streams where, and which replicas are up (a replica back from a
             # restart is empty: robots may move onto it).
             members = frozenset((robot, rid) for rid, s in self.state.items() for robot in s.reported) | frozenset(
@@ -273,6 +324,58 @@ class ClusterFront(ArmoryServicer):
             self._release(move, now)
         for rid in catch_up:
             threading.Thread(target=self._catch_up, args=(rid,), name=f"armory-front-sync-{rid}", daemon=True).start()
+
+    def _read_policies(self, state: ReplicaState, answer: dict[str, Any]) -> None:
+        """Under the lock: the policies a replica's answer reports, each with its capacity and
+        checkpoint (a replica of an older version reports its one policy at the top level)."""
+        one_way = self.options.one_way_ms / 1000.0
+        state.main = str(answer.get("policy_name") or DEFAULT_POLICY)
+        policies = answer.get("policies") or {
+            state.main: {
+                "latency_s": answer["latency_s"], "chunk_size": answer["chunk_size"],
+                **({"path": answer["policy_path"], "overrides": answer.get("policy_overrides", ()), "swaps": answer.get("swaps", {})}
+                   if "policy_path" in answer else {}),
+            }
+        }  # fmt: skip
+        state.capacities = {name: Capacity(tuple(p["latency_s"]), one_way) for name, p in policies.items()}
+        state.chunk_sizes = {name: int(p["chunk_size"]) for name, p in policies.items()}
+        state.served = {name: (str(p["path"]), tuple(p.get("overrides", ()))) for name, p in policies.items() if "path" in p}
+        state.swaps = {}
+        for p in policies.values():
+            for result, n in p.get("swaps", {}).items():
+                state.swaps[result] = state.swaps.get(result, 0) + int(n)
+        state.view.capacity = state.capacities.get(state.main) or Capacity(tuple(answer["latency_s"]), one_way)
+
+    def _learn_names(self, answers: dict[str, dict[str, Any] | None]) -> None:
+        """Under the lock: the main policy's name and every policy's, from the replicas that answered."""
+        up = [
+            self.state[rid] for rid, answer in sorted(answers.items())
+            if answer is not None and answer.get("alive", True) and self.state[rid].capacities
+        ]  # fmt: skip
+        if not up:
+            return  # nobody answered: what was known stays
+        self.main = up[0].main
+        names = [self.main]
+        for state in up:
+            names += [n for n in state.capacities if n not in names]
+        self.names = tuple(names)
+
+    def policy_names(self) -> tuple[str, ...]:
+        """The policies the cluster serves, the main one first (its main one's name until a replica answered)."""
+        with self.lock:
+            return self.names or (self.main,)
+
+    def policy_for(self, asked: str) -> str:
+        """The policy a registration is charged at: the one it names if served, else the main one
+        (the replica refuses an unknown name; until then it weighs what a robot of the main policy does)."""
+        with self.lock:
+            return asked if asked in self.names else self.main
+
+    @property
+    def policy(self) -> Policy | None:
+        """The cluster's main policy (None: not known yet)."""
+        with self.lock:
+            return self.policies.get(self.main)
 
     def _hand_key(self, answers: dict[str, dict[str, Any] | None]) -> None:
         """Give the forwarding key to each replica instance that answered and has not had it (a new
@@ -303,22 +406,24 @@ class ClusterFront(ArmoryServicer):
     # ---- the cluster's policy: rolling swaps, restarted replicas ----------------------------
 
     def _plan_catch_up(self, answers: dict[str, dict[str, Any] | None]) -> list[str]:
-        """Under the lock: learn the cluster's policy; the replicas to bring to it now."""
-        policies = {s.policy for s in self.state.values()}
-        if self.policy is None and None not in policies and len(policies) == 1 and all(answers.values()):
-            self.policy = policies.pop()  # every replica answered and serves the same: the cluster's
-        if self.policy is None:
+        """Under the lock: learn the cluster's policies; the replicas to bring to them now."""
+        if all(answers.values()):
+            for name in sorted({n for s in self.state.values() for n in s.served} - set(self.policies)):
+                seen = {s.served.get(name) for s in self.state.values()}
+                if None not in seen and len(seen) == 1:
+                    self.policies[name] = seen.pop()  # every replica answered and serves the same: the cluster's
+        if not self.policies:
             self._behind.clear()
             return []
         out = []
         for rid in sorted(self._behind):
             state = self.state[rid]
-            if answers.get(rid) is None or rid in self.syncing or state.policy is None:
+            if answers.get(rid) is None or rid in self.syncing or not state.served:
                 continue
-            if state.policy == self.policy:
+            if all(state.served.get(name) == policy for name, policy in self.policies.items()):
                 self._behind.discard(rid)
                 continue
-            # Out of placement until it serves the cluster's policy (it has no robots: it restarted,
+            # Out of placement until it serves the cluster's policies (it has no robots: it restarted,
             # or was down during a roll).
             self.syncing.add(rid)
             state.view.healthy = False
@@ -326,60 +431,80 @@ class ClusterFront(ArmoryServicer):
         return out
 
     def _catch_up(self, rid: str) -> None:
+        """Bring a replica to every policy the cluster remembers, one swap per policy it serves otherwise."""
+        done: list[tuple[str, Policy, dict[str, Any]]] = []
         with self._roll_lock:
-            policy = self.policy
-            try:
-                answer = self.replicas.swap(rid, policy[0], list(policy[1]), False, SWAP_TIMEOUT_S) if policy else None
-            except Exception as exc:  # noqa: BLE001 - logged; the replica serves what it loaded
-                answer = {"result": "failed", "message": f"{type(exc).__name__}: {exc}"}
+            with self.lock:
+                wanted = sorted(self.policies.items())
+                served = dict(self.state[rid].served)
+            for name, policy in wanted:
+                if served.get(name) == policy:
+                    continue
+                try:
+                    answer = self.replicas.swap(rid, policy[0], list(policy[1]), False, SWAP_TIMEOUT_S, policy_name=name)
+                except Exception as exc:  # noqa: BLE001 - logged; the replica serves what it loaded
+                    answer = {"result": "failed", "message": f"{type(exc).__name__}: {exc}"}
+                done.append((name, policy, answer))
         with self.lock:
             self.syncing.discard(rid)
             self._behind.discard(rid)
-        if answer is None or answer["result"] == "ok":
-            log.info("replica %s now serves the cluster's policy %s", rid, policy[0] if policy else "?")
-        else:
-            log.error(
-                "replica %s could not load the cluster's policy %s (%s: %s): it serves what it started with; "
-                "lerobot-armory-admin status shows each replica's path", rid, policy[0] if policy else "?",
-                answer["result"], answer.get("message", ""),
-            )  # fmt: skip
+        for name, policy, answer in done:
+            if answer["result"] == "ok":
+                log.info("replica %s now serves the cluster's policy %s: %s", rid, name, policy[0])
+            else:
+                log.error(
+                    "replica %s could not load the cluster's policy %s: %s (%s: %s): it serves what it started with; "
+                    "lerobot-armory-admin status shows each replica's path", rid, name, policy[0],
+                    answer["result"], answer.get("message", ""),
+                )  # fmt: skip
 
-    def roll(self, path: str, overrides: list[str], drain: bool = False, timeout: float = SWAP_TIMEOUT_S) -> RollResult:
-        """Swap every replica to ``path``, one at a time, stopping at the first that refuses or fails."""
+    def roll(
+        self, path: str, overrides: list[str], drain: bool = False, timeout: float = SWAP_TIMEOUT_S, policy_name: str = ""
+    ) -> RollResult:
+        """Swap policy ``policy_name`` ("": the main one) of every replica to ``path``, one replica
+        at a time, stopping at the first that refuses or fails."""
         t0 = time.monotonic()
+        name = policy_name or self.policy_names()[0]
         if not self._roll_lock.acquire(blocking=False):
-            return self._rolled(RollResult("refused", "another swap is in progress", self.cluster_path(), path), t0)
+            return self._rolled(RollResult("refused", "another swap is in progress", self.cluster_path(name), path, policy=name), t0)
         try:
-            return self._rolled(self._roll(path, tuple(overrides), drain, timeout), t0)
+            return self._rolled(self._roll(name, path, tuple(overrides), drain, timeout), t0)
         finally:
             self._roll_lock.release()
 
-    def cluster_path(self) -> str:
+    def cluster_path(self, name: str = "") -> str:
+        """The path of the cluster's policy ``name`` ("": the main one), or the replicas' paths of it while not known."""
         with self.lock:
-            if self.policy is not None:
-                return self.policy[0]
-            paths = sorted({s.policy[0] for s in self.state.values() if s.policy is not None})
+            name = name or self.main
+            if name in self.policies:
+                return self.policies[name][0]
+            paths = sorted({s.served[name][0] for s in self.state.values() if name in s.served})
             return paths[0] if len(paths) == 1 else ",".join(paths)
 
-    def _roll(self, path: str, overrides: tuple[str, ...], drain: bool, timeout: float) -> RollResult:
-        old = self.cluster_path()
+    def _roll(self, name: str, path: str, overrides: tuple[str, ...], drain: bool, timeout: float) -> RollResult:
+        old = self.cluster_path(name)
         if not path:
-            return RollResult("refused", "no policy path given", old, path)
+            return RollResult("refused", "no policy path given", old, path, policy=name)
+        names = self.policy_names()
+        if name not in names:
+            served = ", ".join(repr(n) for n in names)
+            return RollResult("refused", f"no policy named {name[:80]!r}: the cluster serves {served}", old, path, policy=name)
+        label = f"{name}=" if len(names) > 1 else ""  # which policy, where the replicas serve several
         with self.lock:
             up = [rid for rid in self.replicas.ids() if self.state[rid].view.healthy]
             down = [rid for rid in self.replicas.ids() if rid not in up]
-            was = {rid: (self.state[rid].policy or ("?", ()))[0] for rid in self.replicas.ids()}
+            was = {rid: self.state[rid].served.get(name, ("?", ()))[0] for rid in self.replicas.ids()}
         if not up:
-            return RollResult("refused", "no replica is up; nothing changed", old, path)
+            return RollResult("refused", "no replica is up; nothing changed", old, path, policy=name)
         switched: list[str] = []
         for rid in up:
             with self.lock:
-                if self.state[rid].policy == (path, overrides):
+                if self.state[rid].served.get(name) == (path, overrides):
                     switched.append(rid)  # already serves it (a roll run again after one that stopped)
                     continue
-            log.info("rolling swap: %s loads %s", rid, path)
+            log.info("rolling swap: %s loads %s%s", rid, label, path)
             try:
-                answer = self.replicas.swap(rid, path, list(overrides), drain, timeout)
+                answer = self.replicas.swap(rid, path, list(overrides), drain, timeout, policy_name=name)
             except ReplicaDown as exc:
                 answer = {"result": "failed", "message": f"did not answer ({exc})"}
             except Exception as exc:  # noqa: BLE001 - one replica's error stops the roll, told as is
@@ -388,34 +513,73 @@ class ClusterFront(ArmoryServicer):
                 rest = [r for r in up if r not in switched]
                 where = "; ".join(
                     part for part in (
-                        f"{','.join(switched)} serve {path}" if switched else "",
-                        f"{','.join(rest)} serve {was[rest[0]]}" if rest else "",
+                        f"{','.join(switched)} serve {label}{path}" if switched else "",
+                        f"{','.join(rest)} serve {label}{was[rest[0]]}" if rest else "",
                         f"{','.join(down)} down" if down else "",
                     ) if part
                 )  # fmt: skip
                 why = str(answer.get("message", "")).replace("\n", " ")
-                return RollResult(answer["result"], f"stopped at {rid} ({answer['result']}: {why}): {where}", old, path, 0.0, switched)
+                stopped = f"stopped at {rid} ({answer['result']}: {why}): {where}"
+                return RollResult(answer["result"], stopped, old, path, 0.0, switched, name)
             with self.lock:
-                self.state[rid].policy = (path, overrides)
+                self.state[rid].served[name] = (path, overrides)
             switched.append(rid)
         with self.lock:
-            self.policy = (path, overrides)
+            self.policies[name] = (path, overrides)
             self._behind |= set(down)  # brought to the new policy when they come back
         tail = f"; {','.join(down)} down, load it when back" if down else ""
-        return RollResult("ok", f"{','.join(switched)} serve {path}{tail}", old, path, 0.0, switched)
+        return RollResult("ok", f"{','.join(switched)} serve {label}{path}{tail}", old, path, 0.0, switched, name)
 
     def _rolled(self, result: RollResult, t0: float) -> RollResult:
         result.seconds = time.monotonic() - t0
         with self.lock:
             self.rolls[result.result] += 1
         if result.result == "ok":
-            log.info("rolling swap %s -> %s in %.2f s: %s", result.old_path, result.new_path, result.seconds, result.message)
+            log.info(
+                "rolling swap of %s %s -> %s in %.2f s: %s", result.policy, result.old_path, result.new_path, result.seconds, result.message
+            )
         else:
-            log.warning("rolling swap %s -> %s %s: %s", result.old_path, result.new_path, result.result, result.message)
+            log.warning("rolling swap of %s %s -> %s %s: %s", result.policy, result.old_path, result.new_path, result.result, result.message)
         return result
 
     def _rebuild(self, state: ReplicaState) -> None:
         state.view.robots = {**state.reported, **{k: spec for k, (spec, _) in state.pending.items()}}
+        state.pending_policy = {k: v for k, v in state.pending_policy.items() if k in state.pending}
+        state.view.capacity_of = self._capacity_of(state)
+
+    def _learn_robot_policies(self) -> None:
+        """Under the lock: every robot's policy, anew from the robots the replicas report and those
+        pending (bounded: no other robot's is kept)."""
+        policy_of: dict[str, str] = {}
+        for state in self.state.values():
+            policy_of.update(state.reported_policy)
+            policy_of.update(state.pending_policy)
+        self.policy_of = policy_of
+
+    def _capacity_of(self, state: ReplicaState) -> RobotPolicies | None:
+        """Each robot's own policy's capacity on this replica (None where it serves one policy). The
+        robot -> policy map is the front's, cluster-wide: a robot placement or a move considers for
+        this replica is charged at its own policy here too."""
+        if len(state.capacities) < 2:
+            return None
+        return RobotPolicies(dict(state.capacities), self.policy_of, state.view.capacity)
+
+    def _reserve(self, state: ReplicaState, spec: RobotSpec, policy: str) -> None:
+        """Count ``spec`` (of ``policy``) on the replica until it reports the robot (or PENDING_S passes)."""
+        state.pending[spec.robot_id] = (spec, self.clock() + PENDING_S)
+        state.pending_policy[spec.robot_id] = policy
+        if self.policy_of.get(spec.robot_id) != policy:
+            # A new map, never one changed in place: a view keeps the one its load was summed with.
+            self.policy_of = {**self.policy_of, spec.robot_id: policy}
+        self._rebuild(state)
+
+    @staticmethod
+    def _placing(view: ReplicaView, robots: Iterable[str], policy: str) -> ReplicaView:
+        """``view`` as placement weighs it for a newcomer of ``policy``: ``robots`` (the newcomer, and
+        the registrations counted as its equals) charged at that policy's capacity."""
+        if not isinstance(view.capacity_of, RobotPolicies):
+            return view
+        return replace(view, capacity_of=view.capacity_of.placing(robots, policy))
 
     def _plan_move(self, now: float) -> Move | None:
         """The next move, planned on the robots that stream (as the replicas report them): a
@@ -478,18 +642,22 @@ class ClusterFront(ArmoryServicer):
             with self.lock:
                 views = [s.view for rid, s in self.state.items() if rid not in tried]
                 spec = self._spec(request)
+                policy = self.policy_for(request.policy_name)
                 # The robots that stream stay balanced whatever is chosen (placement.balanced_choices):
                 # registrations that never stream cannot push newcomers onto one replica.
-                keep = (
-                    balanced_choices(spec, [replace(s.view, robots=dict(s.reported)) for rid, s in self.state.items() if rid not in tried])
-                    if spec is not None
-                    else set()
-                )
+                streaming = [
+                    self._placing(replace(s.view, robots=dict(s.reported)), (robot,), policy)
+                    for rid, s in self.state.items() if rid not in tried
+                ]  # fmt: skip
+                keep = balanced_choices(spec, streaming) if spec is not None else set()
                 try:
                     if spec is not None:
                         # A registration that has not streamed yet counts as one more robot like
-                        # this one, whatever it claimed (placement.with_unverified).
-                        placed = [with_unverified(s.view, s.reported, s.pending, spec) for rid, s in self.state.items() if rid not in tried]
+                        # this one, whatever it claimed (placement.with_unverified), of its policy.
+                        placed = [
+                            self._placing(with_unverified(s.view, s.reported, s.pending, spec), [robot, *(k for k in s.pending if k not in s.reported)], policy)
+                            for rid, s in self.state.items() if rid not in tried
+                        ]  # fmt: skip
                         rid = self.placement.choose(spec, [v for v in placed if v.replica_id in keep and v.open] or placed)
                     else:  # the replica will refuse it and say why: any open one answers
                         rid = min((v for v in views if v.open), key=lambda v: (len(v.robots), v.replica_id)).replica_id
@@ -506,13 +674,14 @@ class ClusterFront(ArmoryServicer):
                 if spec is not None and state.view.healthy and state.address:
                     # Reserved with the choice, under the same lock: robots registering at the same
                     # moment see each other and spread (Register reserves it again before its call).
-                    state.pending[robot] = (spec, self.clock() + PENDING_S)
-                    self._rebuild(state)
+                    self._reserve(state, spec, policy)
             tried.add(rid)
             yield rid
 
     def _spec(self, request: pb.RegisterRequest) -> RobotSpec | None:
-        chunk = max((s.chunk_size for s in self.state.values() if s.view.healthy), default=0)
+        """The robot as placement sees it: its claims, with its policy's chunk size."""
+        policy = self.policy_for(request.policy_name)
+        chunk = max((s.chunk_sizes.get(policy, s.chunk_size) for s in self.state.values() if s.view.healthy), default=0)
         try:
             # Placement weighs at most 1 here: the replica's fleet policy grants the real weight,
             # and a robot must not buy a lighter replica by asking for a heavy one.
@@ -545,8 +714,7 @@ class ClusterFront(ArmoryServicer):
                 if address and spec is not None:
                     # Reserved before the call: robots registering at the same moment (the robots
                     # of a replica that just died) see each other and spread.
-                    state.pending[request.robot_id] = (spec, self.clock() + PENDING_S)
-                    self._rebuild(state)
+                    self._reserve(state, spec, self.policy_for(request.policy_name))
             if not address:
                 continue
             remaining = context.time_remaining()
@@ -613,6 +781,7 @@ class ClusterFront(ArmoryServicer):
                 log.warning("replica %s did not answer a registration; marked down until it answers again", rid)
             state.view.healthy = False
             state.reported = {}
+            state.reported_policy = {}
 
     def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:
         context.abort(

@@ -1,12 +1,13 @@
 """One replica of a cluster, and the sets of replicas a front talks to.
 
 A replica *is* ``lerobot-armory-server``: :func:`~lerobot_armory.entrypoints.server.build_server` with the
-user's options on a free port. It adds three calls for the front: ``info`` (where it listens,
-its ``d_infer`` table, the policy it serves), ``load`` (info plus the robots it serves, from its
-own fleet: the front rebuilds its whole view from these, so a restarted front loses nothing),
-``release`` (move a robot away between two of its chunks), ``swap`` (load another checkpoint
-beside the served one and switch between batches, as ``lerobot-armory-admin swap`` does on a
-single server: the front rolls a swap replica by replica) and ``set_forwarding_key`` (the key with
+user's options on a free port. It adds calls for the front: ``info`` (where it listens, and per
+policy served its ``d_infer`` table, chunk size and checkpoint), ``load`` (info plus the robots it
+serves and each one's policy, from its own fleet: the front rebuilds its whole view from these, so
+a restarted front loses nothing), ``release`` (move a robot away between two of its chunks),
+``swap`` (load another checkpoint of one policy beside the served one and switch between batches,
+as ``lerobot-armory-admin swap`` does on a single server: the front rolls a swap replica by
+replica) and ``set_forwarding_key`` (the key with
 which the front proves which robot host a forwarded registration is from: serving/forwarding.py).
 
 :class:`ArmoryReplica` is a plain class; Ray runs it as an actor (:class:`RayReplicas`), tests
@@ -29,6 +30,7 @@ from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.entrypoints.server import ArmoryServer, build_server
 from lerobot_armory.serving.config import ServerConfig
 from lerobot_armory.serving.forwarding import ForwardingKey
+from lerobot_armory.serving.swap import SwapResult
 
 log = logging.getLogger(__name__)
 
@@ -70,26 +72,49 @@ class ArmoryReplica:
         log.info("replica %s serving at %s (pid %d)", replica_id, self.address, os.getpid())
 
     def info(self) -> dict[str, Any]:
-        """Where it listens and what it can serve: id, address, ``d_infer`` table (s), limits."""
+        """Where it listens and what it can serve: id, address, limits and, in ``policies``, each
+        policy served by name (its ``d_infer`` table in s, chunk size, checkpoint, swaps). The
+        top-level ``latency_s``, ``chunk_size``, ``policy*`` and ``swaps`` are the first (main)
+        policy's, ``policy_name`` its name, as replicas serving one policy answered."""
+        policies = {name: self._policy(name) for name in self.server.swappers}
+        main = self.server.loop.default_policy
+        first = policies[main]
         return {
             "replica_id": self.replica_id,
             "address": self.address,
-            "latency_s": list(self.server.scheduler.d_infer),
+            "latency_s": first["latency_s"],
             "max_robots": self.server.fleet.max_robots,
-            "chunk_size": self.server.policy.chunk_size,
-            "policy": self.server.policy.description,
-            "policy_path": self.server.swapper.current.path,
-            "policy_overrides": list(self.server.swapper.current.options.overrides),
-            "swaps": dict(self.server.swapper.counts.by_result),
+            "chunk_size": first["chunk_size"],
+            "policy": first["description"],
+            "policy_path": first["path"],
+            "policy_overrides": first["overrides"],
+            "swaps": first["swaps"],
+            "policy_name": main,
+            "policies": policies,
             "pid": os.getpid(),
             "instance": self.instance,
         }
 
+    def _policy(self, name: str) -> dict[str, Any]:
+        """One served policy: its scheduler's ``d_infer`` for b = 1..its cap, chunk size, checkpoint, swaps."""
+        swapper = self.server.swappers[name]
+        scheduler = self.server.loop.policies[name].scheduler
+        current = swapper.current
+        return {
+            "latency_s": list(scheduler.d_infer[: getattr(scheduler, "max_batch_size", None)]),
+            "chunk_size": current.shape.chunk_size,
+            "description": current.description,
+            "path": current.path,
+            "overrides": list(current.options.overrides),
+            "swaps": dict(swapper.counts.by_result),
+        }
+
     def load(self) -> dict[str, Any]:
-        """``info`` plus the robots streaming here (their granted specs) and a status line."""
+        """``info`` plus the robots streaming here (their granted specs and policies) and a status line."""
         with self.server.fleet.cond:
             robots = [
-                {**dataclasses.asdict(s.spec), "starvation_pct": s.counters.reported_starvation_pct} for s in self.server.fleet.active()
+                {**dataclasses.asdict(s.spec), "starvation_pct": s.counters.reported_starvation_pct, "policy": s.policy}
+                for s in self.server.fleet.active()
             ]
         return {**self.info(), "robots": robots, "status": self.server.status_line(), "alive": self.server.loop.alive}
 
@@ -97,9 +122,15 @@ class ArmoryReplica:
         """Move ``robot_id`` away between two of its chunks (False: it does not stream here)."""
         return self.server.fleet.release(robot_id)
 
-    def swap(self, path: str, overrides: list[str], drain: bool = False) -> dict[str, Any]:
-        """Serve ``path`` from the next batch (serving/swap.py); its :class:`SwapResult` as a dict."""
-        return dataclasses.asdict(self.server.swapper.swap(path, overrides, drain))
+    def swap(self, path: str, overrides: list[str], drain: bool = False, policy_name: str = "") -> dict[str, Any]:
+        """Serve ``path`` as policy ``policy_name`` ("": the main one) from the next batch
+        (serving/swap.py); its :class:`SwapResult` as a dict (refused: no policy of that name)."""
+        name = policy_name or self.server.loop.default_policy
+        swapper = self.server.swappers.get(name)
+        if swapper is None:
+            names = ", ".join(repr(n) for n in self.server.swappers)
+            return dataclasses.asdict(SwapResult("refused", f"no policy named {name[:80]!r}: {self.replica_id} serves {names}", "", path))
+        return dataclasses.asdict(swapper.swap(path, overrides, drain))
 
     def set_forwarding_key(self, key: ForwardingKey) -> None:
         """Count registrations the front forwards against the robot host it proves with ``key``
@@ -143,7 +174,9 @@ class ReplicaSet(Protocol):
         """The replica's :meth:`ArmoryReplica.release` (:class:`ReplicaDown` if it does not answer)."""
         ...
 
-    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
+    def swap(
+        self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float, policy_name: str = ""
+    ) -> dict[str, Any]:
         """The replica's :meth:`ArmoryReplica.swap` (:class:`ReplicaDown` if it does not answer)."""
         ...
 
@@ -173,8 +206,10 @@ class LocalReplicas:
     def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
         return self._get(replica_id).release(robot_id)
 
-    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
-        return self._get(replica_id).swap(path, overrides, drain)
+    def swap(
+        self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float, policy_name: str = ""
+    ) -> dict[str, Any]:
+        return self._get(replica_id).swap(path, overrides, drain, policy_name)
 
     def set_forwarding_key(self, replica_id: str, key: ForwardingKey, timeout: float) -> None:
         self._get(replica_id).set_forwarding_key(key)
@@ -211,8 +246,10 @@ class RayReplicas:
     def release(self, replica_id: str, robot_id: str, timeout: float) -> bool:
         return self._call(replica_id, "release", robot_id, timeout=timeout)
 
-    def swap(self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float) -> dict[str, Any]:
-        return self._call(replica_id, "swap", path, overrides, drain, timeout=timeout)
+    def swap(
+        self, replica_id: str, path: str, overrides: list[str], drain: bool, timeout: float, policy_name: str = ""
+    ) -> dict[str, Any]:
+        return self._call(replica_id, "swap", path, overrides, drain, policy_name, timeout=timeout)
 
     def set_forwarding_key(self, replica_id: str, key: ForwardingKey, timeout: float) -> None:
         self._call(replica_id, "set_forwarding_key", key, timeout=timeout)
