@@ -17,6 +17,11 @@ one policy. The rule follows the schedulers' ``arbitration`` (they all share one
 - ``score`` (a plugin scheduler that sets ``last_score`` to something comparable across
   policies): every policy proposes and the highest score wins.
 
+Each deciding scheduler is shown the other policies (their robots, ``d_infer`` and cap) as
+:attr:`~lerobot_armory.schedulers.base.Scheduler.peers` for that one decision: a scheduler that
+plans later batches must count theirs (Rollout, planning as if the device were its own, starved
+both policies of an ACT-heavy fleet: docs/results/multi_policy). The others ignore it.
+
 With ``rotate`` and ``deadline`` only the picked policy's scheduler runs (its decision costs what
 it costs alone, and RR's rotation advances only for the policy served). With one policy every rule
 reduces to that policy's dispatcher: the same plans, bit for bit.
@@ -30,6 +35,7 @@ from collections.abc import Mapping, Sequence
 
 from lerobot_armory.dispatch import Dispatcher, Plan, Proposal
 from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.schedulers.base import DevicePeer
 
 RULES = ("rotate", "deadline", "score")
 # The name of the policy of a server or simulated fleet that serves one (``--policy.path``).
@@ -69,16 +75,22 @@ class PolicyArbiter:
             for name, dispatcher in self.dispatchers.items():
                 dispatcher.propose(mirrors.get(name, ()), now)  # ends a dispatcher's hold, books nothing
             return None
-        if len(names) == 1 or self.rule != "score":
-            name = names[0] if len(names) == 1 else self._pick(names, mirrors)
-            proposal = self.dispatchers[name].propose(mirrors[name], now)
-        else:
-            proposals = {n: self.dispatchers[n].propose(mirrors[n], now) for n in names}
-            name = max(names, key=lambda n: _score(proposals[n]))  # the first of equals: registration order
-            proposal = proposals[name]
-        assert proposal is not None  # has_work held for this policy
-        self._last = name
-        return name, self.dispatchers[name].book(proposal, mirrors[name])
+        shared = self._show_peers(mirrors)
+        try:
+            if len(names) == 1 or self.rule != "score":
+                name = names[0] if len(names) == 1 else self._pick(names, mirrors)
+                proposal = self.dispatchers[name].propose(mirrors[name], now)
+            else:
+                proposals = {n: self.dispatchers[n].propose(mirrors[n], now) for n in names}
+                name = max(names, key=lambda n: _score(proposals[n]))  # the first of equals: registration order
+                proposal = proposals[name]
+            assert proposal is not None  # has_work held for this policy
+            self._last = name
+            return name, self.dispatchers[name].book(proposal, mirrors[name])
+        finally:
+            if shared:  # peers are one decision's view: never left for a later, unrelated call
+                for dispatcher in self.dispatchers.values():
+                    dispatcher.scheduler.peers = ()
 
     def complete(self, policy: str, plan: Plan, t_done: float) -> None:
         """The batch ``plan`` of ``policy`` finished at ``t_done``."""
@@ -87,6 +99,23 @@ class PolicyArbiter:
     def cancel(self, policy: str, plan: Plan) -> None:
         """The batch ``plan`` of ``policy`` will never be delivered."""
         self.dispatchers[policy].cancel(plan)
+
+    def _show_peers(self, mirrors: Mapping[str, Sequence[RobotMirror]]) -> bool:
+        """Tell each policy's scheduler which other policies' robots share the device now
+        (:attr:`~lerobot_armory.schedulers.base.Scheduler.peers`). With one policy, or when the
+        others have no robots, it sees none: it plans as it does alone."""
+        if len(self.dispatchers) == 1:
+            return False
+        shared = False
+        for name, dispatcher in self.dispatchers.items():
+            peers = tuple(
+                DevicePeer(mirrors[other], d.scheduler.d_infer, d.scheduler.max_batch_size)
+                for other, d in self.dispatchers.items()
+                if other != name and mirrors.get(other)
+            )
+            dispatcher.scheduler.peers = peers
+            shared = shared or bool(peers)
+        return shared
 
     def _pick(self, names: list[str], mirrors: Mapping[str, Sequence[RobotMirror]]) -> str:
         if self.rule == "rotate":

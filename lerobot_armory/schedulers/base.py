@@ -36,6 +36,21 @@ from lerobot_armory.schedulers.plugins import discover_once
 from lerobot_armory.schedulers.dispatch_timing import check_timing, hold_until
 
 
+@dataclass(frozen=True)
+class DevicePeer:
+    """Another policy sharing the device, as the arbiter shows it to a scheduler deciding now.
+
+    Attributes:
+        robots: that policy's robots' mirrors (registration order).
+        d_infer: its batch latencies in seconds, index ``b - 1`` (its scheduler's ``d_infer``).
+        max_batch_size: its batch cap.
+    """
+
+    robots: Sequence[RobotMirror]
+    d_infer: Sequence[float]
+    max_batch_size: int
+
+
 class Scheduler(abc.ABC):
     """Chooses which robots share the next batch.
 
@@ -55,6 +70,11 @@ class Scheduler(abc.ABC):
     # "score" (the highest ``last_score``, which the scheduler sets in ``select``).
     arbitration: str = "deadline"
     last_score: float | None = None
+    # The other policies on the same device (lerobot_armory/arbiter.py): set by the arbiter for
+    # one decision (select, then hold) when several policies share the device, () otherwise. A
+    # scheduler that plans later batches (Rollout) must count their batches: the device is not
+    # its own. The others may ignore it.
+    peers: tuple[DevicePeer, ...] = ()
 
     def __init__(self, profile: LatencyProfile, max_batch_size: int) -> None:
         if max_batch_size < 1:

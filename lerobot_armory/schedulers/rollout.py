@@ -31,6 +31,19 @@ once it cannot), and it decides which robots are useful later. Rollout measures 
 
 3. **Score.** The fleet's weighted executed robot time in the window (docs/spec.md §2 reward, each
    robot's own weight). The best candidate is dispatched; ties go to the smaller batch.
+4. **A shared device.** When other policies share the device (the
+   :class:`~lerobot_armory.arbiter.PolicyArbiter` shows them as :attr:`Scheduler.peers`), the
+   rollout plays the whole device: their robots are in the pool and scored, and after each batch
+   the policy of the soonest deadline goes next (the arbiter's rule), a peer's batch chosen by
+   the same base policies at its own ``d_infer``. And a robot left out of a batch must survive
+   not only this policy's next batch but the longest batch another policy may run in between
+   (the *gap* of :meth:`~RolloutScheduler._due`). Without both, a flat 10 ms ACT beside a π0.5
+   served its robots one or two at a time, just in time (free on a device of its own), took
+   38 % of the device in 1.8-robot batches where 8-robot ones cost the same, and its robots
+   left out waited behind 87 ms π0.5 batches: the study's ``act-heavy`` N = 32 starved 7.97 %
+   mixed against 1.55 % on a device split by demand, 0.62 % with both
+   (docs/results/multi_policy/README.md). With one policy nothing changes, bit for bit.
+
 The study also measured other orders inside the later batches (largest weighted coverage gain
 first), rolling out the previous decision's plan again, and more candidates; none moved the
 results enough to keep (``docs/results/frontier/README.md``, commit 8588e12), so they are not
@@ -39,7 +52,8 @@ knobs of the product.
 Decisions depend on nothing but the mirror state, so they are deterministic and the same on
 every machine; the cost is bounded by ``CANDIDATES`` × the window's epochs (SPEC budget:
 ≤ 1 ms p99 at N = 10, b = 5; ≤ 10 ms at N = 100, b = 8; see ``benchmarks/decision_time.py``
-and ``research/benchmarks/frontier.py``).
+and ``research/benchmarks/frontier.py``). On a shared device a rollout plays every policy's
+robots, so a decision costs about what one policy's of the whole fleet's size would.
 
 Why it is fast enough. A rollout asks three things about a robot many times: its index at a
 tick, when it runs dry, and when it becomes useful again. It keeps each robot in the mirror's
@@ -81,13 +95,14 @@ class _Robot:
 
     __slots__ = (
         "k", "mirror", "index", "queue", "origin", "fps", "one_way", "h", "hm", "wpt", "last", "obs",
-        "ticks", "useful", "deadline", "base", "ready", "gains", "i",
+        "ticks", "useful", "deadline", "base", "ready", "gains", "i", "g",
     )  # fmt: skip
 
-    def __init__(self, k: int, mirror: RobotMirror, now: float, horizon_s: float) -> None:
+    def __init__(self, k: int, mirror: RobotMirror, now: float, horizon_s: float, g: int = 0) -> None:
         view = mirror.window_view(now, horizon_s)
         spec = mirror.spec
         self.k = k
+        self.g = g  # its policy: 0 this scheduler's, 1.. the peers' (Scheduler.peers), in order
         self.mirror = mirror
         self.index = view.index
         self.queue = queue_of(view.index, view.chunks)
@@ -148,6 +163,10 @@ class RolloutScheduler(Scheduler):
         self.window_s = window_s
         # The last select()'s (now, pool, batch, score, tail): hold() re-rolls that batch later.
         self._decided: tuple | None = None
+        # The last select()'s peer policies, (d_infer, cap, base policy, gap) each, index g - 1,
+        # and this policy's gap (see _due).
+        self._peer_rules: list[tuple[Sequence[float], int, str, float]] = []
+        self._gap = 0.0
 
     # ---- the decision ----------------------------------------------------------------------
 
@@ -156,15 +175,28 @@ class RolloutScheduler(Scheduler):
         useful = [r for r in pool if r.useful]
         if not useful:
             return []
+        pool += self._peer_robots(len(robots), now)
         for i, r in enumerate(pool):
             r.i = i
         self._order = sorted(pool, key=lambda r: (r.deadline, r.k))
         # Each rollout starts from copies of these (lists by pool position: cheaper than dicts).
         self._ready0 = [r.ready for r in pool]
         self._deadline0 = [r.deadline for r in pool]
-        ranked = [r for r in self._order if r.useful]
+        # On a shared device another policy's batch may run between two of this policy's: the
+        # longest batch of any other policy is the gap a robot left out of a batch must survive.
+        longest = [self.d_infer[self.max_batch_size - 1]]
+        longest += [p.d_infer[p.max_batch_size - 1] if p.robots else 0.0 for p in self.peers]
+        gaps = [max((x for h, x in enumerate(longest) if h != g), default=0.0) for g in range(len(longest))]
+        self._gap = gaps[0]
+        ranked = [r for r in self._order if r.useful and r.g == 0]
         b = min(self.max_batch_size, len(useful))
         tail = self._tail(ranked, now, b)
+        self._peer_rules = []
+        for g, peer in enumerate(self.peers, 1):
+            theirs = [r for r in self._order if r.useful and r.g == g]
+            cap = peer.max_batch_size
+            rule = self._tail(theirs, now, min(cap, len(theirs)), peer.d_infer) if theirs else "due"
+            self._peer_rules.append((peer.d_infer, cap, rule, gaps[g]))
         best: list[_Robot] | None = None
         best_score = -math.inf
         for first in self._first_batches(useful, ranked, now, b):
@@ -206,10 +238,32 @@ class RolloutScheduler(Scheduler):
                 chosen, chosen_score = t, score
         return chosen
 
-    def _tail(self, ranked: list[_Robot], now: float, b: int) -> str:
+    def _peer_robots(self, k0: int, now: float) -> list[_Robot]:
+        """The other policies' robots on this device (:attr:`Scheduler.peers`), in rollout form.
+
+        Why: on a shared device this policy's next batch does not start when its batch ends; the
+        others' batches run in between, and every device-second this policy spends is one they
+        wait. Alone, a 10 ms ACT batch of one robot costs nothing its rollout could see; beside a
+        π0.5 it costs the π0.5 robots that device time (docs/results/multi_policy). A peer robot
+        whose mirror cannot be evaluated is left out (its own policy's dispatcher deals with it).
+        """
+        out: list[_Robot] = []
+        for g, peer in enumerate(self.peers, 1):
+            for mirror in peer.robots:
+                if mirror.obs_index is None:
+                    continue
+                try:
+                    out.append(_Robot(k0 + len(out), mirror, now, self.window_s, g))
+                except Exception:  # noqa: BLE001 - another policy's broken robot: not this decision's
+                    continue
+        return out
+
+    def _tail(self, ranked: list[_Robot], now: float, b: int, d: Sequence[float] | None = None) -> str:
         """The base policy for this decision's rollouts: ``same`` when more robots are due than
-        one batch can hold (the throughput regime), else ``due``."""
-        limit = now + self.d_infer[b - 1] + self.d_infer[0]
+        one batch can hold (the throughput regime), else ``due`` (``d``: the policy's d_infer,
+        this scheduler's by default)."""
+        d = self.d_infer if d is None else d
+        limit = now + d[b - 1] + d[0]
         due_now = sum(1 for r in ranked if r.deadline < limit + r.one_way)
         return "same" if due_now > b else "due"
 
@@ -255,15 +309,26 @@ class RolloutScheduler(Scheduler):
         out.sort(key=len)
         return out
 
-    def _due(self, ranked: list[_Robot], t: float, deadline: list[float], cap: int) -> list[_Robot]:
+    def _due(
+        self,
+        ranked: list[_Robot],
+        t: float,
+        deadline: list[float],
+        cap: int,
+        d: Sequence[float] | None = None,
+        gap: float | None = None,
+    ) -> list[_Robot]:
         """EDF, but only the robots that run dry before a chunk of the *next* batch could reach
-        them (at best ``d_infer(s) + d_infer(1) + d_action`` from now); at least the first."""
-        d = self.d_infer
+        them (at best ``d_infer(s) + gap + d_infer(1) + d_action`` from now); at least the first.
+        ``d``: the robots' policy's d_infer; ``gap``: the longest batch another policy may run
+        in between (0 alone); both this scheduler's by default."""
+        d = self.d_infer if d is None else d
+        gap = self._gap if gap is None else gap
         out: list[_Robot] = []
         for r in ranked:
             if len(out) == cap:
                 break
-            if deadline[r.i] < t + d[len(out)] + d[0] + r.one_way:
+            if deadline[r.i] < t + d[len(out)] + gap + d[0] + r.one_way:
                 out.append(r)
             else:
                 break  # sorted by deadline: nobody later is due either
@@ -274,17 +339,23 @@ class RolloutScheduler(Scheduler):
     def _rollout(self, pool: list[_Robot], first: list[_Robot], now: float, tail: str, end: float | None = None) -> float:
         """Weighted executed time the window gains by dispatching ``first`` at ``now``, then
         following the base policy ``tail`` (``due`` or ``same``) until ``end`` (default: the
-        window after ``now``; a timed dispatch passes the decision's window)."""
+        window after ``now``; a timed dispatch passes the decision's window).
+
+        With peers (other policies on the device) the rollout plays the whole device: after each
+        batch the policy of the soonest deadline goes next (the arbiter's rule), a peer's batch
+        chosen by its own base policy (``due``, or its full batch) at its own ``d_infer``, and
+        every robot's executed time is scored."""
         d = self.d_infer
         end = now + self.window_s if end is None else end
         cap = self.max_batch_size
+        peers = self._peer_rules
         queues: dict[int, Queue] = {}  # served robots' queues, by pool position
         ready = self._ready0[:]  # time from which each robot is useful (again), by pool position
         deadline = self._deadline0[:]
         batch = first
         t = now
         while True:
-            t_done = t + d[len(batch) - 1]
+            t_done = t + (peers[batch[0].g - 1][0] if batch[0].g else d)[len(batch) - 1]
             for r in batch:
                 q = queues.get(r.i, r.queue)
                 obs = r.obs_at(t, q)
@@ -304,6 +375,13 @@ class RolloutScheduler(Scheduler):
                 ranked = self._useful_at(t, ready, deadline)
                 if not ranked:
                     break
+            if peers:
+                g = ranked[0].g  # the policy of the soonest deadline goes next
+                ranked = [r for r in ranked if r.g == g]
+                if g:
+                    d_g, cap_g, rule, gap_g = peers[g - 1]
+                    batch = self._due(ranked, t, deadline, cap_g, d_g, gap_g) if rule == "due" else ranked[:cap_g]
+                    continue
             batch = self._due(ranked, t, deadline, cap) if tail == "due" else ranked[: len(first)]
         score = 0.0
         for i, q in queues.items():

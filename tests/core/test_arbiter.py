@@ -131,6 +131,37 @@ def test_a_scoring_scheduler_gives_the_device_to_the_highest_score():
     assert [s.arbitration for s in (LookaheadScheduler(FAST, 2), RolloutScheduler(FAST, 2), EarliestDeadlineScheduler(FAST, 2))] == ["deadline"] * 3
 
 
+class _Seeing(EarliestDeadlineScheduler):
+    """EDF that notes the peers it was shown at each decision."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.seen = []
+
+    def select(self, robots, now):
+        self.seen.append(self.peers)
+        return super().select(robots, now)
+
+
+def test_each_scheduler_sees_the_other_policies_for_one_decision_only():
+    a, b = robots("a", 2), robots("b", 3)
+    sa, sb = _Seeing(FAST, 3), _Seeing(SLOW, 2)
+    arb = PolicyArbiter({"A": Dispatcher(sa), "B": Dispatcher(sb)})
+    name, plan = arb.plan({"A": a, "B": b}, 0.0)
+    deciding, other = (sa, sb) if name == "A" else (sb, sa)
+    (peers,) = deciding.seen
+    (peer,) = peers
+    assert list(peer.robots) == (b if name == "A" else a)
+    assert list(peer.d_infer) == list(other.d_infer) and peer.max_batch_size == other.max_batch_size
+    assert sa.peers == () and sb.peers == ()  # cleared once the batch is booked
+    # A policy with no robots is no peer; with one policy nothing is ever shown.
+    assert arb.plan({"A": robots("x", 2), "B": []}, 1.0)[0] == "A"
+    assert sa.seen[-1] == ()
+    alone = _Seeing(FAST, 3)
+    PolicyArbiter({"only": Dispatcher(alone)}).plan({"only": robots("c", 2)}, 0.0)
+    assert alone.seen == [()]
+
+
 def test_schedulers_that_arbitrate_differently_cannot_share_a_device():
     with pytest.raises(ValueError, match="arbitrate alike"):
         PolicyArbiter({"a": Dispatcher(RoundRobinScheduler(FAST, 2)), "b": Dispatcher(EarliestDeadlineScheduler(FAST, 2))})
