@@ -76,8 +76,8 @@ SHARE_SCENARIOS = ("share_liar", "share_lean")
 ONCE = ("never_reads", "slot_squat", "identity", "idle_sockets", "garbage", "openpi_idle", "openpi_garbage", "openpi_never_reads")
 SINGLE_PREFERENCE = ("lookahead", "edf", "rr", "rollout")
 SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
-# share_liar: the liar's chunks/s may be at most this multiple of its honest twin's (a robot with the
-# same registration in the same run), under every scheduler; rollout is always added.
+# share_liar: the liar's chunks/s may be at most this multiple of its lean honest twin's (its own
+# client and registration, honest, in the same run), under every scheduler; rollout is always added.
 SHARE_LIMIT = 1.15
 SHARE_REGISTRATION = (("h_min", 0),)
 # clock_ahead registers h_min 1 (served as often as it likes): its stand-in and twin register so
@@ -639,22 +639,34 @@ def share_row(
     row: dict[str, Any], extra: dict[str, Any], robots: list[dict[str, Any]], base_robots: list[dict[str, Any]], cfg: Config,
     failures: list[str], notes: list[str], limit: bool = True,
 ) -> None:
-    """share_liar: the liar's chunks/s against its honest twin's in the same run (same registration),
-    and the baseline's stand-in for reference; ``limit``: a ratio above ``SHARE_LIMIT`` fails the
-    row (not for the honest control, share_lean, whose ratio is what a lean client gets)."""
+    """share_liar: the liar's chunks/s against, in the same run and with the same registration,
+    its lean twin (an honest robot of the liar's own client: the two differ only by the lie; the
+    row's measure) and the armory_sim twin (another client too), with the baseline's stand-in for
+    reference. ``limit``: a lean ratio above ``SHARE_LIMIT`` fails the row (not for the honest
+    control share_lean, run on its own, whose ratio to the armory_sim twin is what a lean client
+    gets)."""
     liar = extra.get("chunks/s")
-    twin = chunks_per_s(robots, "twin", cfg.warmup_s)
+    lean = extra.get("lean chunks/s")
+    twin = chunks_per_s(robots, "twin", cfg.warmup_s) or 0.0
     standin = chunks_per_s(base_robots, "standin", cfg.warmup_s)
     row["liar_chunks_per_s"], row["twin_chunks_per_s"], row["standin_chunks_per_s"] = liar, twin, standin
+    row["lean_twin_chunks_per_s"] = lean
     row["share_ratio"] = liar / twin if (liar is not None and twin) else None
-    if row["share_ratio"] is None:
+    row["lean_ratio"] = liar / lean if (liar is not None and lean) else None
+    measure = row["lean_ratio"] if limit else row["share_ratio"]
+    if measure is None:
         failures.append("share not measured (no chunks for the liar or its twin)")
         return
-    if limit and row["share_ratio"] > SHARE_LIMIT:
-        failures.append(f"liar got {liar:.2f} chunks/s vs {twin:.2f} for its honest twin ({row['share_ratio']:.2f}x > {SHARE_LIMIT:g}x)")
+    if limit and measure > SHARE_LIMIT:
+        failures.append(f"liar got {liar:.2f} chunks/s vs {lean:.2f} for its lean honest twin ({measure:.2f}x > {SHARE_LIMIT:g}x)")
     ref = f", stand-in in the baseline {standin:.2f}" if standin is not None else ""
-    who = "liar" if limit else "lean honest client"
-    notes.append(f"{who} {liar:.2f} vs honest twin {twin:.2f} chunks/s ({row['share_ratio']:.2f}x){ref}")
+    if limit:
+        notes.append(
+            f"liar {liar:.2f} vs lean honest twin {lean:.2f} chunks/s ({measure:.2f}x); armory_sim twin {twin:.2f} "
+            f"(liar {row['share_ratio'] or float('nan'):.2f}x, lean twin {lean / twin if twin else float('nan'):.2f}x){ref}"
+        )
+    else:
+        notes.append(f"lean honest client {liar:.2f} vs honest twin {twin:.2f} chunks/s ({measure:.2f}x){ref}")
 
 
 # ---- planning and reporting ----------------------------------------------------------------------
@@ -697,6 +709,12 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
             if name in SHARE_SCENARIOS:
                 base.standin = SHARE_REGISTRATION
                 base.duration_s = 2 * cfg.duration_s  # ~50 chunks a robot: a ratio worth reading
+            if name == "share_liar":
+                # Beside the liar, an honest robot of its own client and registration (lean-twin):
+                # the two differ only by the lie. The baseline runs one in the liar's place too.
+                base.attack_kwargs = {"lean_twin": True}
+                base.standin_attack = "share_lean"
+                base.standin_kwargs = (("robot_id", "lean-twin"),)
             if name == "clock_ahead":
                 base.standin = CLOCK_AHEAD_REGISTRATION
             if name == "clock_step":
@@ -746,7 +764,9 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
     baselines = []
     for s, c, st, sa, sk in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2], p[3])):
         b = RunSpec("baseline", s, cap=c, standin=st, duration_s=2 * cfg.duration_s if st else None, standin_attack=sa, standin_kwargs=sk)
-        if sa:  # the stand-in runs where the attacker would, on ports of its own
+        if sa == "share_lean":  # an honest lean client where the liar's lean twin runs
+            b.attack, b.attack_kwargs = sa, dict(sk)
+        elif sa:  # the stand-in runs where the attacker would, on ports of its own
             port, b.metrics_port = free_port(), free_port()
             b.attack, b.attack_kwargs = sa, {"port": port, **dict(sk)}
             b.server_args = [f"--openpi.port={port}", f"--metrics_port={b.metrics_port}"]

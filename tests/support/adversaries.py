@@ -718,6 +718,8 @@ def share_liar(
     h_max: int = 10,
     token: str = "",
     honest: bool = False,
+    robot_id: str = "atk-share",
+    lean_twin: bool = False,
 ) -> AttackReport:
     """Tries to buy service with lies the server cannot see directly: registers ``fps`` and
     ``h_min`` like a robot that may be served at once, then sends ``rate_hz`` observations a
@@ -731,8 +733,20 @@ def share_liar(
     observations a second stamped now, but claiming only what it really executed: one action
     per tick of its own ``fps`` clock, when a chunk that had arrived by that tick covers it. The
     liar and this robot differ only by the lie, where the armory_sim twin also differs by its
-    client (images rendered, a control loop that sees a chunk at its next tick)."""
+    client (images rendered, a control loop that sees a chunk at its next tick).
+
+    ``lean_twin=True`` runs that honest control beside the liar, in the same run, as robot
+    ``lean-twin``: its chunks per second go to ``report.extra["lean chunks/s"]``."""
     report = report or AttackReport("share_lean" if honest else "share_liar")
+    twin_thread = None
+    if lean_twin:
+        twin_report = AttackReport("share_lean")
+        twin_kwargs = {"rate_hz": rate_hz, "fps": fps, "h_min": h_min, "h_max": h_max, "token": token}
+        twin_thread = threading.Thread(
+            target=share_liar, args=(address, stop, features, twin_report),
+            kwargs={**twin_kwargs, "honest": True, "robot_id": "lean-twin"}, name="lean-twin", daemon=True,
+        )  # fmt: skip
+        twin_thread.start()
     lock = threading.Lock()
     state = {"end": 0, "first": None, "last": None, "n": 0}
     arrivals: list[tuple[int, float]] = []
@@ -749,7 +763,7 @@ def share_liar(
             arrivals.append((msg.chunk.chunk_id, now))
             held.append((msg.chunk.i_start, now))
 
-    robot = Robot(address, features, report, "atk-share", fps=fps, h_min=h_min, h_max=h_max, token=token)
+    robot = Robot(address, features, report, robot_id, fps=fps, h_min=h_min, h_max=h_max, token=token)
     obs = Observations(features)
     index = 0
     start = time.monotonic()
@@ -779,6 +793,9 @@ def share_liar(
         report.extra["chunks"] = state["n"]
         report.extra["chunks/s"] = state["n"] / max(1e-9, end - start)
         report.extra["claimed index"] = index
+    if twin_thread is not None:
+        twin_thread.join(timeout=30)
+        report.extra["lean chunks/s"] = twin_report.extra.get("chunks/s")
     return report
 
 
@@ -1418,7 +1435,10 @@ def openpi_honest(
 
 
 # The honest stand-ins of attackers whose baseline is not an armory_sim robot.
-STANDINS: dict[str, Callable[..., AttackReport]] = {"openpi_honest": openpi_honest}
+STANDINS: dict[str, Callable[..., AttackReport]] = {
+    "openpi_honest": openpi_honest,
+    "share_lean": functools.partial(share_liar, honest=True),
+}
 
 
 SCENARIOS: dict[str, Callable[..., AttackReport]] = {
