@@ -584,7 +584,8 @@ def judge(spec: RunSpec, record: dict[str, Any], baseline: dict[str, Any] | None
         notes.append(f"machine {record['machine_busy_pct']:.0f}% busy")
     extra = record.get("attack", {}).get("extra", {})
     if spec.scenario in SHARE_SCENARIOS:
-        share_row(row, extra, robots, base_robots, cfg, failures, notes, limit=spec.scenario == "share_liar")
+        base_extra = (baseline or {}).get("attack", {}).get("extra", {})
+        share_row(row, extra, robots, base_robots, cfg, failures, notes, limit=spec.scenario == "share_liar", base_extra=base_extra)
     if spec.scenario == "priority_flood" and "granted weight" in extra:
         notes.append(f"granted weight {extra['granted weight']:g}")
     if spec.scenario == "never_reads" and "sent MiB" in extra:
@@ -637,7 +638,7 @@ def chunks_per_s(robots: list[dict[str, Any]], robot_id: str, start: float) -> f
 
 def share_row(
     row: dict[str, Any], extra: dict[str, Any], robots: list[dict[str, Any]], base_robots: list[dict[str, Any]], cfg: Config,
-    failures: list[str], notes: list[str], limit: bool = True,
+    failures: list[str], notes: list[str], limit: bool = True, base_extra: dict[str, Any] | None = None,
 ) -> None:
     """share_liar: the liar's chunks/s against, in the same run and with the same registration,
     its lean twin (an honest robot of the liar's own client: the two differ only by the lie; the
@@ -648,7 +649,8 @@ def share_row(
     liar = extra.get("chunks/s")
     lean = extra.get("lean chunks/s")
     twin = chunks_per_s(robots, "twin", cfg.warmup_s) or 0.0
-    standin = chunks_per_s(base_robots, "standin", cfg.warmup_s)
+    # The baseline's stand-in: an armory_sim robot, or (share_liar) an honest lean client.
+    standin = chunks_per_s(base_robots, "standin", cfg.warmup_s) or (base_extra or {}).get("chunks/s")
     row["liar_chunks_per_s"], row["twin_chunks_per_s"], row["standin_chunks_per_s"] = liar, twin, standin
     row["lean_twin_chunks_per_s"] = lean
     row["share_ratio"] = liar / twin if (liar is not None and twin) else None
@@ -711,10 +713,10 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
                 base.duration_s = 2 * cfg.duration_s  # ~50 chunks a robot: a ratio worth reading
             if name == "share_liar":
                 # Beside the liar, an honest robot of its own client and registration (lean-twin):
-                # the two differ only by the lie. The baseline runs one in the liar's place too.
+                # the two differ only by the lie. The baseline runs two honest lean clients, in the
+                # liar's place and the twin's, so that both runs serve the same robots.
                 base.attack_kwargs = {"lean_twin": True}
-                base.standin_attack = "share_lean"
-                base.standin_kwargs = (("robot_id", "lean-twin"),)
+                base.standin_attack = "share_lean_pair"
             if name == "clock_ahead":
                 base.standin = CLOCK_AHEAD_REGISTRATION
             if name == "clock_step":
@@ -764,7 +766,7 @@ def plan(cfg: Config, work: Path) -> list[RunSpec]:
     baselines = []
     for s, c, st, sa, sk in sorted(needed, key=lambda p: (order.get(p[0], 9), -p[1], p[2], p[3])):
         b = RunSpec("baseline", s, cap=c, standin=st, duration_s=2 * cfg.duration_s if st else None, standin_attack=sa, standin_kwargs=sk)
-        if sa == "share_lean":  # an honest lean client where the liar's lean twin runs
+        if sa == "share_lean_pair":  # honest lean clients where the liar and its lean twin run
             b.attack, b.attack_kwargs = sa, dict(sk)
         elif sa:  # the stand-in runs where the attacker would, on ports of its own
             port, b.metrics_port = free_port(), free_port()

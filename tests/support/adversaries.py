@@ -1438,6 +1438,8 @@ def openpi_honest(
 STANDINS: dict[str, Callable[..., AttackReport]] = {
     "openpi_honest": openpi_honest,
     "share_lean": functools.partial(share_liar, honest=True),
+    # share_liar's baseline: an honest lean client in the liar's place, beside its lean twin.
+    "share_lean_pair": functools.partial(share_liar, honest=True, robot_id="standin", lean_twin=True),
 }
 
 
