@@ -38,7 +38,8 @@ class Refused(Exception):
 
 
 class RobotAt:
-    """What the front's Register reads of a gRPC context, for a robot at ``host``."""
+    """What the front's Register reads of a gRPC context, for a robot at ``host``. Its own copy of
+    ``tests/support/cluster.py``'s: this script also runs on trees that predate that one."""
 
     def __init__(self, host: str) -> None:
         self._peer = f"ipv4:{host}:40000"

@@ -36,7 +36,7 @@ import torch  # noqa: E402
 
 from lerobot_armory.robot.client import ArmoryClient, RobotIdentity  # noqa: E402
 from lerobot_armory.schedulers import EarliestDeadlineConfig  # noqa: E402
-from tests.support.echo import FEATURES, EchoEngine, echo_server  # noqa: E402
+from tests.support.echo import FEATURES, EchoEngine, echo_robots, echo_server  # noqa: E402
 
 GIB = 1 << 30
 
@@ -88,31 +88,13 @@ class CudaAssertFrom(EchoEngine):
         return super().infer(observations, tasks, noise_seeds)
 
 
-def robots(server: Any, n: int, seconds: float) -> list[ArmoryClient]:
-    clients = []
-    for k in range(n):
-        state = np.full(4, float(k), np.float32)
-        clients.append(
-            ArmoryClient(
-                server.address, RobotIdentity(f"r{k}", 20.0, 2, 10), FEATURES,
-                observe=lambda state=state: {"observation.state": state}, act=lambda a: None,
-            )  # fmt: skip
-        )
-    threads = [threading.Thread(target=c.run, args=(seconds,)) for c in clients]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    return clients
-
-
 def out_of_memory(args: argparse.Namespace) -> dict[str, Any]:
     free, total = torch.cuda.mem_get_info()
     ballast = torch.empty(max(0, free - int(args.free_gib * GIB)), dtype=torch.uint8, device="cuda")
     engine = CudaMemoryPerRow(args.gib_per_row)
     server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
     try:
-        clients = robots(server, 4, args.seconds)
+        clients = echo_robots(server, 4, args.seconds)
         stats = server.loop.stats
         notices = [n for c in clients for n in c.notices if "inference failed" in n]
         record = {

@@ -22,7 +22,7 @@ from lerobot_armory.proto.limits import FORWARD_PROOF_KEY, FORWARDED_FOR_KEY
 from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.robot.connection import Connection
-from tests.support.cluster import IMAGE, make_planner, replica_config, sim_robot, wait_for
+from tests.support.cluster import IMAGE, make_planner, register_from, replica_config, sim_robot, wait_for
 
 FEATURES = {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (IMAGE, IMAGE, 3))}
 SECRET = secrets.token_bytes(32)  # a front's forwarding key, known here to look for it in logs
@@ -119,30 +119,6 @@ def test_a_replica_s_registration_limit_is_named_as_such_not_as_full_replicas(sm
     assert _refused(_scrape(front.serve_metrics(0)), "replica_rate") == 1
 
 
-class RobotAt:
-    """What the front's ``Register`` reads of a gRPC context, for a robot at ``host``: robots on many
-    hosts without as many network interfaces (the forwarding to the replicas is real gRPC)."""
-
-    def __init__(self, host: str) -> None:
-        self._peer = f"ipv4:{host}:40000"
-
-    def peer(self) -> str:
-        return self._peer
-
-    def time_remaining(self) -> float:
-        return 5.0
-
-    def invocation_metadata(self) -> tuple:
-        return ()
-
-    def abort(self, code: grpc.StatusCode, details: str) -> None:
-        raise Refused(f"{code.name}: {details}")
-
-
-class Refused(Exception):
-    pass
-
-
 def _request(robot_id: str) -> pb.RegisterRequest:
     features = [pb.TensorSpec(name=n, dtype=d, shape=list(s)) for n, (d, s) in FEATURES.items()]
     return pb.RegisterRequest(robot_id=robot_id, fps=20.0, h_min=1, h_max=10, weight=1.0, tier="slow", features=features)
@@ -150,11 +126,7 @@ def _request(robot_id: str) -> pb.RegisterRequest:
 
 def _register_from(front: ClusterFront, host: str, robot_id: str) -> str:
     """Register ``robot_id`` with the front as a robot at ``host`` would: "OK" or "CODE: details"."""
-    try:
-        front.Register(_request(robot_id), RobotAt(host))
-        return "OK"
-    except Refused as exc:
-        return str(exc)
+    return register_from(front, host, _request(robot_id))
 
 
 def _register_direct(stub: ArmoryStub, robot_id: str, metadata: tuple) -> str:

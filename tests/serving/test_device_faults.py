@@ -13,7 +13,7 @@ import torch
 from lerobot_armory.engine.faults import Fault, classify
 from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
 from lerobot_armory.schedulers import EarliestDeadlineConfig
-from tests.support.echo import FEATURES, EchoEngine, echo_server
+from tests.support.echo import FEATURES, EchoEngine, echo_robots, echo_server
 from tests.support.pusher import wait_for
 
 
@@ -60,29 +60,11 @@ class LostDevice(EchoEngine):
         raise RuntimeError("CUDA error: an illegal memory access was encountered")
 
 
-def _robots(server, n: int, seconds: float) -> list[ArmoryClient]:
-    clients = []
-    for k in range(n):
-        state = np.full(4, float(k), np.float32)
-        clients.append(
-            ArmoryClient(
-                server.address, RobotIdentity(f"r{k}", 20.0, 2, 10), FEATURES,
-                observe=lambda state=state: {"observation.state": state}, act=lambda a: None,
-            )  # fmt: skip
-        )
-    threads = [threading.Thread(target=c.run, args=(seconds,)) for c in clients]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    return clients
-
-
 def test_out_of_memory_at_a_batch_size_lowers_the_cap_and_the_robots_are_served_without_an_error():
     engine = OutOfMemoryAbove(limit=3)
     server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
     try:
-        clients = _robots(server, 4, 3.0)
+        clients = echo_robots(server, 4, 3.0)
         stats = server.loop.stats
         assert any(b >= 3 for b in engine.sizes), f"no batch of 3 or more was tried: {engine.sizes}"
         assert stats.oom_batches >= 1 and stats.batch_cap == 2 and server.scheduler.max_batch_size == 2
@@ -104,7 +86,7 @@ def test_out_of_memory_at_a_batch_of_one_fails_that_batch_and_tells_its_robot():
     engine = OutOfMemoryAbove(limit=1)
     server = echo_server(engine, cap=2, scheduler=EarliestDeadlineConfig())
     try:
-        (client,) = _robots(server, 1, 1.0)
+        (client,) = echo_robots(server, 1, 1.0)
         stats = server.loop.stats
         assert stats.failed_batches >= 1 and stats.batch_cap in (None, 1)
         assert any("inference failed" in n for n in client.notices)

@@ -7,12 +7,14 @@ from another's. The load, transport and adversarial tests serve it, and ``benchm
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
 import numpy as np
 
 from lerobot_armory.engine.protocol import UnguidedEngine
+from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.feature_spec import FeatureSpec
@@ -41,3 +43,23 @@ def echo_server(engine: Any = None, cap: int = 4, scheduler: SchedulerConfig | N
     info = PolicyInfo("echo", [FeatureSpec("observation.state", "float32", (4,))], ["a", "b"], 10)
     profile = LatencyProfile("echo", tuple(5.0 + k for k in range(cap)))
     return ArmoryServer(engine or EchoEngine(), info, profile, scheduler or LookaheadConfig(), cap, port=0, **kwargs).start()
+
+
+def echo_robots(server: ArmoryServer, n: int, seconds: float) -> list[ArmoryClient]:
+    """``n`` state-only robots (``r0``...; robot k sends state k) run against ``server`` for
+    ``seconds``, each on its own thread; returns the clients once all have stopped."""
+    clients = []
+    for k in range(n):
+        state = np.full(4, float(k), np.float32)
+        clients.append(
+            ArmoryClient(
+                server.address, RobotIdentity(f"r{k}", 20.0, 2, 10), FEATURES,
+                observe=lambda state=state: {"observation.state": state}, act=lambda a: None,
+            )  # fmt: skip
+        )
+    threads = [threading.Thread(target=c.run, args=(seconds,)) for c in clients]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return clients
