@@ -52,7 +52,12 @@ vs_async() {  # vs_async N,N,...: ours (graphed π0.5) against LeRobot's async s
     --duration_s=30 --systems=ours,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
     --out="$OUT/vs_async" --work_dir=/tmp/vs
 }
-export -f env_report sim_pi05 live vs_async
+swap_gpu() {  # a live swap between two full π0.5 checkpoints (seeds 0 and 1) under 8 robots, b <= 8
+  sim_pi05 && { [ -f /tmp/pi05-sim-b/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--seed=1', '--output=/tmp/pi05-sim-b'])"; } \
+    && python3 benchmarks/swap.py --old=/tmp/pi05-sim --new=/tmp/pi05-sim-b --device=cuda --max_batch_size=8 \
+      --image_size=64 --robots=8 --window_s=15 --out="$OUT/swap_gpu.json"
+}
+export -f env_report sim_pi05 live vs_async swap_gpu
 export OUT
 
 for s in "$@"; do
@@ -69,7 +74,8 @@ for s in "$@"; do
     vs_async) step vs_async 560 vs_async 1,4 ;;
     vs_async8) step vs_async8 560 vs_async 8 ;;
     faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
-    *) echo "unknown step $s (env smoke graphs buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults)" | tee -a "$LOG" ;;
+    swap) step swap 400 swap_gpu ;;
+    *) echo "unknown step $s (env smoke graphs buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).

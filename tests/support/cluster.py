@@ -71,9 +71,9 @@ class SimRobot:
         return self.client.stats()
 
 
-def sim_robot(address: str, robot_id: str, fast: bool, seed: int) -> SimRobot:
+def sim_robot(address: str, robot_id: str, fast: bool, seed: int, image_size: int = IMAGE) -> SimRobot:
     scene = "dynamic" if fast else "static"
-    robot = ArmorySim(ArmorySimConfig(scene=scene, image_size=IMAGE, seed=seed))
+    robot = ArmorySim(ArmorySimConfig(scene=scene, image_size=image_size, seed=seed))
     fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
     client = ArmoryClient(
         address,

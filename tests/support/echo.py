@@ -47,7 +47,8 @@ def echo_server(engine: Any = None, cap: int = 4, scheduler: SchedulerConfig | N
 
 def echo_robots(server: ArmoryServer, n: int, seconds: float) -> list[ArmoryClient]:
     """``n`` state-only robots (``r0``...; robot k sends state k) run against ``server`` for
-    ``seconds``, each on its own thread; returns the clients once all have stopped."""
+    ``seconds``, each on its own thread; returns the clients once all have stopped and been
+    closed (a client left open would keep reconnecting, and logging, after its server stops)."""
     clients = []
     for k in range(n):
         state = np.full(4, float(k), np.float32)
@@ -62,4 +63,6 @@ def echo_robots(server: ArmoryServer, n: int, seconds: float) -> list[ArmoryClie
         t.start()
     for t in threads:
         t.join()
+    for c in clients:
+        c.close()
     return clients
