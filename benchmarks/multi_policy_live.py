@@ -79,9 +79,10 @@ def fleet_policy() -> Any:
 
 
 def scheduler_config(name: str) -> Any:
-    from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig
+    """The scheduler called ``name`` with its defaults (rr, edf, lookahead, rollout, ...)."""
+    from lerobot_armory.schedulers import make_scheduler_config
 
-    return {"edf": EarliestDeadlineConfig(), "lookahead": LookaheadConfig()}[name]
+    return make_scheduler_config(name)
 
 
 def run_fleet(addresses: dict[str, str], features: dict[str, Any], robots_per_policy: int, duration_s: float, named: bool) -> list[dict]:
