@@ -292,3 +292,24 @@ def test_a_cluster_takes_a_policies_file_and_a_bad_one_is_one_line(tmp_path):
     assert "unknown key(s) colour" in str(err.value) and len(str(err.value).splitlines()) == 1
     with pytest.raises(ConfigError, match="not both"):
         preflight(ClusterConfig(policies=str(good), policy=PolicyOptions("x")))
+
+
+def test_replicas_serving_different_policies_are_warned_of_once(caplog):
+    class Uneven(FakeReplicas):
+        def load(self, replica_id, timeout):
+            answer = super().load(replica_id, timeout)
+            if replica_id == "b":  # b was started without the sorting policy
+                answer["policies"] = {"kitchen": answer["policies"]["kitchen"]}
+            return answer
+
+    front = ClusterFront(Uneven(), FrontOptions())
+    with caplog.at_level("WARNING", logger="lerobot_armory.entrypoints.cluster.front"):
+        front.refresh()
+        front.refresh()
+    warned = [r.getMessage() for r in caplog.records if "serve different policies" in r.getMessage()]
+    assert warned == ["the replicas serve different policies (a: kitchen, sorting; b: kitchen): a robot of a policy its replica lacks is refused there"]
+    assert front.policy_names() == ("kitchen", "sorting")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lerobot_armory.entrypoints.cluster.front"):
+        ClusterFront(FakeReplicas(), FrontOptions()).refresh()  # alike: nothing to say
+    assert not [r for r in caplog.records if "serve different policies" in r.getMessage()]

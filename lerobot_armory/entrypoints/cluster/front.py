@@ -245,6 +245,7 @@ class ClusterFront(ArmoryServicer):
         self.rolls: dict[str, int] = {"ok": 0, "refused": 0, "failed": 0}
         self._roll_lock = threading.Lock()  # one roll (or restarted replica's catch-up) at a time
         self.syncing: set[str] = set()  # replicas being brought to self.policies: no robot is placed there
+        self._uneven_warned: frozenset | None = None  # the replicas' differing policies, once warned
         self._behind: set[str] = set()  # replicas a roll skipped (down): brought to the policy when back
 
     # ---- the view ----------------------------------------------------------------------------
@@ -359,6 +360,17 @@ class ClusterFront(ArmoryServicer):
         for state in up:
             names += [n for n in state.capacities if n not in names]
         self.names = tuple(names)
+        # Every replica should serve every policy (lerobot-armory-cluster starts them alike). One
+        # that does not (started by hand, or left from another cluster) refuses that policy's
+        # robots: said once per such state, not on every refresh.
+        served = {state.view.replica_id: tuple(state.capacities) for state in up}
+        uneven = frozenset(served.items()) if len(set(served.values())) > 1 else None
+        if uneven is not None and uneven != self._uneven_warned:
+            log.warning(
+                "the replicas serve different policies (%s): a robot of a policy its replica lacks is refused there",
+                "; ".join(f"{rid}: {', '.join(names)}" for rid, names in sorted(served.items())),
+            )
+        self._uneven_warned = uneven
 
     def policy_names(self) -> tuple[str, ...]:
         """The policies the cluster serves, the main one first (its main one's name until a replica answered)."""
