@@ -11,7 +11,7 @@ import grpc
 import numpy as np
 import pytest
 
-from lerobot_armory.engine.options import PolicyOptions
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, LocalReplicas
 from lerobot_armory.entrypoints.server import ServerConfig
@@ -25,9 +25,13 @@ from tests.support.pusher import Pusher, wait_for
 
 
 def replica_cfg(policy_dir, token_file) -> ServerConfig:
+    # An emulated profile: both replicas report the same d_infer. Profiled on a busy machine, one
+    # replica measured slower, placement by predicted load put all four robots on the other, and
+    # without rebalancing they stayed there (these tests need robots on both replicas).
     return ServerConfig(
         policy=PolicyOptions(str(policy_dir), "cpu"), scheduler=EarliestDeadlineConfig(), max_batch_size=3,
         status_interval_s=0.0, log_level="warning", port=0, operator_token_file=str(token_file),
+        engine=EngineOptions(emulate_profile="h100-pi05"),
     )  # fmt: skip
 
 
