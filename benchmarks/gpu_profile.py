@@ -9,8 +9,11 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
 - ``pi05-bf16-graphs``: the same policy served by our static sampler, one CUDA graph per bucket
   (``--engine.cuda_graphs=on``, buckets 1, 2, 4, 8); ``pi05-bf16-graphs-sdpa`` with
   ``--engine.attention=sdpa``; ``pi05-bf16-graphs-tf32`` with ``--engine.matmul_precision=high``
-  (LeRobot keeps the SigLIP tower in float32 even in bf16: TF32 speeds its products); ``pi05-bf16-graphs-compiled`` with ``--engine.compile_sampler=true``;
-  ``pi05-fp32-graphs`` in float32;
+  (LeRobot keeps the SigLIP tower in float32 even in bf16: TF32 speeds its products);
+  ``pi05-bf16-graphs-compiled`` with ``--engine.compile_sampler=true``; ``pi05-fp32-graphs`` in
+  float32; a ``-ordered`` suffix (``pi05-bf16-graphs-ordered``, ``pi05-bf16-graphs-tf32-ordered``):
+  ``--engine.fused_kernels=false``, LeRobot's sequence of operations in the static sampler (the
+  graphs configurations fuse by default);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 
@@ -63,6 +66,7 @@ from _common import Targets  # noqa: E402
 CONFIGS = (
     "act", "pi05-fp32", "pi05-bf16", "pi05-fp32-compiled", "pi05-bf16-compiled",
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
+    "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -77,14 +81,16 @@ def engine_options(config: str) -> Any:
 
     # Precision named in every configuration: "auto" would turn TF32 on for bf16 on a GPU, and
     # LeRobot's eager sampler is measured as LeRobot runs it.
-    precision = "high" if config.endswith("-tf32") else "highest"
+    flags = set(config.split("-graphs")[1].split("-")[1:]) if "-graphs" in config else set()
+    precision = "high" if "tf32" in flags else "highest"
     if "-graphs" not in config:
         return EngineOptions(cuda_graphs="off", matmul_precision=precision)
     return EngineOptions(
         cuda_graphs="on" if _cuda() else "off",  # on a CPU: the static sampler, unrecorded
         static_sampler=True,
-        attention="sdpa" if config.endswith("-sdpa") else "eager",
-        compile_sampler=config.endswith("-graphs-compiled"),
+        attention="sdpa" if "sdpa" in flags else "eager",
+        fused_kernels="ordered" not in flags,
+        compile_sampler="compiled" in flags,
         graph_buckets=ARGS.graph_buckets,
         matmul_precision=precision,
     )

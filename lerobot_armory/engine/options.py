@@ -51,6 +51,11 @@ class EngineOptions:
             fewer operations); unset: wherever graphs are on.
         attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
             (``torch.nn.functional.scaled_dot_product_attention``).
+        fused_kernels: the static sampler runs each transformer layer with fewer kernels (one
+            projection for q/k/v and one for the MLP's gate/up, whose weights become views of one
+            tensor each; one-kernel RMSNorm; q and k rotated together; residuals as ``addcmul``):
+            half the kernels a π0.5 sample launches, the same values in another rounding order
+            (``policies/pi05_kernels.py``). ``false``: LeRobot's own sequence of operations.
         compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph, one
             compilation per bucket at warm-up) before its graphs are recorded: fused kernels,
             fewer of them; compiling takes minutes.
@@ -68,6 +73,7 @@ class EngineOptions:
     graph_buckets: str | None = None
     static_sampler: bool | None = None
     attention: str = "eager"
+    fused_kernels: bool = True
     compile_sampler: bool = False
     matmul_precision: str = "auto"
 

@@ -174,6 +174,7 @@ class PolicyEngine:
         from lerobot_armory.engine.cuda_graphs import BucketedSampler
 
         o = self.engine_options
+        self.fused_kernels = False
         cuda = torch.device(self.device).type == "cuda"
         why = pi05_static.unsupported_reason(self.policy)
         if o.cuda_graphs == "on" and not cuda:
@@ -196,10 +197,17 @@ class PolicyEngine:
         rtc = self.rtc_options
         try:
             sampler = pi05_static.StaticPi05(
-                self.policy, guided=rtc is not None, max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0, attention=o.attention
+                self.policy,
+                guided=rtc is not None,
+                max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0,
+                attention=o.attention,
+                fused=o.fused_kernels,
             )
         except ValueError as exc:  # e.g. --policy.num_inference_steps=0
             raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None
+        if sampler.unfused_reason is not None:
+            log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
+        self.fused_kernels = sampler.fused
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         sample = sampler.sample
@@ -220,6 +228,8 @@ class PolicyEngine:
             buckets = ",".join(map(str, self.sampler.buckets)) or "-"
             if self.engine_options.compile_sampler:
                 notes.append("static sampler compiled")
+            if self.fused_kernels:
+                notes.append("fused kernels")
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")

@@ -9,6 +9,15 @@ shape depends on values (``nonzero``). :class:`OpTrace` records every aten op a 
 (under ``TorchDispatchMode``, so it works on the CPU, with no GPU), counts those that launch work,
 and names the ones that would synchronise with the host — the check that predicts whether a
 capture on a GPU can succeed (together with a ``torch.compile(fullgraph=True)`` trace).
+
+Counting kernels from a CPU has two traps:
+- under ``torch.inference_mode`` composite ops (``matmul``, ``linear``, ``reshape``) reach the
+  trace whole, hiding the copies they make of non-contiguous inputs; run the region under
+  ``torch.no_grad`` and they arrive decomposed (``mm``, ``bmm``, ``clone``), as a GPU runs them;
+- an op can be one kernel on CUDA and a composite on the CPU: ``rms_norm`` is CUDA's
+  ``_fused_rms_norm`` kernel (torch ≥ 2.8) but five ops here. :data:`ONE_KERNEL_ON_CUDA` lists
+  such functions; each call counts as one launch when this torch build has the CUDA kernel
+  (the same in either mode).
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ from collections import Counter
 from typing import Any
 
 import torch
+from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
 # Ops that only describe memory (no kernel): views, aliases and metadata.
@@ -36,6 +46,19 @@ HOST_SYNC_OPS = frozenset(
         "tolist", "argwhere",
     }
 )  # fmt: skip
+
+
+
+
+def _one_kernel_on_cuda() -> dict[Any, str]:
+    """Functions that CUDA runs as one kernel where this CPU runs several: function -> the CUDA op."""
+    out = {}
+    if torch._C._dispatch_has_kernel_for_dispatch_key("aten::_fused_rms_norm", "CUDA"):
+        out[torch.nn.functional.rms_norm] = "aten._fused_rms_norm.default"
+    return out
+
+
+ONE_KERNEL_ON_CUDA = _one_kernel_on_cuda()
 
 
 def op_name(func: Any) -> str:
@@ -61,16 +84,28 @@ class OpTrace(TorchDispatchMode):
         self.ops: Counter[str] = Counter()
         self.launched: Counter[str] = Counter()
         self.host_syncs: Counter[str] = Counter()
+        self._inside_fused = 0  # > 0: inside a function CUDA runs as one kernel (already counted)
+        self._functions = _FusedOnCuda(self)
+
+    def __enter__(self) -> OpTrace:
+        self._functions.__enter__()
+        return super().__enter__()
+
+    def __exit__(self, *exc: Any) -> None:
+        super().__exit__(*exc)
+        self._functions.__exit__(*exc)
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         kwargs = kwargs or {}
         name = op_name(func)
-        self.ops[str(func)] += 1
         if name in HOST_SYNC_OPS:
             self.host_syncs[str(func)] += 1
         out = func(*args, **kwargs)
         if name in ("_to_copy", "copy_", "to") and _crosses_devices(args, out):
             self.host_syncs[f"{func} (between devices)"] += 1
+        if self._inside_fused:
+            return out
+        self.ops[str(func)] += 1
         if name not in VIEW_OPS and (name.endswith("_") or not _returns_an_input(out, args)):
             self.launched[str(func)] += 1
         return out
@@ -101,3 +136,25 @@ def _crosses_devices(args: tuple, out: Any) -> bool:
     if isinstance(out, torch.Tensor):
         devices.add(out.device)
     return len(devices) > 1
+
+
+class _FusedOnCuda(TorchFunctionMode):
+    """Counts a call of a :data:`ONE_KERNEL_ON_CUDA` function as the one kernel CUDA launches, and
+    keeps the ops it runs here out of the count."""
+
+    def __init__(self, trace: OpTrace) -> None:
+        super().__init__()
+        self.trace = trace
+
+    def __torch_function__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        kwargs = kwargs or {}
+        cuda_op = ONE_KERNEL_ON_CUDA.get(func)
+        if cuda_op is None or self.trace._inside_fused:
+            return func(*args, **kwargs)
+        self.trace.ops[cuda_op] += 1
+        self.trace.launched[cuda_op] += 1
+        self.trace._inside_fused += 1
+        try:
+            return func(*args, **kwargs)
+        finally:
+            self.trace._inside_fused -= 1

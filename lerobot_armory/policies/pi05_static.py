@@ -10,7 +10,7 @@ arithmetic is a few tens of ms). It cannot be captured as it is, because every s
 
 :class:`StaticPi05` runs the policy's own modules (LeRobot's and HF's: the SigLIP tower, the
 embedding, every projection, norm, MLP and rotary table; no weight is copied and nothing of
-LeRobot is forked) in the order ``sample_actions`` runs them, with three changes:
+LeRobot is forked) in the order ``sample_actions`` runs them, with these changes:
 - the prefix writes its keys and values once into one buffer per layer that has room for the
   suffix; each denoising step writes the suffix's keys and values in place behind them (no clone,
   no concatenation);
@@ -22,7 +22,10 @@ LeRobot is forked) in the order ``sample_actions`` runs them, with three changes
   once per batch size by the same modules (:meth:`StaticPi05.prepare`), not at every step of every
   sample: constants of the recorded graph;
 - RTC's guidance is closed-form (see below), with one weight row and one leftover per batch row
-  as inputs, so a guided batch is the same graph as an unguided one.
+  as inputs, so a guided batch is the same graph as an unguided one;
+- each layer's operations come from ``pi05_kernels``: ``Fused`` by default (the same values with
+  half the kernels: fused projections, one-kernel norms, q and k rotated together), or
+  ``LeRobotOrder`` (``fused=False``), LeRobot's and HF's operations one for one.
 
 Row independence: no operation mixes batch rows, so a batch padded with extra rows gives its
 real rows exactly what the same rows give in a batch of the padded size. The engine pads a
@@ -34,12 +37,13 @@ the weighted error itself, ``(leftover - (x_t - t·v)) · w``. The step here com
 (``tests/policies/test_pi05_static.py`` checks it against LeRobot's processor); ``engine/rtc.py`` supplies
 the per-row weights from LeRobot's own ``get_prefix_weights``.
 
-Numerics: with ``attention="eager"`` every operation is the one LeRobot runs, in its dtype
+Numerics: with ``fused=False`` and ``attention="eager"`` every operation is the one LeRobot runs, in its dtype
 (``--policy.dtype=bfloat16`` keeps LeRobot's float32 islands: the vision tower, the projector,
 the norms, the time MLP, the action projections). The K/V layout for grouped-query attention
 (one K/V head for eight query heads) is broadcast instead of copied, which may change float
 rounding in the last bit. ``attention="sdpa"`` uses ``F.scaled_dot_product_attention`` with
-LeRobot's additive mask (same masking, a fused kernel on a GPU).
+LeRobot's additive mask (same masking, a fused kernel on a GPU). The fused kernels compute the
+same values in another rounding order (``pi05_kernels``: 4.8e-7 from LeRobot's chunks in float32).
 """
 
 from __future__ import annotations
@@ -50,10 +54,10 @@ from typing import Any
 
 import torch
 from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
-from lerobot.policies.pi_gemma import _gated_residual
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
+from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder, fusable_reason
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
@@ -173,12 +177,18 @@ class StaticPi05:
         guided: take RTC inputs (``SamplerInputs.rtc_*``) and apply LeRobot's guidance.
         max_guidance_weight: RTC's clamp (LeRobot's ``RTCConfig.max_guidance_weight``).
         attention: ``eager`` (LeRobot's own attention math) or ``sdpa``.
+        fused: run each layer with fewer kernels (``pi05_kernels.Fused``: the same values in
+            another rounding order; the layers' q/k/v and gate/up weights become views of one
+            tensor each) where the policy allows it (:attr:`unfused_reason` says why not);
+            False: LeRobot's own sequence of operations.
 
     Raises:
         ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
     """
 
-    def __init__(self, policy: Any, guided: bool = False, max_guidance_weight: float = 10.0, attention: str = "eager") -> None:
+    def __init__(
+        self, policy: Any, guided: bool = False, max_guidance_weight: float = 10.0, attention: str = "eager", fused: bool = True
+    ) -> None:
         why = unsupported_reason(policy)
         if why is not None:
             raise ValueError(why)
@@ -193,6 +203,9 @@ class StaticPi05:
         pwe = self.model.paligemma_with_expert
         self.vlm = _text_model(pwe)
         self.expert = pwe.gemma_expert.model
+        self.unfused_reason = fusable_reason([self.vlm, self.expert]) if fused else None
+        self.fused = fused and self.unfused_reason is None
+        self.ops = Fused([self.vlm, self.expert], attention) if self.fused else LeRobotOrder(attention)
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
@@ -255,10 +268,10 @@ class StaticPi05:
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # whole suffix; its positions follow the prefix's valid tokens.
         b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
-        valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, None, :].expand(b, 1, h, p + h)
-        mask = self._additive(valid)
+        valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, :].expand(b, h, p + h)
+        mask = self.ops.mask(self._additive(valid))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
-        rope = self._rope(self.expert, self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
+        rope = self.ops.rope(self.expert, self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
         conditioning = self.prepare(b)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
@@ -268,7 +281,7 @@ class StaticPi05:
                 # LeRobot's correction, closed form (module docstring): the weighted error.
                 err = (inputs.rtc_leftover - (x_t - time * v_t)) * inputs.rtc_weights
                 v_t = v_t - self.guidance_table[step] * err
-            x_t = x_t + self.dt * v_t
+            x_t = self.ops.euler(x_t, v_t, self.dt)
         return x_t
 
     def _embed_prefix(self, images: Sequence[Tensor], img_masks: Sequence[Tensor], tokens: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
@@ -293,15 +306,14 @@ class StaticPi05:
         """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``
         positions with the prefix's (post-rotary) keys and values in the first ``P``."""
         b, p = pad.shape
-        mask = self._additive((pad[:, None, :] & pad[:, :, None])[:, None])
+        mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]))
         positions = torch.cumsum(pad, dim=1) - 1
         h = embs.to(torch.bfloat16) if self._bf16(self.vlm) else embs
-        rope = self._rope(self.vlm, h, positions)
+        rope = self.ops.rope(self.vlm, h, positions)
         keys, values = [], []
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
-            x, gate = layer.input_layernorm(h, cond=None)
-            q, k, v = self._qkv(layer.self_attn, x, rope)
+            q, k, v = self.ops.qkv(layer.self_attn, self.ops.norm(layer.input_layernorm, h), rope)
             k_buf = k.new_empty(b, k.shape[1], p + self.chunk_size, k.shape[3])
             v_buf = v.new_empty(b, v.shape[1], p + self.chunk_size, v.shape[3])
             k_buf[:, :, :p] = k
@@ -310,7 +322,8 @@ class StaticPi05:
             values.append(v_buf)
             if i == last:
                 break  # the last layer's output is never read: only its keys and values are
-            h = self._finish_prefix_layer(layer, h, gate, self._attend(layer.self_attn, q, k, v, mask))
+            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, k, v, mask)), None)
+            h = self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
         return keys, values
 
     def _velocity(
@@ -320,72 +333,18 @@ class StaticPi05:
         h = self._expert_input(self.model.action_in_proj(x_t))
         for i, layer in enumerate(self.expert.layers):
             mod_in, mod_post = cond.layers[i]
-            x, gate = self._ada_norm(layer.input_layernorm, h, mod_in)
-            q, k, v = self._qkv(layer.self_attn, x, rope)
+            q, k, v = self.ops.qkv(layer.self_attn, self.ops.ada_norm(layer.input_layernorm, h, mod_in.scale1, mod_in.shift), rope)
             keys[i][:, :, p:] = k  # in place, behind the prefix (HF's cache concatenates a copy)
             values[i][:, :, p:] = v
-            h = _gated_residual(h, layer.self_attn.o_proj(self._attend(layer.self_attn, q, keys[i], values[i], mask)), gate)
-            x, gate = self._ada_norm(layer.post_attention_layernorm, h, mod_post)
-            h = _gated_residual(h, layer.mlp(x), gate)
-        h, _ = self._ada_norm(self.expert.norm, h, cond.final)
+            attended = self.ops.attend(layer.self_attn, q, keys[i], values[i], mask)
+            h = self.ops.residual(h, layer.self_attn.o_proj(attended), mod_in.gate)
+            x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post.scale1, mod_post.shift)
+            h = self.ops.residual(h, self.ops.mlp(layer.mlp, x), mod_post.gate)
+        h = self.ops.ada_norm(self.expert.norm, h, cond.final.scale1, cond.final.shift)
         return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
 
-    @staticmethod
-    def _ada_norm(norm: Any, x: Tensor, mod: Modulation) -> tuple[Tensor, Tensor]:
-        """``PiGemmaRMSNorm.forward(x, cond)`` with its conditioning precomputed."""
-        return (norm._norm(x) * mod.scale1 + mod.shift).to(x.dtype), mod.gate
-
-    # -- one transformer layer ------------------------------------------------------------------
-
-    @staticmethod
-    def _rope(text_model: Any, x: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
-        """The model's rotary table for ``positions``, shaped for (B, heads, L, d) and with the
-        sign of ``rotate_half`` folded into the sine: ``rotate_half(q) · sin`` is then
-        ``swap_halves(q) · signed_sin``, bit for bit (a sign flip is exact), one kernel fewer."""
-        cos, sin = text_model.rotary_emb(x, positions)
-        half = sin.shape[-1] // 2
-        return cos.unsqueeze(1), torch.cat((-sin[..., :half], sin[..., half:]), dim=-1).unsqueeze(1)
-
-    @staticmethod
-    def _qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-        """Projections and HF's ``apply_rotary_pos_emb`` (with :meth:`_rope`'s table)."""
-        cos, signed_sin = rope
-        shape = (*x.shape[:-1], -1, attn.head_dim)
-        q = attn.q_proj(x).view(shape).transpose(1, 2)
-        k = attn.k_proj(x).view(shape).transpose(1, 2)
-        v = attn.v_proj(x).view(shape).transpose(1, 2)
-        half = q.shape[-1] // 2
-        q = q * cos + torch.cat((q[..., half:], q[..., :half]), dim=-1) * signed_sin
-        k = k * cos + torch.cat((k[..., half:], k[..., :half]), dim=-1) * signed_sin
-        return q, k, v
-
-    def _attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
-        """Attention of ``q`` (B, Hq, Lq, d) over ``k``/``v`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
-        b, heads, lq, d = q.shape
-        groups = heads // k.shape[1]
-        if self.attention == "sdpa":
-            out = torch.nn.functional.scaled_dot_product_attention(
-                q, k, v, attn_mask=mask.to(q.dtype), scale=attn.scaling, enable_gqa=groups > 1
-            )
-        else:
-            # HF's eager_attention_forward, with the query heads of one K/V head folded into the
-            # query length instead of the K/V head copied ``groups`` times (repeat_kv).
-            qg = q.reshape(b, k.shape[1], groups * lq, d)
-            scores = torch.matmul(qg, k.transpose(2, 3)) * attn.scaling
-            scores = scores.view(b, heads, lq, -1) + mask
-            probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
-            out = torch.matmul(probs.view(b, k.shape[1], groups * lq, -1), v).view(b, heads, lq, d)
-        return out.transpose(1, 2).reshape(b, lq, heads * d)
-
-    @staticmethod
-    def _finish_prefix_layer(layer: Any, h: Tensor, gate: Tensor | None, attn_out: Tensor) -> Tensor:
-        """The rest of a PiGemma decoder layer of the VLM: output projection, residual, MLP."""
-        h = _gated_residual(h, layer.self_attn.o_proj(attn_out), gate)
-        x, gate = layer.post_attention_layernorm(h, cond=None)
-        return _gated_residual(h, layer.mlp(x), gate)
-
     def _additive(self, valid: Tensor) -> Tensor:
-        """LeRobot's 4-D additive mask: 0 where attended, its large negative constant elsewhere."""
+        """LeRobot's additive mask (B, Lq, Lk): 0 where attended, its large negative constant elsewhere."""
         return torch.where(valid, 0.0, self.mask_value)
 
     def _expert_input(self, x: Tensor) -> Tensor:

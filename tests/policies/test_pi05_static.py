@@ -383,3 +383,101 @@ def test_creating_parameters_on_a_device_that_fails_falls_back_to_the_cpu(pi05_d
         policy = engine_mod._from_pretrained(PI05Policy, str(pi05_dir), config, "cuda")
     assert next(policy.parameters()).device.type == "cpu"
     assert any("creating pi05's parameters on cuda failed" in r.message for r in caplog.records)
+
+
+def test_lerobots_own_order_of_operations_stays_one_option_away(engines, pi05_dir):
+    """``--engine.fused_kernels=false`` runs LeRobot's sequence of operations (the reference the
+    fused kernels are held to); both equal LeRobot's chunks (1e-5), unguided and guided."""
+    lerobot, fused = engines
+    plain = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC, EngineOptions(static_sampler=True, fused_kernels=False, graph_buckets="1,4"))
+    plain.warmup(4, log_progress=False)
+    assert fused.fused_kernels and "fused kernels" in fused.description
+    assert not plain.fused_kernels and "fused kernels" not in plain.description
+    for b in (1, 3):
+        obs, tasks, seeds, prefixes = batch(b, seed=5)
+        want = lerobot.infer(obs, tasks, seeds)
+        np.testing.assert_allclose(plain.infer(obs, tasks, seeds), want, atol=1e-5, rtol=0)
+        np.testing.assert_allclose(fused.infer(obs, tasks, seeds), want, atol=1e-5, rtol=0)
+        np.testing.assert_allclose(
+            plain.infer_guided(obs, tasks, seeds, prefixes)[1], lerobot.infer_guided(obs, tasks, seeds, prefixes)[1], atol=1e-5, rtol=0
+        )
+
+
+def test_fusing_keeps_every_weight_and_adds_no_memory(pi05_dir):
+    """The fused projections are the layers' own weights: after fusing, every parameter has the
+    value it had, q/k/v (and gate/up) of a layer are views of one tensor, the parameters occupy
+    the bytes they did, and a second sampler over the same policy shares the first's tensors."""
+    import torch
+
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))  # LeRobot's sampler: nothing fused yet
+    policy = engine.policy
+    before = {k: v.detach().clone() for k, v in policy.state_dict().items()}
+
+    def parameter_bytes() -> int:
+        return sum({p.untyped_storage().data_ptr(): p.untyped_storage().nbytes() for p in policy.parameters()}.values())
+
+    bytes_before = parameter_bytes()
+    first = StaticPi05(policy)
+    assert first.fused and first.unfused_reason is None
+    after = policy.state_dict()
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+    assert parameter_bytes() == bytes_before
+    for layer in (*first.vlm.layers, *first.expert.layers):
+        attn, mlp = layer.self_attn, layer.mlp
+        qkv, gate_up = first.ops.qkv_weight[attn], first.ops.gate_up_weight[mlp]
+        assert qkv.data_ptr() == attn.q_proj.weight.data_ptr() and gate_up.data_ptr() == mlp.gate_proj.weight.data_ptr()
+        assert torch.equal(qkv, torch.cat([attn.q_proj.weight, attn.k_proj.weight, attn.v_proj.weight]))
+        assert torch.equal(gate_up, torch.cat([mlp.gate_proj.weight, mlp.up_proj.weight]))
+    second = StaticPi05(policy)
+    attn = first.expert.layers[0].self_attn
+    assert second.ops.qkv_weight[attn].data_ptr() == first.ops.qkv_weight[attn].data_ptr()
+    assert parameter_bytes() == bytes_before
+
+
+def test_fused_kernels_halve_the_launches_of_a_sample(engines, pi05_dir):
+    """Counted as a GPU would launch them (``OpTrace`` under no_grad: composite ops decomposed,
+    ``rms_norm`` one kernel where CUDA has it): the fused sampler launches at most 0.6× the
+    kernels of LeRobot's order at every bucket, and neither waits for the host."""
+    import torch
+
+    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    _, static = engines
+    plain = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC)
+    samplers = {"plain": StaticPi05(plain.policy, guided=True, fused=False), "fused": StaticPi05(static.policy, guided=True)}
+    for b in BUCKETS:
+        obs, tasks, seeds, prefixes = batch(b)
+        kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
+        inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+        launches = {}
+        for name, sampler in samplers.items():
+            with torch.no_grad():
+                sampler.sample(inputs)  # the per-size constants, outside the count
+                with OpTrace() as trace:
+                    sampler.sample(inputs)
+            assert not trace.host_syncs, (name, dict(trace.host_syncs))
+            launches[name] = trace.launches
+        assert launches["fused"] <= 0.6 * launches["plain"], launches
+
+
+def test_a_layer_that_cannot_be_fused_is_served_in_lerobots_order_and_says_why(pi05_dir, caplog):
+    """A checkpoint whose K projection has a bias (π0.5's has none) cannot share one q/k/v weight:
+    the static sampler runs LeRobot's order, the log says why, and the chunks still equal LeRobot's
+    on that same checkpoint (its bias applied)."""
+    import logging
+
+    import torch
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+    k_proj = engine.policy.model.paligemma_with_expert.gemma_expert.model.layers[1].self_attn.k_proj
+    k_proj.bias = torch.nn.Parameter(torch.linspace(-0.5, 0.5, k_proj.out_features))
+    obs, tasks, seeds, _ = batch(2, seed=7)
+    want = engine.infer(obs, tasks, seeds)
+    with caplog.at_level(logging.INFO):
+        engine.use_sampler(EngineOptions(static_sampler=True))
+    assert engine.sampler is not None and not engine.fused_kernels
+    assert any("fused kernels off): a projection has a bias" in r.message for r in caplog.records)
+    np.testing.assert_allclose(engine.infer(obs, tasks, seeds), want, atol=1e-5, rtol=0)

@@ -1,0 +1,272 @@
+"""The operations of one π0.5 transformer layer, two ways: LeRobot's own sequence, and fewer kernels.
+
+The static sampler (``pi05_static.py``) runs the same loop either way; what differs is how many
+kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
+still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
+the action expert runs 18 layers at each of 10 denoising steps, ≈ 43 kernels a layer in LeRobot's
+sequence, ≈ 7,700 of the ≈ 8,700 a sample launches (``benchmarks/pi05_ops.py``).
+
+:class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
+bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values with fewer kernels:
+
+- **one projection for q, k and v, and one for the MLP's gate and up** — the layer's q/k/v (and
+  gate/up) weights are made *views* of one concatenated tensor (:func:`fuse_weights`): no weight
+  is copied, none changes value, and LeRobot's modules keep working on them;
+- **RMSNorm as one kernel** (``torch.nn.functional.rms_norm``: ``_fused_rms_norm`` on CUDA, where
+  LeRobot's ``square, mean, add, rsqrt, mul`` is five), the adaptive norm's scale and shift as one
+  ``addcmul``, the plain norm's ``1 + weight`` computed once;
+- **the rotary embedding of q and k together, with the attention scale folded into q's table**
+  (three kernels for both, where HF's is four each plus a scale on the scores);
+- **attention without layout copies**: with one K/V head (π0.5: eight query heads on one), the
+  projection's ``(B, L, heads, d)`` memory is already ``(B, L·heads, d)`` query rows, so the
+  scores, the softmax and the weighted sum run on it as it lies, and the output is the
+  ``(B, L, heads·d)`` the output projection takes (HF transposes twice and copies K/V per head);
+- **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``).
+
+Numerics: the same operations in float32 (or LeRobot's dtypes under bfloat16) with a different
+rounding order: a fused ``a + b·c`` rounds once where two kernels round twice, the fused norm
+reduces in its own order. Folding the scale into q is exact when it is a power of two (π0.5's
+head size 256 gives 1/16). ``tests/policies/test_pi05_static.py`` holds the fused chunks to
+LeRobot's within 1e-5 in float32.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from lerobot.policies.pi_gemma import _gated_residual
+from torch import Tensor
+
+
+class LeRobotOrder:
+    """LeRobot's and HF's operations, in their order (see the module docstring).
+
+    Layouts: rotary tables ``(B, 1, L, d)``; masks ``(B, 1, Lq, Lk)``; q/k/v ``(B, heads, L, d)``.
+    """
+
+    def __init__(self, attention: str) -> None:
+        self.attention = attention
+
+    def rope(self, text_model: Any, x: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """The model's rotary table for ``positions``, with the sign of ``rotate_half`` folded into
+        the sine: ``rotate_half(q) · sin`` is then ``swap_halves(q) · signed_sin``, bit for bit."""
+        cos, sin = text_model.rotary_emb(x, positions)
+        return cos.unsqueeze(1), _signed(sin).unsqueeze(1)
+
+    @staticmethod
+    def mask(additive: Tensor) -> Tensor:
+        """``(B, Lq, Lk)`` additive mask in this layout."""
+        return additive[:, None]
+
+    @staticmethod
+    def norm(norm: Any, h: Tensor) -> Tensor:
+        return norm(h, cond=None)[0]
+
+    @staticmethod
+    def ada_norm(norm: Any, h: Tensor, scale1: Tensor, shift: Tensor) -> Tensor:
+        """``PiGemmaRMSNorm.forward(h, cond)`` with the conditioning precomputed."""
+        return (norm._norm(h) * scale1 + shift).to(h.dtype)
+
+    @staticmethod
+    def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """Projections and HF's ``apply_rotary_pos_emb``: q, k, v as ``(B, heads, L, d)``."""
+        cos, signed_sin = rope
+        shape = (*x.shape[:-1], -1, attn.head_dim)
+        q = attn.q_proj(x).view(shape).transpose(1, 2)
+        k = attn.k_proj(x).view(shape).transpose(1, 2)
+        v = attn.v_proj(x).view(shape).transpose(1, 2)
+        return q * cos + _swap_halves(q) * signed_sin, k * cos + _swap_halves(k) * signed_sin, v
+
+    def attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
+        """Attention of ``q`` (B, Hq, Lq, d) over ``k``/``v`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
+        return _attention(self.attention, q, k, v, mask, attn.scaling)
+
+    @staticmethod
+    def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
+        return _gated_residual(h, y, gate)
+
+    @staticmethod
+    def mlp(mlp: Any, x: Tensor) -> Tensor:
+        return mlp(x)
+
+    @staticmethod
+    def euler(x: Tensor, v: Tensor, dt: float) -> Tensor:
+        return x + dt * v
+
+
+class Fused(LeRobotOrder):
+    """The same values as :class:`LeRobotOrder` with fewer kernels (see the module docstring).
+
+    Layouts: rotary tables ``(B, L, Hq + Hkv, d)`` with q's scale in; masks ``(B, Lq, 1, Lk)``;
+    q ``(B, Lq, Hq, d)``; k/v ``(B, Hkv, L, d)`` as the K/V buffers hold them.
+
+    Args:
+        text_models: the Gemma models whose layers run here (the VLM and the action expert);
+            their layers' projection weights become views of fused tensors (:func:`fuse_weights`).
+        attention: ``eager`` or ``sdpa``.
+
+    Raises:
+        ValueError: a layer cannot be fused (:func:`fusable_reason`).
+    """
+
+    def __init__(self, text_models: list[Any], attention: str) -> None:
+        super().__init__(attention)
+        why = fusable_reason(text_models)
+        if why is not None:
+            raise ValueError(why)
+        self.qkv_weight: dict[Any, Tensor] = {}
+        self.gate_up_weight: dict[Any, Tensor] = {}
+        self.norm_weight: dict[Any, Tensor] = {}
+        self.head_scale: dict[Any, Tensor] = {}  # per model: (Hq + Hkv, 1), q's rows scaled
+        for model in text_models:
+            attn = model.layers[0].self_attn
+            heads, kv_heads = _heads(attn)
+            weight = attn.q_proj.weight
+            # In the dtype of the model's rotary table (its hidden states'), made here: a tensor
+            # filled from Python inside a recorded region would be a host-to-device copy.
+            scale = torch.ones(heads + kv_heads, 1, device=weight.device)
+            scale[:heads] = attn.scaling
+            self.head_scale[model] = scale.to(weight.dtype if weight.dtype == torch.bfloat16 else torch.float32)
+            for layer in model.layers:
+                attn, mlp = layer.self_attn, layer.mlp
+                self.qkv_weight[attn] = fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj])
+                self.gate_up_weight[mlp] = fuse_weights([mlp.gate_proj, mlp.up_proj])
+                for norm in (layer.input_layernorm, layer.post_attention_layernorm):
+                    if norm.dense is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
+                        self.norm_weight[norm] = 1.0 + norm.weight.detach().float()
+
+    def rope(self, text_model: Any, x: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """One table for q's and k's heads side by side, q's rows times the attention scale
+        (rotation is linear: scaling q's rotated value is scaling q)."""
+        cos, sin = text_model.rotary_emb(x, positions)
+        scale = self.head_scale[text_model].to(cos.dtype)  # a no-op: made in the table's dtype
+        return cos[:, :, None, :] * scale, _signed(sin)[:, :, None, :] * scale
+
+    @staticmethod
+    def mask(additive: Tensor) -> Tensor:
+        return additive[:, :, None]
+
+    def norm(self, norm: Any, h: Tensor) -> Tensor:
+        return torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), self.norm_weight[norm], norm.eps).type_as(h)
+
+    @staticmethod
+    def ada_norm(norm: Any, h: Tensor, scale1: Tensor, shift: Tensor) -> Tensor:
+        normed = torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), None, norm.eps)
+        return torch.addcmul(shift, normed, scale1).to(h.dtype)
+
+    def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        heads, kv_heads = _heads(attn)
+        qkv = torch.nn.functional.linear(x, self.qkv_weight[attn]).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
+        qk = qkv[:, :, : heads + kv_heads]
+        cos, signed_sin = rope
+        qk = torch.addcmul(qk * cos, _swap_halves(qk), signed_sin)  # (B, L, Hq + Hkv, d), q scaled
+        return qk[:, :, :heads], qk[:, :, heads:].transpose(1, 2), qkv[:, :, heads + kv_heads :].transpose(1, 2)
+
+    def attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
+        """``q`` (B, Lq, Hq, d), scaled; ``k``/``v`` (B, Hkv, Lk, d); ``mask`` (B, Lq, 1, Lk)."""
+        b, lq, heads, d = q.shape
+        if self.attention == "sdpa" or k.shape[1] != 1:
+            return _attention(self.attention, q.transpose(1, 2), k, v, mask.transpose(1, 2), 1.0)
+        # One K/V head: every query row (token, head) attends the same keys, so the rows stay in
+        # the projection's order and the output needs no transpose.
+        scores = torch.matmul(q.reshape(b, lq * heads, d), k[:, 0].transpose(1, 2)).view(b, lq, heads, -1) + mask
+        probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
+        return torch.matmul(probs.view(b, lq * heads, -1), v[:, 0]).view(b, lq, heads * d)
+
+    @staticmethod
+    def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
+        return h + y if gate is None else torch.addcmul(h, y, gate)
+
+    def mlp(self, mlp: Any, x: Tensor) -> Tensor:
+        gate, up = torch.nn.functional.linear(x, self.gate_up_weight[mlp]).chunk(2, dim=-1)
+        return mlp.down_proj(mlp.act_fn(gate) * up)
+
+    @staticmethod
+    def euler(x: Tensor, v: Tensor, dt: float) -> Tensor:
+        return torch.add(x, v, alpha=dt)
+
+
+def fuse_weights(linears: list[Any]) -> Tensor:
+    """One weight for ``linears`` stacked by output rows; each module's weight becomes a view of
+    it (same values, no second copy). The linears must pass :func:`unfusable`."""
+    weights = [lin.weight for lin in linears]
+    with torch.no_grad():
+        fused = _fused_already(weights)
+        if fused is not None:  # a second sampler over the same policy: share the first's tensor
+            return fused
+        fused = torch.cat([w.detach() for w in weights])
+        start = 0
+        for w in weights:
+            w.data = fused[start : start + w.shape[0]]
+            start += w.shape[0]
+    return fused
+
+
+def _fused_already(weights: list[Tensor]) -> Tensor | None:
+    """The tensor ``weights`` are consecutive views of, covering all of it (None: they are not)."""
+    storage = weights[0].untyped_storage()
+    offset = 0
+    for w in weights:
+        if w.untyped_storage().data_ptr() != storage.data_ptr() or w.storage_offset() != offset or not w.is_contiguous():
+            return None
+        offset += w.numel()
+    if offset * weights[0].element_size() != storage.nbytes():
+        return None
+    rows = sum(w.shape[0] for w in weights)
+    return torch.empty(0, dtype=weights[0].dtype, device=weights[0].device).set_(storage, 0, (rows, weights[0].shape[1]))
+
+
+def fusable_reason(text_models: list[Any]) -> str | None:
+    """Why :class:`Fused` cannot run these models' layers (None: it can)."""
+    for model in text_models:
+        for layer in model.layers:
+            attn, mlp = layer.self_attn, layer.mlp
+            for group in ((attn.q_proj, attn.k_proj, attn.v_proj), (mlp.gate_proj, mlp.up_proj)):
+                why = unfusable(group)
+                if why is not None:
+                    return why
+    return None
+
+
+def unfusable(linears: Any) -> str | None:
+    """Why these linears cannot share one weight (None: they can)."""
+    if any(getattr(lin, "bias", None) is not None for lin in linears):
+        return "a projection has a bias"
+    if len({(lin.weight.dtype, lin.weight.device, lin.weight.shape[1]) for lin in linears}) != 1:
+        return "a layer's projections differ in dtype, device or input width"
+    return None
+
+
+def _attention(kind: str, q: Tensor, k: Tensor, v: Tensor, mask: Tensor, scaling: float) -> Tensor:
+    """Attention of ``q`` (B, Hq, Lq, d) over ``k``/``v`` (B, Hkv, Lk, d) with an additive ``mask``
+    (B, 1, Lq, Lk); returns (B, Lq, Hq·d)."""
+    b, heads, lq, d = q.shape
+    groups = heads // k.shape[1]
+    if kind == "sdpa":
+        out = torch.nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=mask.to(q.dtype), scale=scaling, enable_gqa=groups > 1)
+    else:
+        # HF's eager_attention_forward, with the query heads of one K/V head folded into the
+        # query length instead of the K/V head copied ``groups`` times (repeat_kv).
+        qg = q.reshape(b, k.shape[1], groups * lq, d)
+        scores = torch.matmul(qg, k.transpose(2, 3))
+        if scaling != 1.0:
+            scores = scores * scaling
+        scores = scores.view(b, heads, lq, -1) + mask
+        probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
+        out = torch.matmul(probs.view(b, k.shape[1], groups * lq, -1), v).view(b, heads, lq, d)
+    return out.transpose(1, 2).reshape(b, lq, heads * d)
+
+
+def _heads(attn: Any) -> tuple[int, int]:
+    return attn.config.num_attention_heads, attn.config.num_key_value_heads
+
+
+def _signed(sin: Tensor) -> Tensor:
+    half = sin.shape[-1] // 2
+    return torch.cat((-sin[..., :half], sin[..., half:]), dim=-1)
+
+
+def _swap_halves(x: Tensor) -> Tensor:
+    half = x.shape[-1] // 2
+    return torch.cat((x[..., half:], x[..., :half]), dim=-1)
