@@ -95,8 +95,10 @@ def main() -> None:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,8", help="batch sizes to count")
+    p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="--policy.dtype (bf16 keeps LeRobot's float32 islands)")
     args = p.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
+    overrides = [f"dtype={args.dtype}"]
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="armory-pi05-ops-"))
     path = str(work / "pi05-narrow")
@@ -104,13 +106,13 @@ def main() -> None:
     make_demo_policy(
         DemoPolicyConfig(output=path, kind="pi05", size="narrow", chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224)
     )
-    eager = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
-    ordered = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1), engine=EngineOptions(static_sampler=True, fused_kernels=False))
-    static = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1), engine=EngineOptions(static_sampler=True))
+    eager = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1, overrides=overrides))
+    ordered = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1, overrides=overrides), engine=EngineOptions(static_sampler=True, fused_kernels=False))
+    static = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1, overrides=overrides), engine=EngineOptions(static_sampler=True))
     ordered.warmup(max(sizes), log_progress=False)
     static.warmup(max(sizes), log_progress=False)
     params = sum(p.numel() for p in eager.policy.parameters()) / 1e6
-    print(f"π0.5 narrow ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
+    print(f"π0.5 narrow, {args.dtype} ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
     print(f"{'b':>2} | {'sampler':<8} | {'aten ops':>8} | {'launches':>8} | {'host syncs':>10} | {'CPU ms':>7} | most launched")
     targets = Targets()
     for b in sizes:

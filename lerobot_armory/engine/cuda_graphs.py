@@ -11,6 +11,11 @@ row's chunk), the graph is replayed, and the real rows of its output are returne
 The scheduler plans with ``d_infer(b)`` = the measured time of b's bucket (``PolicyEngine.profile``
 measures the buckets), so it knows that b = 3 costs what b = 4 costs.
 
+Prompt buckets: LeRobot pads every π0.5 prompt to 200 tokens, and a LIBERO prompt (task and
+discretised state) uses a few dozen: the rest is masked arithmetic, ≈ a fifth of the prefix. The
+engine trims a batch's prompt columns to the smallest *prompt bucket* that holds its longest
+prompt (``--engine.prompt_buckets``), so one graph is recorded per (batch bucket, prompt bucket).
+
 Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
 a side stream before it is recorded, and recorded on that same stream (lazy initialisations and
 per-stream cuBLAS workspaces happen there, not in the recording); all buckets share one memory
@@ -63,6 +68,33 @@ def parse_buckets(text: str | None, max_batch_size: int) -> tuple[int, ...]:
     return tuple(sorted({s for s in sizes if s <= max_batch_size} | {max_batch_size}))
 
 
+AUTO_PROMPT_BUCKETS = (64, 128)  # below the policy's padded prompt length, which is always one
+
+
+def parse_prompt_buckets(text: str, full: int) -> tuple[int, ...]:
+    """The prompt lengths a batch is trimmed to, ascending, ending at ``full`` (the length LeRobot
+    pads every prompt to): ``auto`` (64 and 128 tokens, those below ``full``), ``off`` (none: every
+    batch keeps ``full``) or comma-separated lengths. Empty when nothing is below ``full``.
+
+    Raises:
+        ConfigError: a length that is not an integer in 1..full.
+    """
+    word = text.strip().lower()
+    if word in ("off", "none", "false", "no"):
+        return ()
+    if word == "auto":
+        sizes = set(AUTO_PROMPT_BUCKETS)
+    else:
+        try:
+            sizes = {int(s) for s in word.split(",") if s.strip()}
+        except ValueError:
+            raise ConfigError("engine.prompt_buckets", f"must be auto, off or comma-separated token counts like 64,128, got {text!r}") from None
+        if not sizes or min(sizes) < 1 or max(sizes) > full:
+            raise ConfigError("engine.prompt_buckets", f"token counts must be in 1..{full} (the policy's prompt length), got {text!r}")
+    below = sorted(s for s in sizes if s < full)
+    return (*below, full) if below else ()  # the full length alone: nothing to trim
+
+
 def bucket_for(rows: int, buckets: tuple[int, ...]) -> int | None:
     """The smallest bucket that holds ``rows`` (None: larger than every bucket)."""
     return next((b for b in buckets if b >= rows), None)
@@ -95,8 +127,8 @@ class BucketedSampler:
         self.uncompiled = uncompiled or sample
         self.prepare = prepare  # per-batch-size constants, made before a size is traced or recorded
         self.buckets: tuple[int, ...] = ()
-        self.graphs: dict[int, _Graph] = {}
-        self.capture_s: dict[int, float] = {}
+        self.graphs: dict[tuple[int, int], _Graph] = {}  # by (batch bucket, prompt length)
+        self.capture_s: dict[int, float] = {}  # by batch bucket, all its prompt lengths together
         self._pool: Any = None
         self._stream: Any = None
         self._warned: set[str] = set()
@@ -119,8 +151,10 @@ class BucketedSampler:
         if bucket is None:
             self._warn_once("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
             bucket = rows
-        graph = self.graphs.get(bucket)
+        graph = self.graphs.get((bucket, inputs.prompt_length))
         if graph is None:
+            if self.graphs:
+                self._warn_once("prompt", f"no graph for prompts of {inputs.prompt_length} tokens in bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
         tensors = inputs.tensors()
         if not _fits(tensors, graph.inputs):
@@ -139,9 +173,9 @@ class BucketedSampler:
         return self.sample(inputs.padded(bucket))[: inputs.rows]
 
     def capture(self, example: SamplerInputs, warmup: int = 3) -> float:
-        """Record the graph of the bucket ``example.rows`` (a CUDA device; call from the thread that
-        will replay it); returns the seconds it took. ``example``'s values are the first contents
-        of the input buffers."""
+        """Record the graph of the bucket ``example.rows`` at ``example``'s prompt length (a CUDA
+        device; call from the thread that will replay it); returns the seconds it took.
+        ``example``'s values are the first contents of the input buffers."""
         bucket = example.rows
         if bucket not in self.buckets:
             raise ValueError(f"{bucket} is not a bucket ({self.buckets})")
@@ -168,9 +202,10 @@ class BucketedSampler:
             output = self.sample(static)
         graph.replay()
         torch.cuda.synchronize(device)
-        self.graphs[bucket] = _Graph(graph, inputs, output)
-        self.capture_s[bucket] = time.perf_counter() - start
-        return self.capture_s[bucket]
+        self.graphs[(bucket, example.prompt_length)] = _Graph(graph, inputs, output)
+        seconds = time.perf_counter() - start
+        self.capture_s[bucket] = self.capture_s.get(bucket, 0.0) + seconds
+        return seconds
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:

@@ -47,6 +47,13 @@ class EngineOptions:
             multiples of 8 up to ``--max_batch_size``, and the cap itself: on an H200 a padded
             row of π0.5 costs as much as a real one, a bucket costs ≈ 1 s to record and no
             measurable memory, docs/results/gpu).
+        prompt_buckets: the static sampler's prompt lengths: LeRobot pads every π0.5 prompt to
+            200 tokens and a LIBERO prompt (task and discretised state) uses a few dozen, so a
+            batch is cut to the smallest of these lengths that holds its longest prompt (masked
+            columns only: the same chunks) — ≈ a fifth of the prefix's arithmetic for a short
+            prompt. ``auto`` (64 and 128, and the full length), ``off``, or token counts like
+            ``64,128``. Each length is one more CUDA graph per batch bucket; ``d_infer(b)`` is
+            profiled at the full length (the scheduler plans for the longest prompt).
         static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,
             fewer operations); unset: wherever graphs are on.
         attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``
@@ -71,6 +78,7 @@ class EngineOptions:
     emulate_profile: str | None = None
     cuda_graphs: str = "auto"
     graph_buckets: str | None = None
+    prompt_buckets: str = "auto"
     static_sampler: bool | None = None
     attention: str = "eager"
     fused_kernels: bool = True

@@ -175,6 +175,8 @@ class PolicyEngine:
 
         o = self.engine_options
         self.fused_kernels = False
+        self.prompt_buckets: tuple[int, ...] = ()  # trimmed prompt lengths, ascending (none: untrimmed)
+        self._prompt_forced: int | None = None  # while profiling: every batch at this prompt length
         cuda = torch.device(self.device).type == "cuda"
         why = pi05_static.unsupported_reason(self.policy)
         if o.cuda_graphs == "on" and not cuda:
@@ -205,6 +207,11 @@ class PolicyEngine:
             )
         except ValueError as exc:  # e.g. --policy.num_inference_steps=0
             raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None
+        full = getattr(self.config, "tokenizer_max_length", None)
+        if isinstance(full, int) and full > 0:
+            from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
+
+            self.prompt_buckets = parse_prompt_buckets(o.prompt_buckets, full)
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
@@ -230,6 +237,8 @@ class PolicyEngine:
                 notes.append("static sampler compiled")
             if self.fused_kernels:
                 notes.append("fused kernels")
+            if self.prompt_buckets:
+                notes.append(f"prompts cut to {','.join(map(str, self.prompt_buckets))} tokens")
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
@@ -409,9 +418,10 @@ class PolicyEngine:
             return self.sampler(self._sampler_inputs(processed, kwargs))[:, :, : self.action_dim]
         return self.policy.predict_action_chunk(processed, **kwargs)
 
-    def _sampler_inputs(self, processed: dict[str, Any], kwargs: dict[str, Any]) -> Any:
+    def _sampler_inputs(self, processed: dict[str, Any], kwargs: dict[str, Any], prompt_length: int | None = None) -> Any:
         """The static sampler's inputs from a pre-processed batch and the keyword arguments the
-        policy's own ``predict_action_chunk`` would have been given (noise, RTC prefixes)."""
+        policy's own ``predict_action_chunk`` would have been given (noise, RTC prefixes), the
+        prompt cut to its prompt bucket (or to ``prompt_length``)."""
         import torch
         from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
@@ -422,6 +432,9 @@ class PolicyEngine:
             tuple(processed[k] for k in self.config.image_features),
             processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise,
         )  # fmt: skip
+        length = prompt_length or self._prompt_forced or self._prompt_bucket(inputs.masks)
+        if length is not None and length < inputs.prompt_length:
+            inputs = inputs.prompt_trimmed(length)
         if self.rtc is None:
             return inputs
         rows, length, dim = noise.shape
@@ -432,6 +445,19 @@ class PolicyEngine:
             inputs.rtc_weights = noise.new_zeros(rows, length, 1)
             inputs.rtc_leftover = torch.zeros_like(noise)
         return inputs
+
+    def _prompt_bucket(self, masks: Any) -> int | None:
+        """The smallest prompt bucket that holds every row's prompt (None: keep them whole).
+        LeRobot pads on the right; a mask that is not a run of ones then zeros keeps its length."""
+        if not self.prompt_buckets:
+            return None
+        used = masks.any(dim=0).cpu()  # one small read back before the pass (no graph is running)
+        n = int(used.sum())
+        if not bool(used[:n].all()):
+            return None
+        from lerobot_armory.engine.cuda_graphs import bucket_for
+
+        return bucket_for(max(n, 1), self.prompt_buckets)
 
     def to_batch(self, observations: Sequence[dict[str, np.ndarray]]) -> dict[str, Any]:
         """Stack the robots' wire arrays into policy tensors: images on the device (uint8 HWC →
@@ -526,7 +552,7 @@ class PolicyEngine:
             for bucket in reversed(self.sampler.buckets):
                 seconds = self.on_device(self._capture, bucket)
                 if log_progress:
-                    log.info("CUDA graph of bucket %d recorded in %.1f s", bucket, seconds)
+                    log.info("CUDA graphs of bucket %d recorded in %.1f s (%d prompt lengths)", bucket, seconds, max(1, len(self.prompt_buckets)))
         except Exception as exc:
             why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
             if self.engine_options.cuda_graphs == "on":
@@ -547,7 +573,10 @@ class PolicyEngine:
             o = self.rtc_options
             kwargs.update(rtc_mod.guidance_kwargs(self.example_prefixes(bucket), self.chunk_size, o.execution_horizon, self.device))
         with torch.inference_mode():
-            return self.sampler.capture(self._sampler_inputs(self.preprocessor(batch), kwargs))
+            processed = self.preprocessor(batch)
+            # Longest first, like the buckets: the shorter prompts' graphs reuse its memory.
+            lengths = reversed(self.prompt_buckets) if self.prompt_buckets else [None]
+            return sum(self.sampler.capture(self._sampler_inputs(processed, kwargs, length)) for length in lengths)
 
     def _sizes(self, max_batch_size: int) -> list[int]:
         """The batch sizes that cost differently: the static sampler's buckets, else 1..cap."""
@@ -567,9 +596,14 @@ class PolicyEngine:
         from lerobot_armory.engine.cuda_graphs import bucket_for
 
         sizes = self._sizes(max_batch_size)
-        for _ in range(warmup):
-            self._time_sizes(sizes, 1, "", False)
-        measured = self._time_sizes(sizes, reps, "profiled", log_progress, statistics.median)
+        # At the full prompt length: the scheduler must plan for the longest prompt a robot may send.
+        self._prompt_forced = self.prompt_buckets[-1] if self.prompt_buckets else None
+        try:
+            for _ in range(warmup):
+                self._time_sizes(sizes, 1, "", False)
+            measured = self._time_sizes(sizes, reps, "profiled", log_progress, statistics.median)
+        finally:
+            self._prompt_forced = None
         values: list[float] = []
         for b in range(1, max_batch_size + 1):
             ms = measured[bucket_for(b, tuple(sizes)) or b]

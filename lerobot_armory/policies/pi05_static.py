@@ -121,6 +121,21 @@ class SamplerInputs:
         rtc = tuple(tensors[n + 3 :])
         return SamplerInputs(tuple(tensors[:n]), tensors[n], tensors[n + 1], tensors[n + 2], *(rtc or (None, None)))
 
+    @property
+    def prompt_length(self) -> int:
+        """Token columns of the prompt (LeRobot pads every prompt to its tokenizer's max length)."""
+        return int(self.tokens.shape[1])
+
+    def prompt_trimmed(self, length: int) -> SamplerInputs:
+        """The same batch with only the first ``length`` prompt columns (views). The caller makes
+        sure every dropped column is padding in every row: padding is masked everywhere, so the
+        chunks are the same (up to the rounding of shorter sums)."""
+        if not 0 < length <= self.prompt_length:
+            raise ValueError(f"cannot trim a prompt of {self.prompt_length} tokens to {length}")
+        return SamplerInputs(
+            self.images, self.tokens[:, :length], self.masks[:, :length], self.noise, self.rtc_weights, self.rtc_leftover
+        )
+
     def padded(self, rows: int) -> SamplerInputs:
         """The same batch grown to ``rows`` by repeating its last row (padding must be valid data:
         rows never mix, but a row of garbage could hold NaN/inf and a profiler would see it)."""

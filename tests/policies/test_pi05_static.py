@@ -214,7 +214,7 @@ def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(
         buffers = [t.clone() for t in first.tensors()]
         output = static.sampler.sample(first.with_tensors(buffers))
         fake = _ReplayOnCPU(static.sampler.sample, first.with_tensors(buffers), output)
-        runner.graphs[4] = cuda_graphs._Graph(fake, buffers, output)
+        runner.graphs[(4, first.prompt_length)] = cuda_graphs._Graph(fake, buffers, output)
         three = make(3, 5)
         got = runner(three)
         assert fake.replays == 1 and got.shape[0] == 3
@@ -481,3 +481,64 @@ def test_a_layer_that_cannot_be_fused_is_served_in_lerobots_order_and_says_why(p
     assert engine.sampler is not None and not engine.fused_kernels
     assert any("fused kernels off): a projection has a bias" in r.message for r in caplog.records)
     np.testing.assert_allclose(engine.infer(obs, tasks, seeds), want, atol=1e-5, rtol=0)
+
+
+def test_prompt_buckets_are_parsed_against_the_policys_prompt_length():
+    from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
+
+    assert parse_prompt_buckets("auto", 200) == (64, 128, 200)
+    assert parse_prompt_buckets("auto", 64) == ()  # nothing below the full length: nothing to cut
+    assert parse_prompt_buckets("off", 200) == ()
+    assert parse_prompt_buckets("32, 16", 64) == (16, 32, 64)
+    for bad in ("0,16", "100", "sixteen"):
+        with pytest.raises(ConfigError, match="engine.prompt_buckets"):
+            parse_prompt_buckets(bad, 64)
+
+
+def test_prompts_cut_to_their_bucket_give_lerobots_chunks_and_the_profile_plans_for_the_longest(engines, pi05_dir):
+    """The tiny π0.5 pads prompts to 64 tokens; with prompt buckets 16 and 32 a batch of short
+    prompts runs at 16 or 32 columns (masked padding dropped) and its chunks still equal LeRobot's
+    (1e-5), unguided and guided. ``d_infer`` is profiled at the full 64: the scheduler plans for the
+    longest prompt a robot may send."""
+    import torch
+
+    lerobot, _ = engines
+    cut = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC, EngineOptions(static_sampler=True, prompt_buckets="16,32", graph_buckets="1,4"))
+    assert cut.prompt_buckets == (16, 32, 64) and "prompts cut to 16,32,64 tokens" in cut.description
+    seen: list[int] = []
+    sample = cut.sampler.sample
+    cut.sampler.sample = lambda inputs: (seen.append(inputs.prompt_length), sample(inputs))[1]
+    cut.warmup(4, log_progress=False)
+    for b in (1, 3):
+        obs, tasks, seeds, prefixes = batch(b, seed=9)
+        processed = cut.preprocessor({**cut.to_batch(obs), "task": tasks})
+        used = int(processed["observation.language.attention_mask"].sum(dim=1).max())
+        with torch.inference_mode():
+            want_length = next(n for n in (16, 32, 64) if n >= used)
+            assert cut._sampler_inputs(processed, {"noise": cut._noise(seeds)}).prompt_length == want_length < 64
+        seen.clear()
+        np.testing.assert_allclose(cut.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+        assert seen == [want_length]
+        np.testing.assert_allclose(
+            cut.infer_guided(obs, tasks, seeds, prefixes)[1], lerobot.infer_guided(obs, tasks, seeds, prefixes)[1], atol=1e-5, rtol=0
+        )
+    seen.clear()
+    cut.profile(4, warmup=0, reps=1, log_progress=False)
+    assert seen and set(seen) == {64}
+
+
+def test_each_bucket_records_one_graph_per_prompt_length_longest_first(pi05_dir, monkeypatch):
+    """Recording (faked: the CPU cannot record) covers every (batch bucket, prompt bucket), the
+    longest prompt first in each bucket, with inputs of exactly that many prompt columns."""
+    recorded: list[tuple[int, int]] = []
+
+    def fake(self, example, warmup=3):
+        recorded.append((example.rows, example.prompt_length))
+        assert example.tokens.shape[1] == example.masks.shape[1] == example.prompt_length
+        return 0.5
+
+    monkeypatch.setattr(BucketedSampler, "capture", fake)
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, prompt_buckets="16,32", graph_buckets="1,2"))
+    engine.graphs_wanted = True  # as on a CUDA device
+    engine.warmup(2, log_progress=False)
+    assert recorded == [(2, 64), (2, 32), (2, 16), (1, 64), (1, 32), (1, 16)]
