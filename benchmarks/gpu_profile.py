@@ -13,7 +13,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   ``pi05-bf16-graphs-compiled`` with ``--engine.compile_sampler=true``; ``pi05-fp32-graphs`` in
   float32; a ``-ordered`` suffix (``pi05-bf16-graphs-ordered``, ``pi05-bf16-graphs-tf32-ordered``):
   ``--engine.fused_kernels=false``, LeRobot's sequence of operations in the static sampler (the
-  graphs configurations fuse by default);
+  graphs configurations fuse by default); a ``-fullprompt`` suffix: ``--engine.prompt_buckets=off``,
+  every prompt at LeRobot's padded 200 tokens (by default the measured prompts, "pick up the block
+  number k", are cut to 64);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 
@@ -66,7 +68,8 @@ from _common import Targets  # noqa: E402
 CONFIGS = (
     "act", "pi05-fp32", "pi05-bf16", "pi05-fp32-compiled", "pi05-bf16-compiled",
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
-    "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered",
+    "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
+    "pi05-bf16-graphs-tf32-ordered-fullprompt",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -90,6 +93,7 @@ def engine_options(config: str) -> Any:
         static_sampler=True,
         attention="sdpa" if "sdpa" in flags else "eager",
         fused_kernels="ordered" not in flags,
+        prompt_buckets="off" if "fullprompt" in flags else "auto",
         compile_sampler="compiled" in flags,
         graph_buckets=ARGS.graph_buckets,
         matmul_precision=precision,
