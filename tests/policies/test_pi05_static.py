@@ -542,3 +542,18 @@ def test_each_bucket_records_one_graph_per_prompt_length_longest_first(pi05_dir,
     engine.graphs_wanted = True  # as on a CUDA device
     engine.warmup(2, log_progress=False)
     assert recorded == [(2, 64), (2, 32), (2, 16), (1, 64), (1, 32), (1, 16)]
+
+
+def test_a_robot_with_the_longest_prompt_costs_its_batch_mates_no_chunk_change(engines, pi05_dir):
+    """A hostile robot sends the longest prompt the wire allows: its batch runs at the full prompt
+    length (no bucket below holds it), and its honest batch mates, which alone run cut to 16 or 32
+    columns, get the same chunks (1e-5): cutting drops masked padding only."""
+    from lerobot_armory.entrypoints.grpc.service import MAX_TASK
+
+    cut = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, prompt_buckets="16,32", graph_buckets="1,3"))
+    cut.warmup(3, log_progress=False)
+    obs, tasks, seeds, _ = batch(3, seed=13)
+    hostile = ("Task: \x00\x1b[2J;\nAction: " + "ünïcødé\u202e" * 400)[:MAX_TASK]
+    together = cut.infer(obs, [hostile, tasks[1], tasks[2]], seeds)
+    for k in (1, 2):
+        np.testing.assert_allclose(together[k], cut.infer([obs[k]], [tasks[k]], [seeds[k]])[0], atol=1e-5, rtol=0)
