@@ -313,3 +313,34 @@ def test_replicas_serving_different_policies_are_warned_of_once(caplog):
     with caplog.at_level("WARNING", logger="lerobot_armory.entrypoints.cluster.front"):
         ClusterFront(FakeReplicas(), FrontOptions()).refresh()  # alike: nothing to say
     assert not [r for r in caplog.records if "serve different policies" in r.getMessage()]
+
+
+def test_replicas_serving_one_name_from_different_checkpoints_are_warned_of_once_but_not_during_a_roll(caplog):
+    """A front restarted beside replicas that serve ``kitchen`` from two checkpoints (one left from
+    another cluster): the names agree, so nothing is refused, but a robot's chunks would depend on
+    its replica — said once, with the paths. While a roll or catch-up holds the roll lock the
+    checkpoints differ on purpose: nothing is said."""
+
+    class Mixed(FakeReplicas):
+        def load(self, replica_id, timeout):
+            answer = super().load(replica_id, timeout)
+            if replica_id == "b":
+                answer["policies"] = {**answer["policies"], "kitchen": {**answer["policies"]["kitchen"], "path": "/k2"}}
+            return answer
+
+    logger = "lerobot_armory.entrypoints.cluster.front"
+    rolling = ClusterFront(Mixed(), FrontOptions())
+    with caplog.at_level("WARNING", logger=logger):
+        with rolling._roll_lock:
+            rolling.refresh()
+    assert not [r for r in caplog.records if "different checkpoints" in r.getMessage()]
+    front = ClusterFront(Mixed(), FrontOptions())
+    with caplog.at_level("WARNING", logger=logger):
+        front.refresh()
+        front.refresh()
+    warned = [r.getMessage() for r in caplog.records if "different checkpoints" in r.getMessage()]
+    assert warned == [
+        "the replicas serve different checkpoints under one name (a: kitchen=/k, sorting=/s; b: kitchen=/k2, sorting=/s): "
+        "a robot's chunks depend on its replica; lerobot-armory-admin swap --policy_name=NAME brings them to one"
+    ]
+    assert front.policy_names() == ("kitchen", "sorting")

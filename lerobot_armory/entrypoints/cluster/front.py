@@ -195,6 +195,14 @@ class RollResult:
     policy: str = ""  # the name of the policy rolled
 
 
+def _served_name(name: str, what: tuple[str, tuple[str, ...]] | None, with_path: bool) -> str:
+    """``name``, or ``name=path [overrides]`` where the names agree and the checkpoints do not."""
+    if not with_path or what is None:
+        return name
+    path, overrides = what
+    return f"{name}={path}" + (f" [{' '.join(overrides)}]" if overrides else "")
+
+
 class ClusterFront(ArmoryServicer):
     """``Register`` places and forwards; ``Stream`` is refused (robots stream to their replica)."""
 
@@ -360,17 +368,28 @@ class ClusterFront(ArmoryServicer):
         for state in up:
             names += [n for n in state.capacities if n not in names]
         self.names = tuple(names)
-        # Every replica should serve every policy (lerobot-armory-cluster starts them alike). One
-        # that does not (started by hand, or left from another cluster) refuses that policy's
-        # robots: said once per such state, not on every refresh.
-        served = {state.view.replica_id: tuple(state.capacities) for state in up}
-        uneven = frozenset(served.items()) if len(set(served.values())) > 1 else None
+        # Every replica should serve every policy, each name the same checkpoint
+        # (lerobot-armory-cluster starts them alike). One that does not (started by hand, left from
+        # another cluster, or a front restarted beside replicas of another checkpoint) refuses
+        # that policy's robots or serves them another model: said once per such state.
+        served = {state.view.replica_id: tuple((name, state.served.get(name)) for name in state.capacities) for state in up}
+        names_differ = len({tuple(name for name, _ in policies) for policies in served.values()}) > 1
+        # Checkpoints differ for a while during every roll and catch-up: only names count then.
+        rolling = self._roll_lock.locked()
+        uneven = frozenset(served.items()) if names_differ or (len(set(served.values())) > 1 and not rolling) else None
         if uneven is not None and uneven != self._uneven_warned:
-            log.warning(
-                "the replicas serve different policies (%s): a robot of a policy its replica lacks is refused there",
-                "; ".join(f"{rid}: {', '.join(names)}" for rid, names in sorted(served.items())),
+            listed = "; ".join(
+                f"{rid}: {', '.join(_served_name(n, what, not names_differ) for n, what in policies)}" for rid, policies in sorted(served.items())
             )
-        self._uneven_warned = uneven
+            if names_differ:
+                log.warning("the replicas serve different policies (%s): a robot of a policy its replica lacks is refused there", listed)
+            else:
+                log.warning(
+                    "the replicas serve different checkpoints under one name (%s): a robot's chunks depend on its replica; "
+                    "lerobot-armory-admin swap --policy_name=NAME brings them to one", listed,
+                )  # fmt: skip
+        if not rolling or uneven is not None:
+            self._uneven_warned = uneven
 
     def policy_names(self) -> tuple[str, ...]:
         """The policies the cluster serves, the main one first (its main one's name until a replica answered)."""
