@@ -57,7 +57,7 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder, fusable_reason
+from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
@@ -218,9 +218,14 @@ class StaticPi05:
         pwe = self.model.paligemma_with_expert
         self.vlm = _text_model(pwe)
         self.expert = pwe.gemma_expert.model
-        self.unfused_reason = fusable_reason([self.vlm, self.expert]) if fused else None
-        self.fused = fused and self.unfused_reason is None
-        self.ops = Fused([self.vlm, self.expert], attention) if self.fused else LeRobotOrder(attention)
+        self.unfused_reason: str | None = None
+        self.ops: LeRobotOrder = LeRobotOrder(attention)
+        if fused:
+            try:  # Fused checks every layer before it touches a weight
+                self.ops = Fused([self.vlm, self.expert], attention)
+            except ValueError as exc:
+                self.unfused_reason = str(exc)
+        self.fused = isinstance(self.ops, Fused)
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
