@@ -4,7 +4,8 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,137 kernels in LeRobot's sequence and 4,734 fused (float32; ``benchmarks/pi05_ops.py``).
+9,137 kernels in LeRobot's sequence and 4,734 fused in float32; 10,172 and 5,204 in bfloat16
+(``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
 bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values with fewer kernels:
@@ -22,12 +23,18 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   scores, the softmax and the weighted sum run on it as it lies, and the output is the
   ``(B, L, heads·d)`` the output projection takes (HF transposes twice and copies K/V per head);
 - **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``).
+- **bfloat16 without float32 detours it does not need**: the adaptive norm's float32 sum is
+  rounded to bf16 as it is stored (``out=``, one kernel where a cast is a second), and attention
+  scores, mask and softmax stay in bf16 (softmax computes in float32 inside either way; LeRobot's
+  float32 mask makes its scores and probabilities float32, then casts them back).
 
 Numerics: the same operations in float32 (or LeRobot's dtypes under bfloat16) with a different
 rounding order: a fused ``a + b·c`` rounds once where two kernels round twice, the fused norm
 reduces in its own order. Folding the scale into q is exact when it is a power of two (π0.5's
 head size 256 gives 1/16). ``tests/policies/test_pi05_static.py`` holds the fused chunks to
-LeRobot's within 1e-5 in float32.
+LeRobot's within 1e-5 in float32. In bfloat16 the softmax's float32 sum may run in another order
+than LeRobot's float32 softmax (the last bit of a probability); the chunks stay as far from a
+float32 π0.5's as LeRobot's own bf16 chunks (``docs/results/pi05_static``).
 """
 
 from __future__ import annotations
@@ -55,8 +62,9 @@ class LeRobotOrder:
         return cos.unsqueeze(1), _signed(sin).unsqueeze(1)
 
     @staticmethod
-    def mask(additive: Tensor) -> Tensor:
-        """``(B, Lq, Lk)`` additive mask in this layout."""
+    def mask(additive: Tensor, dtype: torch.dtype) -> Tensor:
+        """``(B, Lq, Lk)`` additive mask in this layout, for scores of ``dtype`` (LeRobot keeps its
+        mask in float32: bfloat16 scores plus it are float32 scores)."""
         return additive[:, None]
 
     @staticmethod
@@ -144,8 +152,10 @@ class Fused(LeRobotOrder):
         return cos[:, :, None, :] * scale, _signed(sin)[:, :, None, :] * scale
 
     @staticmethod
-    def mask(additive: Tensor) -> Tensor:
-        return additive[:, :, None]
+    def mask(additive: Tensor, dtype: torch.dtype) -> Tensor:
+        """In the scores' dtype, made once a sample: a masked score is then as negative as softmax
+        needs (exp gives 0 either way) and an attended one is added 0, exactly as in float32."""
+        return additive[:, :, None].to(dtype)
 
     def norm(self, norm: Any, h: Tensor) -> Tensor:
         return torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), self.norm_weight[norm], norm.eps).type_as(h)
@@ -153,7 +163,9 @@ class Fused(LeRobotOrder):
     @staticmethod
     def ada_norm(norm: Any, h: Tensor, scale1: Tensor, shift: Tensor) -> Tensor:
         normed = torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), None, norm.eps)
-        return torch.addcmul(shift, normed, scale1).to(h.dtype)
+        # Computed in float32 and rounded to h's dtype as it is stored: one kernel where
+        # ``addcmul(...).to(h.dtype)`` is two, the same rounding (one, after the sum).
+        return torch.addcmul(shift, normed, scale1, out=torch.empty_like(h))
 
     def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
         heads, kv_heads = _heads(attn)
@@ -170,8 +182,12 @@ class Fused(LeRobotOrder):
             return _attention(self.attention, q.transpose(1, 2), k, v, mask.transpose(1, 2), 1.0)
         # One K/V head: every query row (token, head) attends the same keys, so the rows stay in
         # the projection's order and the output needs no transpose.
-        scores = torch.matmul(q.reshape(b, lq * heads, d), k[:, 0].transpose(1, 2)).view(b, lq, heads, -1) + mask
-        probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
+        scores = torch.matmul(q.reshape(b, lq * heads, d), k[:, 0].transpose(1, 2)).view(b, lq, heads, -1)
+        # In the scores' own dtype (the mask is made in it): softmax computes in float32 inside
+        # and rounds each probability once as it stores it, where LeRobot's float32 scores, float32
+        # probabilities and a cast read and write the largest tensor of the layer three more times
+        # (same values: the added mask is 0 or beyond exp's range either way).
+        probs = torch.nn.functional.softmax(scores.add_(mask), dim=-1)
         return torch.matmul(probs.view(b, lq * heads, -1), v[:, 0]).view(b, lq, heads * d)
 
     @staticmethod

@@ -250,7 +250,7 @@ class StaticPi05:
         table = self.conditioning.get(batch_size)
         if table is not None:
             return table
-        dtype = torch.bfloat16 if self._bf16(self.expert) else torch.float32
+        dtype = self._dtype(self.expert)
         steps = []
         for step in range(self.num_steps):
             cond = self._time_condition(self.time_table[step].expand(batch_size))
@@ -289,7 +289,7 @@ class StaticPi05:
         # whole suffix; its positions follow the prefix's valid tokens.
         b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
         valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, :].expand(b, h, p + h)
-        mask = self.ops.mask(self._additive(valid))
+        mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
         rope = self.ops.rope(self.expert, self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
         conditioning = self.prepare(b)
@@ -326,7 +326,7 @@ class StaticPi05:
         """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``
         positions with the prefix's (post-rotary) keys and values in the first ``P``."""
         b, p = pad.shape
-        mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]))
+        mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
         h = embs.to(torch.bfloat16) if self._bf16(self.vlm) else embs
         rope = self.ops.rope(self.vlm, h, positions)
@@ -369,6 +369,11 @@ class StaticPi05:
 
     def _expert_input(self, x: Tensor) -> Tensor:
         return x.to(torch.bfloat16) if self._bf16(self.expert) else x
+
+    @classmethod
+    def _dtype(cls, text_model: Any) -> torch.dtype:
+        """The dtype of ``text_model``'s hidden states (and attention scores)."""
+        return torch.bfloat16 if cls._bf16(text_model) else torch.float32
 
     @staticmethod
     def _bf16(text_model: Any) -> bool:

@@ -557,3 +557,47 @@ def test_a_robot_with_the_longest_prompt_costs_its_batch_mates_no_chunk_change(e
     together = cut.infer(obs, [hostile, tasks[1], tasks[2]], seeds)
     for k in (1, 2):
         np.testing.assert_allclose(together[k], cut.infer([obs[k]], [tasks[k]], [seeds[k]])[0], atol=1e-5, rtol=0)
+
+
+def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_values(pi05_dir):
+    """bf16: the fused adaptive norm rounds its float32 sum to bf16 as it stores it (one kernel and
+    the same single rounding as LeRobot's ``.to(bf16)``: bit for bit), and attention keeps mask,
+    scores and softmax in bf16 (LeRobot's float32 mask makes them float32, then casts back): no cast
+    inside the fused attention, its output LeRobot's within a bf16 rounding."""
+    import torch
+    from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
+
+    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.policies.pi05_kernels import LeRobotOrder
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=bfloat16"]))
+    sampler = StaticPi05(engine.policy)
+    ops, layer = sampler.ops, sampler.expert.layers[0]
+    assert sampler.fused and layer.self_attn.q_proj.weight.dtype == torch.bfloat16
+    gen = torch.Generator().manual_seed(0)
+    width = layer.self_attn.q_proj.in_features
+    h = (3 * torch.randn(2, 5, width, generator=gen)).to(torch.bfloat16)
+    scale1, shift = 1 + torch.randn(2, 1, width, generator=gen), torch.randn(2, 1, width, generator=gen)
+    norm = layer.input_layernorm
+    with torch.no_grad(), OpTrace() as trace:
+        normed = ops.ada_norm(norm, h, scale1, shift)
+    want = torch.addcmul(shift, torch.nn.functional.rms_norm(h.float(), (width,), None, norm.eps), scale1).to(torch.bfloat16)
+    assert normed.dtype == torch.bfloat16 and torch.equal(normed, want)
+    assert trace.launched["aten._to_copy.default"] == 1  # h.float() only: the output is stored as bf16
+
+    heads, d = layer.self_attn.config.num_attention_heads, layer.self_attn.head_dim
+    q = torch.randn(2, 5, heads, d, generator=gen).to(torch.bfloat16)
+    k, v = (torch.randn(2, 1, 9, d, generator=gen).to(torch.bfloat16) for _ in range(2))
+    valid = torch.rand(2, 5, 9, generator=gen) > 0.4
+    valid[..., 0] = True  # every query attends something
+    additive = torch.where(valid, 0.0, float(OPENPI_ATTENTION_MASK_VALUE))
+    mask = ops.mask(additive, torch.bfloat16)
+    assert mask.dtype == torch.bfloat16
+    scaling = layer.self_attn.scaling
+    with torch.no_grad(), OpTrace() as trace:
+        out = ops.attend(layer.self_attn, q * scaling, k, v, mask)  # Fused takes q scaled (its rotary table does it)
+    assert "aten._to_copy.default" not in trace.launched and out.dtype == torch.bfloat16
+    reference = LeRobotOrder("eager")
+    want = reference.attend(layer.self_attn, q.transpose(1, 2), k, v, reference.mask(additive, torch.bfloat16))
+    torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
