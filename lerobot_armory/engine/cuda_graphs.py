@@ -167,6 +167,13 @@ class BucketedSampler:
         graph.graph.replay()
         return graph.output[:rows].clone()
 
+    def compile_shape(self, inputs: SamplerInputs) -> None:
+        """Run ``sample`` once on ``inputs`` (a bucket's rows at one prompt length), so that a
+        compiled ``sample`` compiles that shape now rather than under the first robots."""
+        if inputs.rows not in self.buckets:
+            raise ValueError(f"{inputs.rows} is not a bucket ({self.buckets})")
+        self._eager(inputs, inputs.rows)
+
     def _eager(self, inputs: SamplerInputs, bucket: int) -> Tensor:
         if self.prepare is not None:
             self.prepare(bucket)

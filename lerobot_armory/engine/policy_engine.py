@@ -37,6 +37,7 @@ import os
 import statistics
 import threading
 import time
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -218,8 +219,7 @@ class PolicyEngine:
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         sample = sampler.sample
-        if o.compile_sampler:
-            _allow_recompiles(8)  # one compilation per bucket
+        if o.compile_sampler:  # one compilation per (bucket, prompt length): the limit is raised at warm-up
             sample = torch.compile(sample, fullgraph=True, dynamic=False)
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
         return graphs, None
@@ -364,21 +364,16 @@ class PolicyEngine:
         try:
             steps = self.history_steps if self.kind.inputs != "current" else 1
             rows = self._history_rows(observations, history, steps)
-            batch = self.to_batch([obs for row in rows for obs in row])
-            batch["task"] = [task for task in tasks for _ in range(steps)]
-            kwargs: dict[str, Any] = {}
-            if self.noise_shape is not None:
-                seeds = range(len(observations)) if noise_seeds is None else noise_seeds
-                kwargs["noise"] = self._noise(seeds)
             guided = prefixes is not None
-            if guided:
-                assert self.rtc_options is not None
-                o = self.rtc_options
-                kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, o.execution_horizon, self.device, o.delay_margin))
             # RTC's guidance through LeRobot's sampler takes a gradient (of its own error, not of
             # the weights), which inference mode forbids: such batches run under no_grad instead.
             # The static sampler's guidance is closed-form.
             with torch.no_grad() if guided and self.sampler is None else torch.inference_mode():
+                # Every input made in the batch's mode: a compiled sampler's guards tell inference
+                # tensors from others, and one made outside would be a new shape to compile.
+                batch = self.to_batch([obs for row in rows for obs in row])
+                batch["task"] = [task for task in tasks for _ in range(steps)]
+                kwargs = self._forward_kwargs(len(observations), noise_seeds, prefixes)
                 processed = self.preprocessor(batch)
                 if self.kind.inputs == "current":
                     model_actions = self.forward(processed, kwargs)
@@ -393,6 +388,20 @@ class PolicyEngine:
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
                     torch.cuda.synchronize(self.device)
             raise
+
+    def _forward_kwargs(
+        self, rows: int, noise_seeds: Sequence[int] | None, prefixes: Sequence[rtc_mod.Prefix | None] | None
+    ) -> dict[str, Any]:
+        """What the forward pass takes beside the batch: each row's noise (seeds 0..rows-1 unless
+        given), and with ``prefixes`` the RTC guidance."""
+        kwargs: dict[str, Any] = {}
+        if self.noise_shape is not None:
+            kwargs["noise"] = self._noise(range(rows) if noise_seeds is None else noise_seeds)
+        if prefixes is not None:
+            assert self.rtc_options is not None
+            o = self.rtc_options
+            kwargs.update(rtc_mod.guidance_kwargs(prefixes, self.chunk_size, o.execution_horizon, self.device, o.delay_margin))
+        return kwargs
 
     def _history_rows(
         self,
@@ -518,6 +527,8 @@ class PolicyEngine:
             from lerobot_armory.engine.cuda_graphs import parse_buckets
 
             self.sampler.set_buckets(parse_buckets(self.engine_options.graph_buckets, max_batch_size))
+            if self.engine_options.compile_sampler:
+                self._compile_shapes(log_progress)
             if self.graphs_wanted and not self.sampler.captured:
                 self._record_graphs(log_progress)
         sizes = self._sizes(max_batch_size)
@@ -542,6 +553,29 @@ class PolicyEngine:
             "compiled" if self.compiled_kept else "eager",
         )  # fmt: skip
 
+    def _compile_shapes(self, log_progress: bool) -> None:
+        """Compile the static sampler for every (bucket, prompt length) now, not under robots.
+
+        Inductor compiles one shape at a time (``dynamic=False``: each kernel for its sizes), so
+        the count is buckets × prompt lengths, each taking from seconds (a tiny model on a CPU)
+        to minutes (the full π0.5): said up front, dynamo's recompile limit raised to fit (past
+        it a shape would run uncompiled, silently), and each bucket logged as it is done. Graphs
+        recorded afterwards replay the compiled kernels."""
+        assert self.sampler is not None
+        buckets, lengths = self.sampler.buckets, max(1, len(self.prompt_buckets))
+        shapes = len(buckets) * lengths
+        _allow_recompiles(shapes)
+        if log_progress:
+            log.info(
+                "compiling the static sampler for %d shapes (%d batch buckets x %d prompt lengths); fewer with "
+                "--engine.graph_buckets=1,2,4,8 or --engine.prompt_buckets=off", shapes, len(buckets), lengths,
+            )  # fmt: skip
+        for bucket in reversed(buckets):
+            start = time.perf_counter()
+            self.on_device(self._compile_bucket, bucket)
+            if log_progress:
+                log.info("static sampler compiled for bucket %d in %.1f s", bucket, time.perf_counter() - start)
+
     def _record_graphs(self, log_progress: bool) -> None:
         """Record every bucket's graph. A recording that fails is refused with ``cuda_graphs=on``;
         with ``auto`` the static sampler serves unrecorded (the same chunks, launched eagerly) and
@@ -561,22 +595,35 @@ class PolicyEngine:
             self.graphs_wanted, self.sampler_note = False, why
             log.warning("%s; serving with the static sampler unrecorded (--engine.cuda_graphs=on refuses instead)", why)
 
+    def _compile_bucket(self, bucket: int) -> None:
+        """Compile one bucket's shapes (on the device thread), under the mode batches run in."""
+        import torch
+
+        with torch.inference_mode():
+            for inputs in self._example_inputs(bucket):
+                self.sampler.compile_shape(inputs)
+
     def _capture(self, bucket: int) -> float:
-        """Record the CUDA graph of one bucket (on the device thread) from an example batch."""
+        """Record the CUDA graph of one bucket (on the device thread) from an example batch, one
+        per prompt length."""
+        import torch
+
+        with torch.inference_mode():
+            return sum(self.sampler.capture(inputs) for inputs in self._example_inputs(bucket))
+
+    def _example_inputs(self, bucket: int) -> list[Any]:
+        """The static sampler's inputs for an example batch of ``bucket`` rows, one per prompt
+        length, longest first (like the buckets: the shorter prompts' graphs reuse its memory)."""
         import torch
 
         obs = [self.example_observation(seed=k) for k in range(bucket)]
-        batch = self.to_batch(obs)
-        batch["task"] = ["capture"] * bucket
-        kwargs: dict[str, Any] = {"noise": self._noise(range(bucket))}
-        if self.rtc_options is not None:
-            o = self.rtc_options
-            kwargs.update(rtc_mod.guidance_kwargs(self.example_prefixes(bucket), self.chunk_size, o.execution_horizon, self.device))
-        with torch.inference_mode():
+        with torch.inference_mode():  # as a served batch's inputs are made (see _infer)
+            batch = self.to_batch(obs)
+            batch["task"] = ["capture"] * bucket
+            kwargs = self._forward_kwargs(bucket, None, self.example_prefixes(bucket) if self.rtc_options is not None else None)
             processed = self.preprocessor(batch)
-            # Longest first, like the buckets: the shorter prompts' graphs reuse its memory.
             lengths = reversed(self.prompt_buckets) if self.prompt_buckets else [None]
-            return sum(self.sampler.capture(self._sampler_inputs(processed, kwargs, length)) for length in lengths)
+            return [self._sampler_inputs(processed, kwargs, length) for length in lengths]
 
     def _sizes(self, max_batch_size: int) -> list[int]:
         """The batch sizes that cost differently: the static sampler's buckets, else 1..cap."""
@@ -873,14 +920,15 @@ def _compiled_functions(policy: Any) -> list[tuple[Any, str, Any]]:
     return out
 
 
-def _allow_recompiles(max_batch_size: int) -> None:
-    """Each batch size may compile its own graph: raise dynamo's recompile limit to fit them."""
+def _allow_recompiles(shapes: int) -> None:
+    """Each of ``shapes`` input shapes (batch sizes, prompt lengths) may compile its own graph:
+    raise dynamo's recompile limit to fit them (with room for a guided and an unguided variant)."""
     import torch._dynamo
 
     cfg = torch._dynamo.config
     for knob in ("recompile_limit", "cache_size_limit"):
         if hasattr(cfg, knob):
-            setattr(cfg, knob, max(getattr(cfg, knob), 2 * max_batch_size + 8))
+            setattr(cfg, knob, max(getattr(cfg, knob), 2 * shapes + 8))
 
 
 def _image_chw(array: np.ndarray):

@@ -601,3 +601,33 @@ def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_va
     reference = LeRobotOrder("eager")
     want = reference.attend(layer.self_attn, q.transpose(1, 2), k, v, reference.mask(additive, torch.bfloat16))
     torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
+
+
+def test_a_compiled_sampler_compiles_every_bucket_and_prompt_length_at_warm_up(pi05_dir, monkeypatch, caplog):
+    """``--engine.compile_sampler=true`` compiles one shape per (batch bucket, prompt length): all of
+    them at warm-up, said up front, none left for the first robots (dynamo's recompile limit fits
+    them: past it a shape would silently run uncompiled). Dynamo's ``eager`` backend stands in for
+    inductor here: the same tracing and guards, without minutes of code generation."""
+    import logging
+
+    import torch
+    from torch._dynamo.utils import counters
+
+    real_compile = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: real_compile(fn, **{**kw, "backend": "eager"}))
+    torch._dynamo.reset()
+    counters.clear()
+    options = EngineOptions(static_sampler=True, compile_sampler=True, graph_buckets="1,2", prompt_buckets="16,32")
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=options)
+    with caplog.at_level(logging.INFO, logger="lerobot_armory"):
+        engine.warmup(2, log_progress=True)
+        engine.profile(2, log_progress=False)
+    assert "compiling the static sampler for 6 shapes (2 batch buckets x 3 prompt lengths)" in caplog.text
+    compiled = counters["stats"]["unique_graphs"]
+    assert compiled == 6
+    for b in (1, 2):
+        for words in (0, 12):  # prompts in different prompt buckets
+            obs, tasks, seeds, _ = batch(b)
+            engine.infer(obs, [t + " please" * words for t in tasks], seeds)
+    assert counters["stats"]["unique_graphs"] == compiled  # nothing compiled under robots
+    torch._dynamo.reset()
