@@ -11,6 +11,8 @@ forward pass (``PolicyEngine.forward`` on a pre-processed batch, i.e. the region
 - *launches*: ops that compute (views and allocations excluded) ≈ kernels a GPU would launch;
 - *host syncs*: ops that wait for the host (``torch.tensor(list, device=…)``, ``.item()``, …), each
   of which makes a CUDA graph capture fail;
+  (the static sampler's count is of the recorded region; before it, once a batch, the engine reads
+  the prompt masks back to choose the prompt bucket);
 - a ``torch._dynamo.explain`` trace of the static sampler: graphs and graph breaks;
 - CPU ms per forward pass (median of 5): CPU figures, printed for the record, not GPU ones.
 

@@ -37,7 +37,6 @@ import os
 import statistics
 import threading
 import time
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -559,8 +558,8 @@ class PolicyEngine:
         Inductor compiles one shape at a time (``dynamic=False``: each kernel for its sizes), so
         the count is buckets × prompt lengths, each taking from seconds (a tiny model on a CPU)
         to minutes (the full π0.5): said up front, dynamo's recompile limit raised to fit (past
-        it a shape would run uncompiled, silently), and each bucket logged as it is done. Graphs
-        recorded afterwards replay the compiled kernels."""
+        it dynamo refuses a whole-graph compilation: a batch's error), and each bucket logged as
+        it is done. Graphs recorded afterwards replay the compiled kernels."""
         assert self.sampler is not None
         buckets, lengths = self.sampler.buckets, max(1, len(self.prompt_buckets))
         shapes = len(buckets) * lengths
@@ -926,7 +925,7 @@ def _allow_recompiles(shapes: int) -> None:
     import torch._dynamo
 
     cfg = torch._dynamo.config
-    for knob in ("recompile_limit", "cache_size_limit"):
+    for knob in ("recompile_limit", "cache_size_limit", "accumulated_recompile_limit", "accumulated_cache_size_limit"):
         if hasattr(cfg, knob):
             setattr(cfg, knob, max(getattr(cfg, knob), 2 * shapes + 8))
 

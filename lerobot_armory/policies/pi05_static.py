@@ -127,14 +127,15 @@ class SamplerInputs:
         return int(self.tokens.shape[1])
 
     def prompt_trimmed(self, length: int) -> SamplerInputs:
-        """The same batch with only the first ``length`` prompt columns (views). The caller makes
-        sure every dropped column is padding in every row: padding is masked everywhere, so the
-        chunks are the same (up to the rounding of shorter sums)."""
+        """The same batch with only the first ``length`` prompt columns. The caller makes sure
+        every dropped column is padding in every row: padding is masked everywhere, so the chunks
+        are the same (up to the rounding of shorter sums). The columns are copied, not viewed: a
+        compiled sampler's guards check strides, and a padded or recorded batch is contiguous,
+        so a view would be one more shape to compile (a few hundred integers a row)."""
         if not 0 < length <= self.prompt_length:
             raise ValueError(f"cannot trim a prompt of {self.prompt_length} tokens to {length}")
-        return SamplerInputs(
-            self.images, self.tokens[:, :length], self.masks[:, :length], self.noise, self.rtc_weights, self.rtc_leftover
-        )
+        tokens, masks = self.tokens[:, :length].contiguous(), self.masks[:, :length].contiguous()
+        return SamplerInputs(self.images, tokens, masks, self.noise, self.rtc_weights, self.rtc_leftover)
 
     def padded(self, rows: int) -> SamplerInputs:
         """The same batch grown to ``rows`` by repeating its last row (padding must be valid data:
