@@ -15,7 +15,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   ``--engine.fused_kernels=false``, LeRobot's sequence of operations in the static sampler (the
   graphs configurations fuse by default); a ``-fullprompt`` suffix: ``--engine.prompt_buckets=off``,
   every prompt at LeRobot's padded 200 tokens (by default the measured prompts, "pick up the block
-  number k", are cut to 64);
+  number k", are cut to 64); a ``-visionbf16`` suffix: ``--engine.vision_dtype=bfloat16``, the
+  SigLIP tower and projector in bf16 (LeRobot keeps them in float32; cast in place, so the
+  policy is loaded again for the configuration after it);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 
@@ -69,7 +71,7 @@ CONFIGS = (
     "act", "pi05-fp32", "pi05-bf16", "pi05-fp32-compiled", "pi05-bf16-compiled",
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
-    "pi05-bf16-graphs-tf32-ordered-fullprompt",
+    "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -99,6 +101,7 @@ def engine_options(config: str) -> Any:
         compile_sampler="compiled" in flags,
         graph_buckets=ARGS.graph_buckets,
         matmul_precision=precision,
+        vision_dtype="bfloat16" if "visionbf16" in flags else "float32",
     )
 
 
@@ -326,7 +329,9 @@ def main() -> None:
     engine, loaded = None, None
     for config in configs:
         path, overrides = build(config, ARGS.size, work, ARGS.compile_mode)
-        if (path, overrides) != loaded:  # configurations of one policy and dtype share a load
+        # Configurations of one policy and dtype share a load, except after one that cast the vision
+        # tower to bf16 (its float32 weights are gone).
+        if (path, overrides) != loaded or (engine is not None and engine.vision_cast is not None):
             engine = None
             if device == "cuda":
                 torch.cuda.empty_cache()

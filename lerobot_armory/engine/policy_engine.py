@@ -119,6 +119,7 @@ class PolicyEngine:
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
+        self.vision_cast: str | None = None  # the dtype the vision tower was cast to (--engine.vision_dtype)
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
@@ -186,6 +187,13 @@ class PolicyEngine:
         if static and why is not None:
             option = "cuda_graphs" if o.static_sampler is None else "static_sampler"
             raise ConfigError(f"engine.{option}", why)
+        if self.vision_cast is not None and (not static or o.vision_dtype != self.vision_cast):
+            raise ConfigError(
+                "engine.vision_dtype", f"the vision tower was cast to {self.vision_cast} for the static sampler; "
+                "serving it otherwise needs the policy loaded again"
+            )
+        if not static and o.vision_dtype != "float32":
+            raise ConfigError("engine.vision_dtype", "runs the static sampler's vision tower, which is off here; --engine.static_sampler=true turns it on")
         if not static and o.compile_sampler:
             raise ConfigError(
                 "engine.compile_sampler", f"compiles the static sampler, which is off here ({why or 'no CUDA device'}); "
@@ -204,6 +212,7 @@ class PolicyEngine:
                 max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0,
                 attention=o.attention,
                 fused=o.fused_kernels,
+                vision_dtype=None if o.vision_dtype == "float32" else getattr(torch, o.vision_dtype),
             )
         except ValueError as exc:  # e.g. --policy.num_inference_steps=0
             raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None
@@ -215,6 +224,8 @@ class PolicyEngine:
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
+        if o.vision_dtype != "float32":
+            self.vision_cast = o.vision_dtype
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         sample = sampler.sample
@@ -236,6 +247,8 @@ class PolicyEngine:
                 notes.append("static sampler compiled")
             if self.fused_kernels:
                 notes.append("fused kernels")
+            if self.vision_cast is not None:
+                notes.append(f"vision tower in {self.vision_cast}")
             if self.prompt_buckets:
                 notes.append(f"prompts cut to {','.join(map(str, self.prompt_buckets))} tokens")
             if self.sampler.captured:

@@ -197,13 +197,22 @@ class StaticPi05:
             another rounding order; the layers' q/k/v and gate/up weights become views of one
             tensor each) where the policy allows it (:attr:`unfused_reason` says why not);
             False: LeRobot's own sequence of operations.
+        vision_dtype: cast the SigLIP tower and the projector to this dtype (in place, once: the
+            policy's own sampler, which feeds them float32, cannot run them afterwards) and run
+            them in it; None: as loaded (LeRobot keeps them in float32).
 
     Raises:
         ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
     """
 
     def __init__(
-        self, policy: Any, guided: bool = False, max_guidance_weight: float = 10.0, attention: str = "eager", fused: bool = True
+        self,
+        policy: Any,
+        guided: bool = False,
+        max_guidance_weight: float = 10.0,
+        attention: str = "eager",
+        fused: bool = True,
+        vision_dtype: torch.dtype | None = None,
     ) -> None:
         why = unsupported_reason(policy)
         if why is not None:
@@ -227,6 +236,11 @@ class StaticPi05:
             except ValueError as exc:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)
+        self.vision_dtype = vision_dtype
+        if vision_dtype is not None:
+            paligemma = pwe.paligemma.model
+            paligemma.vision_tower.to(vision_dtype)
+            paligemma.multi_modal_projector.to(vision_dtype)
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
@@ -312,9 +326,9 @@ class StaticPi05:
         of 2B images launches half the kernels of two passes of B."""
         pwe = self.model.paligemma_with_expert
         if len(images) > 1 and len({tuple(i.shape) for i in images}) == 1:
-            per_camera = pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0])
+            per_camera = self._embed_image(torch.cat(list(images))).split(images[0].shape[0])
         else:
-            per_camera = tuple(pwe.embed_image(img) for img in images)
+            per_camera = tuple(self._embed_image(img) for img in images)
         embs, pads = [], []
         for emb, img_mask in zip(per_camera, img_masks, strict=True):
             embs.append(emb)
@@ -322,6 +336,13 @@ class StaticPi05:
         embs.append(pwe.embed_language_tokens(tokens))
         pads.append(masks)
         return torch.cat(embs, dim=1), torch.cat(pads, dim=1)
+
+    def _embed_image(self, images: Tensor) -> Tensor:
+        """LeRobot's ``embed_image`` (it feeds the tower float32), or the tower in ``vision_dtype``."""
+        pwe = self.model.paligemma_with_expert
+        if self.vision_dtype is None:
+            return pwe.embed_image(images)
+        return pwe.paligemma.model.get_image_features(images.to(self.vision_dtype)).pooler_output.to(images.dtype)
 
     def _prefix_cache(self, embs: Tensor, pad: Tensor) -> tuple[list[Tensor], list[Tensor]]:
         """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``

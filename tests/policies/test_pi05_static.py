@@ -631,3 +631,33 @@ def test_a_compiled_sampler_compiles_every_bucket_and_prompt_length_at_warm_up(p
             engine.infer(obs, [t + " please" * words for t in tasks], seeds)
     assert counters["stats"]["unique_graphs"] == compiled  # nothing compiled under robots
     torch._dynamo.reset()
+
+
+def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_dir):
+    """``--engine.vision_dtype=bfloat16``: the SigLIP tower and projector are cast once (half their
+    bytes) and run in bf16; the chunks stay within bf16 rounding of the float32 tower's; the
+    option needs the static sampler, and an engine whose tower was cast refuses to serve it
+    otherwise (the float32 weights are gone)."""
+    import torch
+
+    _, tasks, seeds, _ = batch(2)
+    obs = [observation(k, k) for k in range(2)]
+    plain = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    vision = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True, vision_dtype="bfloat16"))
+
+    def tower(engine: PolicyEngine) -> tuple[set, int]:
+        model = engine.policy.model.paligemma_with_expert.paligemma.model
+        params = [*model.vision_tower.parameters(), *model.multi_modal_projector.parameters()]
+        return {p.dtype for p in params}, sum(p.numel() * p.element_size() for p in params)
+
+    (dtypes, nbytes), (plain_dtypes, plain_bytes) = tower(vision), tower(plain)
+    assert dtypes == {torch.bfloat16} and plain_dtypes == {torch.float32} and 2 * nbytes == plain_bytes
+    assert "vision tower in bfloat16" in vision.description
+    want, got = plain.infer(obs, tasks, seeds), vision.infer(obs, tasks, seeds)
+    assert 0 < np.abs(got - want).max() < 5e-2
+    with pytest.raises(ConfigError, match="engine.vision_dtype"):
+        PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(vision_dtype="bfloat16"))
+    with pytest.raises(ConfigError, match="engine.vision_dtype: must be one of"):
+        EngineOptions(vision_dtype="float16").validate()
+    with pytest.raises(ConfigError, match="loaded again"):
+        vision.use_sampler(EngineOptions(static_sampler=False))
