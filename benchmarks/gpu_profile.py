@@ -31,7 +31,10 @@ own time: LeRobot's ``predict_action_chunk``, or the static sampler / its graph)
 ``--reps`` after the engine's warm-up, synchronised. With graphs, the seconds to record each
 bucket, the peak GPU memory, and how far its chunks are from LeRobot's eager sampler's on the
 same inputs (b = 1, 3, 8; measured when the eager configuration of that dtype ran first in the
-call) are written too. Results merge into ``docs/results/gpu/<device>.json``;
+call) are written too, and (``--kernels``, on by default) where a pass's device time goes: one
+pass at b = 1 and at the largest b traced with ``torch.profiler`` (the kernels inside a graph's
+replay one by one), its kernel time summed by kind — matrix products, attention, norms, copies,
+elementwise — with the ten longest kernels. Results merge into ``docs/results/gpu/<device>.json``;
 its top-level ``latency_ms`` is the fastest π0.5 bf16 configuration through the engine, so the
 file loads as ``--latency_profile=FILE``. A figure is drawn beside the JAX reference's H100 table
 (openpi in JAX, the π0.5 latencies reported in the real-time chunking paper).
@@ -207,6 +210,63 @@ def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], rep
     return times
 
 
+# Kernel names by what they do (first match wins): where a graphed batch's device time goes.
+KERNEL_KINDS = (
+    ("matrix products", r"gemm|cutlass|nvjet|sm\d\d_xmma|cublas|\bmm\b|addmm|bmm|matmul|linear|conv"),
+    ("attention and softmax", r"softmax|flash|fmha|attention|sdpa"),
+    ("norms", r"norm"),
+    ("copies and casts", r"copy|cat|_to_copy|clone|contiguous|index"),
+    ("elementwise", r"elementwise|vectorized|unrolled|reduce|mul|add|sub|div|silu|gelu|tanh|where|rsqrt|pow|mean|exp"),
+)
+
+
+def kernel_breakdown(engine: Any, b: int, reps: int = 3) -> dict[str, Any]:
+    """Where one forward pass's device time goes at batch b: each kernel's time from
+    ``torch.profiler`` (on a GPU, the kernels inside a CUDA graph replay are traced one by one),
+    summed by kind (:data:`KERNEL_KINDS`), with the kernel count and the ten longest. On a CPU the
+    same for aten ops' own CPU time (a script check, not a GPU figure)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = str(engine.device).startswith("cuda")
+    obs = [engine.example_observation(seed=k) for k in range(b)]
+    batch = engine.to_batch(obs)
+    batch["task"] = [f"pick up the block number {k}" for k in range(b)]
+
+    def run() -> None:
+        with torch.inference_mode():
+            ready = engine.preprocessor(dict(batch))
+            kwargs = {"noise": engine._noise(range(b))} if engine.noise_shape is not None else {}
+            engine.forward(ready, kwargs)  # the prompt bucket's read-back happens here, before the graph
+            if cuda:
+                torch.cuda.synchronize(engine.device)
+            with profile(activities=[ProfilerActivity.CUDA if cuda else ProfilerActivity.CPU]) as prof:
+                for _ in range(reps):
+                    engine.forward(ready, kwargs)
+                if cuda:
+                    torch.cuda.synchronize(engine.device)
+        return prof
+
+    prof = engine.on_device(run)
+    rows = []
+    for event in prof.key_averages():
+        # Kernels have device time and the host's runtime calls none (and the reverse on a CPU).
+        us = (getattr(event, "self_device_time_total", 0.0) or getattr(event, "self_cuda_time_total", 0.0)) if cuda else event.self_cpu_time_total
+        if us > 0:
+            rows.append((event.key, event.count / reps, us / 1000.0 / reps))
+    kinds: dict[str, float] = {}
+    for name, _, ms in rows:
+        kind = next((k for k, pattern in KERNEL_KINDS if re.search(pattern, name, re.IGNORECASE)), "other")
+        kinds[kind] = kinds.get(kind, 0.0) + ms
+    rows.sort(key=lambda r: -r[2])
+    return {
+        "device_ms": round(sum(ms for _, _, ms in rows), 3),
+        "kernels": round(sum(n for _, n, _ in rows)),
+        "by_kind_ms": {k: round(v, 3) for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])},
+        "longest": [{"name": name[:120], "per_pass": round(n, 1), "ms": round(ms, 3)} for name, n, ms in rows[:10]],
+    }
+
+
 def profile_config(engine: Any, config: str, overrides: list[str], device: str, reference: dict[str, dict[int, Any]]) -> dict[str, Any]:
     """Warm up (record the graphs) and measure one configuration on a loaded engine; returns its run."""
     import torch
@@ -243,6 +303,18 @@ def profile_config(engine: Any, config: str, overrides: list[str], device: str, 
     if device == "cuda":
         run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     return run
+
+
+def add_kernels(engine: Any, run: dict[str, Any]) -> None:
+    """``run["kernels"]``: :func:`kernel_breakdown` at b = 1 and the largest b (printed too)."""
+    try:
+        run["kernels"] = {str(b): kernel_breakdown(engine, b) for b in sorted({1, ARGS.max_batch_size})}
+    except Exception as exc:  # the profiler is an extra: its failure loses nothing else
+        print(f"  kernel breakdown failed: {type(exc).__name__}: {str(exc).strip()[:200]}", flush=True)
+        return
+    for b, k in run["kernels"].items():
+        kinds = ", ".join(f"{kind} {ms:.1f}" for kind, ms in k["by_kind_ms"].items())
+        print(f"  b={b}: {k['kernels']} kernels, {k['device_ms']:.1f} ms of kernel time a pass: {kinds}", flush=True)
 
 
 def device_name(device: str) -> str:
@@ -349,6 +421,9 @@ def main() -> None:
             traceback.print_exc()
             continue
         write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
+        if ARGS.kernels and engine.sampler is not None:  # after the write: a profiler crash loses nothing
+            add_kernels(engine, runs[config])
+            write(out, name, {config: runs[config]})
     engine = None
     write(out, name, {})  # redraw the figure from everything written so far
     print(f"wrote {out} and {out.with_suffix('.png')} (load it with --latency_profile={out})")
@@ -378,6 +453,11 @@ def parse() -> argparse.Namespace:
     p.add_argument("--max_batch_size", type=int, default=8)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--compile_mode", default="reduce-overhead", help="torch.compile mode for the *-compiled configs")
+    p.add_argument(
+        "--kernels", action=argparse.BooleanOptionalAction, default=True,
+        help="for the static sampler's configurations, trace one pass at b = 1 and the largest b with torch.profiler: "
+        "kernel time by kind (matrix products, attention, norms, copies, elementwise) and the longest kernels",
+    )  # fmt: skip
     p.add_argument("--out", default=None, help="JSON to merge into (default docs/results/gpu/<device>.json on a GPU)")
     p.add_argument("--work_dir", default=None, help="where the policy directories are built (default: a temp dir)")
     p.add_argument("--graph_buckets", default=None, help="--engine.graph_buckets for the *-graphs configs (default 1,2,4,8)")
