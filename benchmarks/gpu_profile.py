@@ -31,7 +31,8 @@ own time: LeRobot's ``predict_action_chunk``, or the static sampler / its graph)
 ``--reps`` after the engine's warm-up, synchronised. With graphs, the seconds to record each
 bucket, the peak GPU memory, and how far its chunks are from LeRobot's eager sampler's on the
 same inputs (b = 1, 3, 8; measured when the eager configuration of that dtype ran first in the
-call) are written too, and (``--kernels``, on by default) where a pass's device time goes: one
+call) are written too, and (``--kernels``; run it in a call of its own: profiling graph replays has
+faulted CUDA in some versions) where a pass's device time goes: one
 pass at b = 1 and at the largest b traced with ``torch.profiler`` (the kernels inside a graph's
 replay one by one), its kernel time summed by kind — matrix products, attention, norms, copies,
 elementwise — with the ten longest kernels. Results merge into ``docs/results/gpu/<device>.json``;
@@ -212,10 +213,10 @@ def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], rep
 
 # Kernel names by what they do (first match wins): where a graphed batch's device time goes.
 KERNEL_KINDS = (
-    ("matrix products", r"gemm|cutlass|nvjet|sm\d\d_xmma|cublas|\bmm\b|addmm|bmm|matmul|linear|conv"),
-    ("attention and softmax", r"softmax|flash|fmha|attention|sdpa"),
+    ("attention and softmax", r"flash|fmha|attention|sdpa|softmax"),  # first: flash kernels name cutlass types
+    ("matrix products", r"gemm|gemv|cutlass|nvjet|xmma|cublas|(?<![a-z])mm(?![a-z])|addmm|bmm|matmul|conv"),
     ("norms", r"norm"),
-    ("copies and casts", r"copy|cat|_to_copy|clone|contiguous|index"),
+    ("copies and casts", r"copy|memcpy|memset|cat|clone|contiguous|index"),
     ("elementwise", r"elementwise|vectorized|unrolled|reduce|mul|add|sub|div|silu|gelu|tanh|where|rsqrt|pow|mean|exp"),
 )
 
@@ -398,6 +399,11 @@ def main() -> None:
     runs: dict[str, dict[str, Any]] = {}
     reference: dict[str, dict[int, Any]] = {}  # LeRobot's eager chunks, by dtype override
     failed: list[str] = []
+    if ARGS.kernels and device == "cuda":
+        # Start CUPTI before any graph is recorded (PyTorch's advice for profiling graph replays).
+        init = getattr(getattr(torch.profiler, "_utils", None), "_init_for_cuda_graphs", None)
+        if init is not None:
+            init()
     engine, loaded = None, None
     for config in configs:
         path, overrides = build(config, ARGS.size, work, ARGS.compile_mode)
@@ -454,7 +460,7 @@ def parse() -> argparse.Namespace:
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--compile_mode", default="reduce-overhead", help="torch.compile mode for the *-compiled configs")
     p.add_argument(
-        "--kernels", action=argparse.BooleanOptionalAction, default=True,
+        "--kernels", action=argparse.BooleanOptionalAction, default=False,
         help="for the static sampler's configurations, trace one pass at b = 1 and the largest b with torch.profiler: "
         "kernel time by kind (matrix products, attention, norms, copies, elementwise) and the longest kernels",
     )  # fmt: skip

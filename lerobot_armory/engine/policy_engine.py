@@ -119,7 +119,6 @@ class PolicyEngine:
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
-        self.vision_cast: str | None = None  # the dtype the vision tower was cast to (--engine.vision_dtype)
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
         self.input_features: dict[str, Any] = dict(self.config.input_features)
         action = self.config.output_features.get("action")
@@ -156,6 +155,17 @@ class PolicyEngine:
         self.matmul_precision = self._apply_matmul_precision()
         self.sampler = None  # drops the recorded graphs (and their memory pool) with it
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
+
+    @property
+    def vision_cast(self) -> str | None:
+        """The dtype π0.5's vision tower was cast to (``--engine.vision_dtype``), read off its
+        weights (LeRobot keeps them float32 in every dtype); None: not cast, or not a π0.5."""
+        import torch
+
+        from lerobot_armory.policies.pi05_static import vision_dtype_of
+
+        dtype = vision_dtype_of(self.policy)
+        return None if dtype is None or dtype == torch.float32 else str(dtype).removeprefix("torch.")
 
     def _apply_matmul_precision(self) -> str:
         """Set torch's float32 matmul precision (process-wide) as the options ask; returns it."""
@@ -204,6 +214,11 @@ class PolicyEngine:
             if note is not None:
                 log.info("CUDA graphs off, the policy's own sampler serves: %s", note)
             return False, note
+        full = getattr(self.config, "tokenizer_max_length", None)
+        if isinstance(full, int) and full > 0:  # checked before the sampler may cast the vision tower
+            from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
+
+            self.prompt_buckets = parse_prompt_buckets(o.prompt_buckets, full)
         rtc = self.rtc_options
         try:
             sampler = pi05_static.StaticPi05(
@@ -216,16 +231,9 @@ class PolicyEngine:
             )
         except ValueError as exc:  # e.g. --policy.num_inference_steps=0
             raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None
-        full = getattr(self.config, "tokenizer_max_length", None)
-        if isinstance(full, int) and full > 0:
-            from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
-
-            self.prompt_buckets = parse_prompt_buckets(o.prompt_buckets, full)
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
-        if o.vision_dtype != "float32":
-            self.vision_cast = o.vision_dtype
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         sample = sampler.sample

@@ -185,6 +185,14 @@ def _text_model(pwe: Any) -> Any:
     return pwe.paligemma.model.language_model
 
 
+def vision_dtype_of(policy: Any) -> torch.dtype | None:
+    """The dtype π0.5's SigLIP tower holds its weights in (None: not a π0.5)."""
+    tower = getattr(getattr(getattr(getattr(policy, "model", None), "paligemma_with_expert", None), "paligemma", None), "model", None)
+    params = getattr(getattr(tower, "vision_tower", None), "parameters", None)
+    first = next(params(), None) if params is not None else None
+    return None if first is None else first.dtype
+
+
 class StaticPi05:
     """``PI05Pytorch.sample_actions`` without host synchronisation or per-step copies.
 
@@ -198,8 +206,8 @@ class StaticPi05:
             tensor each) where the policy allows it (:attr:`unfused_reason` says why not);
             False: LeRobot's own sequence of operations.
         vision_dtype: cast the SigLIP tower and the projector to this dtype (in place, once: the
-            policy's own sampler, which feeds them float32, cannot run them afterwards) and run
-            them in it; None: as loaded (LeRobot keeps them in float32).
+            float32 weights are gone, and the policy's own sampler would then run them in it too)
+            and run them in it; None: as loaded (LeRobot keeps them in float32).
 
     Raises:
         ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
@@ -236,15 +244,15 @@ class StaticPi05:
             except ValueError as exc:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)
-        self.vision_dtype = vision_dtype
-        if vision_dtype is not None:
-            paligemma = pwe.paligemma.model
-            paligemma.vision_tower.to(vision_dtype)
-            paligemma.multi_modal_projector.to(vision_dtype)
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")
+        self.vision_dtype = vision_dtype
+        if vision_dtype is not None:  # after every check: a refused sampler leaves the weights as they were
+            paligemma = pwe.paligemma.model
+            paligemma.vision_tower.to(vision_dtype)
+            paligemma.multi_modal_projector.to(vision_dtype)
         device = next(self.model.parameters()).device
         # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
         self.dt = -1.0 / self.num_steps

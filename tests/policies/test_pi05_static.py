@@ -661,3 +661,6 @@ def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_
         EngineOptions(vision_dtype="float16").validate()
     with pytest.raises(ConfigError, match="loaded again"):
         vision.use_sampler(EngineOptions(static_sampler=False))
+    with pytest.raises(ConfigError, match="engine.prompt_buckets"):  # refused before any weight is cast
+        plain.use_sampler(EngineOptions(static_sampler=True, vision_dtype="bfloat16", prompt_buckets="9999"))
+    assert plain.vision_cast is None and tower(plain)[0] == {torch.float32}
