@@ -206,8 +206,9 @@ class StaticPi05:
             tensor each) where the policy allows it (:attr:`unfused_reason` says why not);
             False: LeRobot's own sequence of operations.
         vision_dtype: cast the SigLIP tower and the projector to this dtype (in place, once: the
-            float32 weights are gone, and the policy's own sampler would then run them in it too)
-            and run them in it; None: as loaded (LeRobot keeps them in float32).
+            float32 weights are gone) and so run them in it — LeRobot's ``embed_image`` hands the
+            tower float32 images, which SigLIP casts to its patch weights' dtype; None: as loaded
+            (LeRobot keeps them in float32).
 
     Raises:
         ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
@@ -248,7 +249,6 @@ class StaticPi05:
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")
-        self.vision_dtype = vision_dtype
         if vision_dtype is not None:  # after every check: a refused sampler leaves the weights as they were
             paligemma = pwe.paligemma.model
             paligemma.vision_tower.to(vision_dtype)
@@ -334,9 +334,9 @@ class StaticPi05:
         of 2B images launches half the kernels of two passes of B."""
         pwe = self.model.paligemma_with_expert
         if len(images) > 1 and len({tuple(i.shape) for i in images}) == 1:
-            per_camera = self._embed_image(torch.cat(list(images))).split(images[0].shape[0])
+            per_camera = pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0])
         else:
-            per_camera = tuple(self._embed_image(img) for img in images)
+            per_camera = tuple(pwe.embed_image(img) for img in images)
         embs, pads = [], []
         for emb, img_mask in zip(per_camera, img_masks, strict=True):
             embs.append(emb)
@@ -344,13 +344,6 @@ class StaticPi05:
         embs.append(pwe.embed_language_tokens(tokens))
         pads.append(masks)
         return torch.cat(embs, dim=1), torch.cat(pads, dim=1)
-
-    def _embed_image(self, images: Tensor) -> Tensor:
-        """LeRobot's ``embed_image`` (it feeds the tower float32), or the tower in ``vision_dtype``."""
-        pwe = self.model.paligemma_with_expert
-        if self.vision_dtype is None:
-            return pwe.embed_image(images)
-        return pwe.paligemma.model.get_image_features(images.to(self.vision_dtype)).pooler_output.to(images.dtype)
 
     def _prefix_cache(self, embs: Tensor, pad: Tensor) -> tuple[list[Tensor], list[Tensor]]:
         """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``
