@@ -4,7 +4,7 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,137 kernels in LeRobot's sequence and 4,734 fused in float32; 10,172 and 5,204 in bfloat16
+9,137 kernels in LeRobot's sequence and 4,536 fused in float32; 10,172 and 5,006 in bfloat16
 (``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
@@ -17,7 +17,9 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   LeRobot's ``square, mean, add, rsqrt, mul`` is five), the adaptive norm's scale and shift as one
   ``addcmul``, the plain norm's ``1 + weight`` computed once;
 - **the rotary embedding of q and k together, with the attention scale folded into q's table**
-  (three kernels for both, where HF's is four each plus a scale on the scores);
+  (three kernels for both, where HF's is four each plus a scale on the scores); v passes the same
+  three kernels unrotated (its rows of the table are cos 1, sin 0: bit for bit), so keys and values
+  leave them side by side as one tensor and enter the K/V cache in **one copy**, where two were;
 - **attention without layout copies**: with one K/V head (π0.5: eight query heads on one), the
   projection's ``(B, L, heads, d)`` memory is already ``(B, L·heads, d)`` query rows, so the
   scores, the softmax and the weighted sum run on it as it lies, and the output is the
@@ -49,7 +51,8 @@ from torch import Tensor
 class LeRobotOrder:
     """LeRobot's and HF's operations, in their order (see the module docstring).
 
-    Layouts: rotary tables ``(B, 1, L, d)``; masks ``(B, 1, Lq, Lk)``; q/k/v ``(B, heads, L, d)``.
+    Layouts: rotary tables ``(B, 1, L, d)``; masks ``(B, 1, Lq, Lk)``; q/k/v ``(B, heads, L, d)``;
+    keys and values (:meth:`qkv`'s, and a K/V cache's) a pair ``(k, v)``.
     """
 
     def __init__(self, attention: str) -> None:
@@ -77,18 +80,34 @@ class LeRobotOrder:
         return (norm._norm(h) * scale1 + shift).to(h.dtype)
 
     @staticmethod
-    def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-        """Projections and HF's ``apply_rotary_pos_emb``: q, k, v as ``(B, heads, L, d)``."""
+    def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Any]:
+        """Projections and HF's ``apply_rotary_pos_emb``: q and the pair (k, v), each ``(B, heads, L, d)``."""
         cos, signed_sin = rope
         shape = (*x.shape[:-1], -1, attn.head_dim)
         q = attn.q_proj(x).view(shape).transpose(1, 2)
         k = attn.k_proj(x).view(shape).transpose(1, 2)
         v = attn.v_proj(x).view(shape).transpose(1, 2)
-        return q * cos + _swap_halves(q) * signed_sin, k * cos + _swap_halves(k) * signed_sin, v
+        return q * cos + _swap_halves(q) * signed_sin, (k * cos + _swap_halves(k) * signed_sin, v)
 
-    def attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
-        """Attention of ``q`` (B, Hq, Lq, d) over ``k``/``v`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
-        return _attention(self.attention, q, k, v, mask, attn.scaling)
+    @staticmethod
+    def cache(kv: Any, length: int) -> Any:
+        """A K/V cache of ``length`` positions holding ``kv`` (:meth:`qkv`'s) in its first ones."""
+        k, v = kv
+        k_buf = k.new_empty(k.shape[0], k.shape[1], length, k.shape[3])
+        v_buf = v.new_empty(v.shape[0], v.shape[1], length, v.shape[3])
+        k_buf[:, :, : k.shape[2]] = k
+        v_buf[:, :, : v.shape[2]] = v
+        return k_buf, v_buf
+
+    @staticmethod
+    def write(cache: Any, kv: Any, start: int) -> None:
+        """``kv`` into ``cache`` from position ``start`` on, in place (HF's cache concatenates a copy)."""
+        cache[0][:, :, start:] = kv[0]
+        cache[1][:, :, start:] = kv[1]
+
+    def attend(self, attn: Any, q: Tensor, kv: Any, mask: Tensor) -> Tensor:
+        """Attention of ``q`` (B, Hq, Lq, d) over the pair ``kv`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
+        return _attention(self.attention, q, kv[0], kv[1], mask, attn.scaling)
 
     @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
@@ -106,8 +125,9 @@ class LeRobotOrder:
 class Fused(LeRobotOrder):
     """The same values as :class:`LeRobotOrder` with fewer kernels (see the module docstring).
 
-    Layouts: rotary tables ``(B, L, Hq + Hkv, d)`` with q's scale in; masks ``(B, Lq, 1, Lk)``;
-    q ``(B, Lq, Hq, d)``; k/v ``(B, Hkv, L, d)`` as the K/V buffers hold them.
+    Layouts: rotary tables ``(B, L, Hq + 2·Hkv, d)`` with q's scale in and v's rows the identity;
+    masks ``(B, Lq, 1, Lk)``; q ``(B, Lq, Hq, d)``; keys and values one tensor ``(B, L, 2·Hkv, d)``
+    (k's heads, then v's), as the projection lays them out and the K/V cache holds them.
 
     Args:
         text_models: the Gemma models whose layers run here (the VLM and the action expert);
@@ -126,16 +146,23 @@ class Fused(LeRobotOrder):
         self.qkv_weight: dict[Any, Tensor] = {}
         self.gate_up_weight: dict[Any, Tensor] = {}
         self.norm_weight: dict[Any, Tensor] = {}
-        self.head_scale: dict[Any, Tensor] = {}  # per model: (Hq + Hkv, 1), q's rows scaled
+        self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
             heads, kv_heads = _heads(attn)
             weight = attn.q_proj.weight
             # In the dtype of the model's rotary table (its hidden states'), made here: a tensor
             # filled from Python inside a recorded region would be a host-to-device copy.
-            scale = torch.ones(heads + kv_heads, 1, device=weight.device)
+            # q's rows scaled, k's rotated, v's unrotated (cos 1, sin 0: v · 1 + swap(v) · 0 is v,
+            # bit for bit), so one rotation serves q, k and v and the keys and values leave it
+            # side by side, one copy into the cache where two were.
+            scale = torch.ones(heads + 2 * kv_heads, 1, device=weight.device)
             scale[:heads] = attn.scaling
-            self.head_scale[model] = scale.to(weight.dtype if weight.dtype == torch.bfloat16 else torch.float32)
+            scale[heads + kv_heads :] = 0.0
+            offset = torch.zeros_like(scale)
+            offset[heads + kv_heads :] = 1.0
+            table_dtype = weight.dtype if weight.dtype == torch.bfloat16 else torch.float32
+            self.rope_scale[model] = (scale.to(table_dtype), offset.to(table_dtype))
             for layer in model.layers:
                 attn, mlp = layer.self_attn, layer.mlp
                 self.qkv_weight[attn] = fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj])
@@ -145,11 +172,12 @@ class Fused(LeRobotOrder):
                         self.norm_weight[norm] = 1.0 + norm.weight.detach().float()
 
     def rope(self, text_model: Any, x: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
-        """One table for q's and k's heads side by side, q's rows times the attention scale
-        (rotation is linear: scaling q's rotated value is scaling q)."""
+        """One table for q's, k's and v's heads side by side: q's rows times the attention scale
+        (rotation is linear: scaling q's rotated value is scaling q), v's the identity."""
         cos, sin = text_model.rotary_emb(x, positions)
-        scale = self.head_scale[text_model].to(cos.dtype)  # a no-op: made in the table's dtype
-        return cos[:, :, None, :] * scale, _signed(sin)[:, :, None, :] * scale
+        scale, offset = (t.to(cos.dtype) for t in self.rope_scale[text_model])  # no-ops: made in the table's dtype
+        # cos · scale + offset: q's and k's rows exactly cos · scale (0 added), v's exactly 1; sin · scale: v's 0.
+        return torch.addcmul(offset, cos[:, :, None, :], scale), _signed(sin)[:, :, None, :] * scale
 
     @staticmethod
     def mask(additive: Tensor, dtype: torch.dtype) -> Tensor:
@@ -167,28 +195,42 @@ class Fused(LeRobotOrder):
         # ``addcmul(...).to(h.dtype)`` is two, the same rounding (one, after the sum).
         return torch.addcmul(shift, normed, scale1, out=torch.empty_like(h))
 
-    def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
         heads, kv_heads = _heads(attn)
         qkv = torch.nn.functional.linear(x, self.qkv_weight[attn]).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
-        qk = qkv[:, :, : heads + kv_heads]
         cos, signed_sin = rope
-        qk = torch.addcmul(qk * cos, _swap_halves(qk), signed_sin)  # (B, L, Hq + Hkv, d), q scaled
-        return qk[:, :, :heads], qk[:, :, heads:].transpose(1, 2), qkv[:, :, heads + kv_heads :].transpose(1, 2)
+        qkv = torch.addcmul(qkv * cos, _swap_halves(qkv), signed_sin)  # q scaled and rotated, k rotated, v as it was
+        return qkv[:, :, :heads], qkv[:, :, heads:]
 
-    def attend(self, attn: Any, q: Tensor, k: Tensor, v: Tensor, mask: Tensor) -> Tensor:
-        """``q`` (B, Lq, Hq, d), scaled; ``k``/``v`` (B, Hkv, Lk, d); ``mask`` (B, Lq, 1, Lk)."""
+    @staticmethod
+    def cache(kv: Tensor, length: int) -> Tensor:
+        buf = kv.new_empty(kv.shape[0], length, *kv.shape[2:])
+        buf[:, : kv.shape[1]] = kv
+        return buf
+
+    @staticmethod
+    def write(cache: Tensor, kv: Tensor, start: int) -> None:
+        cache[:, start:] = kv  # keys and values in one copy
+
+    def attend(self, attn: Any, q: Tensor, kv: Tensor, mask: Tensor) -> Tensor:
+        """``q`` (B, Lq, Hq, d), scaled; ``kv`` (B, Lk, 2·Hkv, d); ``mask`` (B, Lq, 1, Lk)."""
         b, lq, heads, d = q.shape
-        if self.attention == "sdpa" or k.shape[1] != 1:
+        kv_heads = kv.shape[2] // 2
+        if self.attention == "sdpa" or kv_heads != 1:
+            k, v = kv[:, :, :kv_heads].transpose(1, 2), kv[:, :, kv_heads:].transpose(1, 2)
             return _attention(self.attention, q.transpose(1, 2), k, v, mask.transpose(1, 2), 1.0)
         # One K/V head: every query row (token, head) attends the same keys, so the rows stay in
-        # the projection's order and the output needs no transpose.
-        scores = torch.matmul(q.reshape(b, lq * heads, d), k[:, 0].transpose(1, 2)).view(b, lq, heads, -1)
+        # the projection's order and the output needs no transpose. k and v are read where they
+        # lie (rows 2·d apart): the matrix products take the stride, no copy.
+        # (``baddbmm`` would not save the mask's kernel: on CUDA it copies its input into the output
+        # before the product, a kernel the op count does not see.)
+        scores = torch.bmm(q.reshape(b, lq * heads, d), kv[:, :, 0].transpose(1, 2)).view(b, lq, heads, -1)
         # In the scores' own dtype (the mask is made in it): softmax computes in float32 inside
         # and rounds each probability once as it stores it, where LeRobot's float32 scores, float32
         # probabilities and a cast read and write the largest tensor of the layer three more times
         # (same values: the added mask is 0 or beyond exp's range either way).
         probs = torch.nn.functional.softmax(scores.add_(mask), dim=-1)
-        return torch.matmul(probs.view(b, lq * heads, -1), v[:, 0]).view(b, lq, heads * d)
+        return torch.bmm(probs.view(b, lq * heads, -1), kv[:, :, 1]).view(b, lq, heads * d)
 
     @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:

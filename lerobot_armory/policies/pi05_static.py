@@ -307,7 +307,7 @@ class StaticPi05:
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
         images, img_masks = self.policy._preprocess_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
         prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
-        keys, values = self._prefix_cache(prefix_embs, prefix_pad)
+        caches = self._prefix_cache(prefix_embs, prefix_pad)
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # whole suffix; its positions follow the prefix's valid tokens.
         b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
@@ -318,7 +318,7 @@ class StaticPi05:
         conditioning = self.prepare(b)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, conditioning[step], keys, values, p, mask, rope)
+            v_t = self._velocity(x_t, conditioning[step], caches, p, mask, rope)
             if self.guided:
                 assert self.guidance_table is not None and inputs.rtc_leftover is not None
                 # LeRobot's correction, closed form (module docstring): the weighted error.
@@ -345,41 +345,35 @@ class StaticPi05:
         pads.append(masks)
         return torch.cat(embs, dim=1), torch.cat(pads, dim=1)
 
-    def _prefix_cache(self, embs: Tensor, pad: Tensor) -> tuple[list[Tensor], list[Tensor]]:
-        """Run the VLM over the prefix; return per layer a K and a V buffer of ``P + chunk_size``
-        positions with the prefix's (post-rotary) keys and values in the first ``P``."""
-        b, p = pad.shape
+    def _prefix_cache(self, embs: Tensor, pad: Tensor) -> list[Any]:
+        """Run the VLM over the prefix; return per layer a K/V cache (the ops' layout) of
+        ``P + chunk_size`` positions with the prefix's (post-rotary) keys and values in the first ``P``."""
+        p = pad.shape[1]
         mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
         h = embs.to(torch.bfloat16) if self._bf16(self.vlm) else embs
         rope = self.ops.rope(self.vlm, h, positions)
-        keys, values = [], []
+        caches = []
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
-            q, k, v = self.ops.qkv(layer.self_attn, self.ops.norm(layer.input_layernorm, h), rope)
-            k_buf = k.new_empty(b, k.shape[1], p + self.chunk_size, k.shape[3])
-            v_buf = v.new_empty(b, v.shape[1], p + self.chunk_size, v.shape[3])
-            k_buf[:, :, :p] = k
-            v_buf[:, :, :p] = v
-            keys.append(k_buf)
-            values.append(v_buf)
+            q, kv = self.ops.qkv(layer.self_attn, self.ops.norm(layer.input_layernorm, h), rope)
+            caches.append(self.ops.cache(kv, p + self.chunk_size))
             if i == last:
                 break  # the last layer's output is never read: only its keys and values are
-            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, k, v, mask)), None)
+            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, kv, mask)), None)
             h = self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
-        return keys, values
+        return caches
 
     def _velocity(
-        self, x_t: Tensor, cond: StepConditioning, keys: list[Tensor], values: list[Tensor], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
+        self, x_t: Tensor, cond: StepConditioning, caches: list[Any], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
     ) -> Tensor:
         """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
         h = self._expert_input(self.model.action_in_proj(x_t))
         for i, layer in enumerate(self.expert.layers):
             mod_in, mod_post = cond.layers[i]
-            q, k, v = self.ops.qkv(layer.self_attn, self.ops.ada_norm(layer.input_layernorm, h, mod_in.scale1, mod_in.shift), rope)
-            keys[i][:, :, p:] = k  # in place, behind the prefix (HF's cache concatenates a copy)
-            values[i][:, :, p:] = v
-            attended = self.ops.attend(layer.self_attn, q, keys[i], values[i], mask)
+            q, kv = self.ops.qkv(layer.self_attn, self.ops.ada_norm(layer.input_layernorm, h, mod_in.scale1, mod_in.shift), rope)
+            self.ops.write(caches[i], kv, p)  # in place, behind the prefix
+            attended = self.ops.attend(layer.self_attn, q, caches[i], mask)
             h = self.ops.residual(h, layer.self_attn.o_proj(attended), mod_in.gate)
             x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post.scale1, mod_post.shift)
             h = self.ops.residual(h, self.ops.mlp(layer.mlp, x), mod_post.gate)

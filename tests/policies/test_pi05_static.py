@@ -463,6 +463,40 @@ def test_fused_kernels_halve_the_launches_of_a_sample(engines, pi05_dir):
         assert launches["fused"] <= 0.6 * launches["plain"], launches
 
 
+def test_fused_keys_and_values_leave_one_rotation_side_by_side_and_enter_the_cache_in_one_copy(engines):
+    """The fused rotary table leaves v's rows as they are (cos 1, sin 0: bit for bit), so keys and
+    values come out of one rotation as one tensor and each layer pass writes them into its cache
+    with one copy (LeRobot's order: two), with the same chunks."""
+    import torch
+
+    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    _, static = engines
+    fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
+    attn = fused.expert.layers[0].self_attn
+    x = torch.randn(2, 5, attn.q_proj.in_features, generator=torch.Generator().manual_seed(3))
+    positions = torch.arange(5)[None].expand(2, 5) + 7
+    with torch.no_grad():
+        _, (k, v) = plain.ops.qkv(attn, x, plain.ops.rope(plain.expert, x, positions))
+        _, kv = fused.ops.qkv(attn, x, fused.ops.rope(fused.expert, x, positions))
+    assert kv.shape == (2, 5, 2, attn.head_dim)
+    assert torch.equal(kv[:, :, 1], v[:, 0]) and torch.allclose(kv[:, :, 0], k[:, 0], atol=1e-6, rtol=0)
+
+    obs, tasks, seeds, prefixes = batch(3, seed=5)
+    kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
+    inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+    passes = len(fused.vlm.layers) + fused.num_steps * len(fused.expert.layers)
+    chunks = {}
+    for name, s, copies in (("fused", fused, passes), ("plain", plain, 2 * passes)):
+        with torch.no_grad():
+            s.sample(inputs)  # the per-size constants, outside the count
+            with OpTrace() as trace:
+                chunks[name] = s.sample(inputs)
+        assert trace.launched["aten.copy_.default"] == copies, (name, trace.launched["aten.copy_.default"], passes)
+    torch.testing.assert_close(chunks["fused"], chunks["plain"], atol=1e-5, rtol=0)
+
+
 def test_a_layer_that_cannot_be_fused_is_served_in_lerobots_order_and_says_why(pi05_dir, caplog):
     """A checkpoint whose K projection has a bias (π0.5's has none) cannot share one q/k/v weight:
     the static sampler runs LeRobot's order, the log says why, and the chunks still equal LeRobot's
@@ -595,11 +629,12 @@ def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_va
     mask = ops.mask(additive, torch.bfloat16)
     assert mask.dtype == torch.bfloat16
     scaling = layer.self_attn.scaling
+    kv = torch.cat([k, v], dim=1).transpose(1, 2)  # the fused layout: (B, L, k's head and v's, d)
     with torch.no_grad(), OpTrace() as trace:
-        out = ops.attend(layer.self_attn, q * scaling, k, v, mask)  # Fused takes q scaled (its rotary table does it)
+        out = ops.attend(layer.self_attn, q * scaling, kv, mask)  # Fused takes q scaled (its rotary table does it)
     assert "aten._to_copy.default" not in trace.launched and out.dtype == torch.bfloat16
     reference = LeRobotOrder("eager")
-    want = reference.attend(layer.self_attn, q.transpose(1, 2), k, v, reference.mask(additive, torch.bfloat16))
+    want = reference.attend(layer.self_attn, q.transpose(1, 2), (k, v), reference.mask(additive, torch.bfloat16))
     torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
 
 
