@@ -55,6 +55,9 @@ from lerobot_armory.feature_spec import FeatureSpec
 
 log = logging.getLogger(__name__)
 
+# What ``_choose_sampler`` sets: kept by ``use_sampler`` so that refused options change nothing.
+_SAMPLER_STATE = ("engine_options", "matmul_precision", "sampler", "graphs_wanted", "sampler_note", "fused_kernels", "prompt_buckets", "_prompt_forced")
+
 # Pre-processor steps known to leave images alone or to work on any device. Images go to the device
 # before the pre-processor only when every step before its device step is one of these (GR00T's
 # steps, for one, pull images back to the host with .cpu().numpy(): for such a policy the images
@@ -148,13 +151,21 @@ class PolicyEngine:
         one loaded policy (loading the full π0.5 takes minutes).
 
         Raises:
-            ConfigError: as the constructor does for these options.
+            ConfigError: as the constructor does for these options; the engine then serves as it
+                did (its sampler, graphs and options kept).
         """
         options.validate()
-        self.engine_options = options
-        self.matmul_precision = self._apply_matmul_precision()
-        self.sampler = None  # drops the recorded graphs (and their memory pool) with it
-        self.graphs_wanted, self.sampler_note = self._choose_sampler()
+        kept = {name: getattr(self, name) for name in _SAMPLER_STATE}
+        try:
+            self.engine_options = options
+            self.matmul_precision = self._apply_matmul_precision()
+            self.sampler = None  # the recorded graphs (and their memory pool) go once this call returns
+            self.graphs_wanted, self.sampler_note = self._choose_sampler()
+        except BaseException:
+            for name, value in kept.items():
+                setattr(self, name, value)
+            self._apply_matmul_precision()
+            raise
 
     @property
     def vision_cast(self) -> str | None:

@@ -694,8 +694,12 @@ def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(vision_dtype="bfloat16"))
     with pytest.raises(ConfigError, match="engine.vision_dtype: must be one of"):
         EngineOptions(vision_dtype="float16").validate()
+    served = vision.sampler
     with pytest.raises(ConfigError, match="loaded again"):
         vision.use_sampler(EngineOptions(static_sampler=False))
+    # refused, the engine serves as it did: its sampler, options and chunks
+    assert vision.sampler is served and vision.engine_options.vision_dtype == "bfloat16"
+    np.testing.assert_array_equal(vision.infer(obs, tasks, seeds), got)
     with pytest.raises(ConfigError, match="engine.prompt_buckets"):  # refused before any weight is cast
         plain.use_sampler(EngineOptions(static_sampler=True, vision_dtype="bfloat16", prompt_buckets="9999"))
     assert plain.vision_cast is None and tower(plain)[0] == {torch.float32}
