@@ -64,10 +64,10 @@ class EngineOptions:
             half the kernels a π0.5 sample launches, the same values in another rounding order
             (``policies/pi05_kernels.py``). ``false``: LeRobot's own sequence of operations.
         compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph) before its
-            graphs are recorded: fused kernels, fewer of them. One compilation per batch bucket
-            and prompt length, all at warm-up (logged up front): the default buckets up to a cap
-            of 8 with ``auto`` prompt buckets are 24, each minutes for the full π0.5; fewer with
-            ``--engine.graph_buckets=1,2,4,8`` and ``--engine.prompt_buckets=64`` (8).
+            graphs are recorded: fused kernels, fewer of them. The batch and prompt dimensions
+            are dynamic, so warm-up compiles twice (bucket 1, and every other bucket at every
+            prompt length together; minutes each for the full π0.5, logged) and the graphs of
+            each bucket and prompt length are recorded from those kernels.
         matmul_precision: float32 matrix products (``torch.set_float32_matmul_precision``, for the
             whole process): ``highest`` (true float32, LeRobot's numerics), ``high`` (TF32 on a
             GPU that has it) or ``auto`` (``high`` for a bfloat16 policy on a CUDA device, else

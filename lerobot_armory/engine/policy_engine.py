@@ -193,7 +193,7 @@ class PolicyEngine:
         import torch
 
         from lerobot_armory.policies import pi05_static
-        from lerobot_armory.engine.cuda_graphs import BucketedSampler
+        from lerobot_armory.engine.cuda_graphs import BucketedSampler, compile_sampler
 
         o = self.engine_options
         self.fused_kernels = False
@@ -247,9 +247,7 @@ class PolicyEngine:
         self.fused_kernels = sampler.fused
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
-        sample = sampler.sample
-        if o.compile_sampler:  # one compilation per (bucket, prompt length): the limit is raised at warm-up
-            sample = torch.compile(sample, fullgraph=True, dynamic=False)
+        sample = compile_sampler(sampler.sample) if o.compile_sampler else sampler.sample
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
         return graphs, None
 
@@ -585,21 +583,25 @@ class PolicyEngine:
         )  # fmt: skip
 
     def _compile_shapes(self, log_progress: bool) -> None:
-        """Compile the static sampler for every (bucket, prompt length) now, not under robots.
+        """Compile the static sampler now, not under robots, and run every (bucket, prompt length)
+        through it once.
 
-        Inductor compiles one shape at a time (``dynamic=False``: each kernel for its sizes), so
-        the count is buckets × prompt lengths, each taking from seconds (a tiny model on a CPU)
-        to minutes (the full π0.5): said up front, dynamo's recompile limit raised to fit (past
-        it dynamo refuses a whole-graph compilation: a batch's error), and each bucket logged as
-        it is done. Graphs recorded afterwards replay the compiled kernels."""
+        The batch and prompt dimensions are dynamic (``cuda_graphs.compile_sampler``): bucket 1
+        compiles once and the buckets of two rows or more once together, each compilation taking
+        from seconds (a tiny model on a CPU) to minutes (the full π0.5); the other shapes then
+        only run. Said up front and each bucket logged as it is done; dynamo's recompile limit is
+        raised to fit every shape anyway (past it dynamo refuses a whole-graph compilation: a
+        batch's error), should a dimension be specialised after all. Graphs recorded afterwards
+        replay the compiled kernels."""
         assert self.sampler is not None
         buckets, lengths = self.sampler.buckets, max(1, len(self.prompt_buckets))
         shapes = len(buckets) * lengths
         _allow_recompiles(shapes)
+        compilations = int(1 in buckets) + int(any(b > 1 for b in buckets))
         if log_progress:
             log.info(
-                "compiling the static sampler for %d shapes (%d batch buckets x %d prompt lengths); fewer with "
-                "--engine.graph_buckets=1,2,4,8 or --engine.prompt_buckets=off", shapes, len(buckets), lengths,
+                "compiling the static sampler: %d compilation(s) (bucket 1 apart; batch and prompt lengths dynamic), "
+                "then %d shapes run once (%d batch buckets x %d prompt lengths)", compilations, shapes, len(buckets), lengths,
             )  # fmt: skip
         for bucket in reversed(buckets):
             start = time.perf_counter()

@@ -19,8 +19,9 @@ LeRobot is forked) in the order ``sample_actions`` runs them, with these changes
   RTC guidance weights are device tensors made once, indexed by step;
 - everything that depends on the flow time alone — the time embedding, the time MLP and every
   adaptive norm's scale, shift and gate (two per expert layer and the final norm) — is computed
-  once per batch size by the same modules (:meth:`StaticPi05.prepare`), not at every step of every
-  sample: constants of the recorded graph;
+  once by the same modules (:meth:`StaticPi05.prepare`), not at every step of every sample: every
+  row of a batch shares the flow time, so one row of each broadcasts over any batch, and no shape
+  depends on the batch size but the inputs' (one compilation serves every batch size);
 - RTC's guidance is closed-form (see below), with one weight row and one leftover per batch row
   as inputs, so a guided batch is the same graph as an unguided one;
 - each layer's operations come from ``pi05_kernels``: ``Fused`` by default (the same values with
@@ -68,9 +69,9 @@ class Modulation:
     """One adaptive RMSNorm's time conditioning at one flow step (LeRobot's ``PiGemmaRMSNorm``
     given ``cond``): ``normed · scale1 + shift``, gate for the residual after it."""
 
-    scale1: Tensor  # 1 + scale, float32 (B, 1, W)
-    shift: Tensor  # float32 (B, 1, W)
-    gate: Tensor  # in the expert's dtype (B, 1, W)
+    scale1: Tensor  # 1 + scale, float32 (1, 1, W): broadcast over the batch
+    shift: Tensor  # float32 (1, 1, W)
+    gate: Tensor  # in the expert's dtype (1, 1, W)
 
 
 @dataclass(frozen=True)
@@ -129,12 +130,14 @@ class SamplerInputs:
     def prompt_trimmed(self, length: int) -> SamplerInputs:
         """The same batch with only the first ``length`` prompt columns. The caller makes sure
         every dropped column is padding in every row: padding is masked everywhere, so the chunks
-        are the same (up to the rounding of shorter sums). The columns are copied, not viewed: a
-        compiled sampler's guards check strides, and a padded or recorded batch is contiguous,
-        so a view would be one more shape to compile (a few hundred integers a row)."""
+        are the same (up to the rounding of shorter sums). The columns are copied into tensors of
+        the standard strides, not viewed: a compiled sampler's guards check strides, and a padded
+        or recorded batch has them, so a view would be one more compilation (a few hundred
+        integers a row). ``contiguous()`` is not enough: one row of a view is contiguous already,
+        with the full prompt's row stride."""
         if not 0 < length <= self.prompt_length:
             raise ValueError(f"cannot trim a prompt of {self.prompt_length} tokens to {length}")
-        tokens, masks = self.tokens[:, :length].contiguous(), self.masks[:, :length].contiguous()
+        tokens, masks = (t[:, :length].clone(memory_format=torch.contiguous_format) for t in (self.tokens, self.masks))
         return SamplerInputs(self.images, tokens, masks, self.noise, self.rtc_weights, self.rtc_leftover)
 
     def padded(self, rows: int) -> SamplerInputs:
@@ -258,7 +261,7 @@ class StaticPi05:
         self.dt = -1.0 / self.num_steps
         self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
         self.time_table = torch.tensor(self.times, dtype=torch.float32, device=device)
-        self.conditioning: dict[int, tuple[StepConditioning, ...]] = {}  # by batch size (prepare)
+        self.conditioning: tuple[StepConditioning, ...] | None = None  # made once (prepare)
         self.guidance_table = None
         if guided:
             self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
@@ -266,24 +269,23 @@ class StaticPi05:
     # -- the sampler ---------------------------------------------------------------------------
 
     @torch.no_grad()
-    def prepare(self, batch_size: int) -> tuple[StepConditioning, ...]:
-        """The time conditioning of every flow step for batches of ``batch_size`` rows, computed
-        once (by LeRobot's modules, at that many rows, so each value is the one LeRobot computes)
+    def prepare(self) -> tuple[StepConditioning, ...]:
+        """The time conditioning of every flow step, computed once by LeRobot's modules for one
+        row (every row of a batch has the same flow time: LeRobot computes the same row B times)
         and kept: call it outside a traced or recorded region (``sample`` calls it if needed)."""
-        table = self.conditioning.get(batch_size)
-        if table is not None:
-            return table
+        if self.conditioning is not None:
+            return self.conditioning
         dtype = self._dtype(self.expert)
         steps = []
         for step in range(self.num_steps):
-            cond = self._time_condition(self.time_table[step].expand(batch_size))
+            cond = self._time_condition(self.time_table[step].expand(1))
             layers = tuple(
                 (self._modulation(lay.input_layernorm, cond, dtype), self._modulation(lay.post_attention_layernorm, cond, dtype))
                 for lay in self.expert.layers
             )
             steps.append(StepConditioning(layers, self._modulation(self.expert.norm, cond, dtype)))
-        self.conditioning[batch_size] = tuple(steps)
-        return self.conditioning[batch_size]
+        self.conditioning = tuple(steps)
+        return self.conditioning
 
     def _time_condition(self, time: Tensor) -> Tensor:
         """LeRobot's ``embed_suffix`` time path: sinusoidal embedding, then the time MLP."""
@@ -315,7 +317,7 @@ class StaticPi05:
         mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
         rope = self.ops.rope(self.expert, self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
-        conditioning = self.prepare(b)
+        conditioning = self.prepare()
         x_t = inputs.noise
         for step, time in enumerate(self.times):
             v_t = self._velocity(x_t, conditioning[step], caches, p, mask, rope)

@@ -133,7 +133,7 @@ def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket
         inputs = static._sampler_inputs(processed, kwargs)
         if not guided:
             inputs.rtc_weights = inputs.rtc_leftover = None
-        sampler.prepare(b)  # the per-size constants exist before the region is traced or recorded
+        sampler.prepare()  # the constants exist before the region is traced or recorded
         torch._dynamo.reset()
         with torch.inference_mode():
             explained = torch._dynamo.explain(sampler.sample)(inputs)
@@ -638,11 +638,12 @@ def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_va
     torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
 
 
-def test_a_compiled_sampler_compiles_every_bucket_and_prompt_length_at_warm_up(pi05_dir, monkeypatch, caplog):
-    """``--engine.compile_sampler=true`` compiles one shape per (batch bucket, prompt length): all of
-    them at warm-up, said up front, none left for the first robots (dynamo's recompile limit fits
-    them: past it a shape would silently run uncompiled). Dynamo's ``eager`` backend stands in for
-    inductor here: the same tracing and guards, without minutes of code generation."""
+def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_warm_up(pi05_dir, monkeypatch, caplog):
+    """``--engine.compile_sampler=true`` compiles the sampler with its batch and prompt dimensions
+    dynamic: one compilation at warm-up serves buckets 2 and 4 at all three prompt lengths (bucket 1
+    would be one more: dynamo specialises a size of 1), said up front, none left for the first
+    robots. Dynamo's ``eager`` backend stands in for inductor here: the same tracing and guards,
+    without minutes of code generation."""
     import logging
 
     import torch
@@ -657,15 +658,30 @@ def test_a_compiled_sampler_compiles_every_bucket_and_prompt_length_at_warm_up(p
     with caplog.at_level(logging.INFO, logger="lerobot_armory"):
         engine.warmup(4, log_progress=True)
         engine.profile(4, log_progress=False)
-    assert "compiling the static sampler for 6 shapes (2 batch buckets x 3 prompt lengths)" in caplog.text
+    assert "compiling the static sampler: 1 compilation(s)" in caplog.text and "then 6 shapes run once (2 batch buckets x 3 prompt lengths)" in caplog.text
     compiled = counters["stats"]["unique_graphs"]
-    assert compiled == 6
+    assert compiled == 1
     for b in (1, 2, 3):  # batches that fill their bucket and batches padded to it
         for words in (0, 12):  # prompts in different prompt buckets
             obs, tasks, seeds, _ = batch(b)
             engine.infer(obs, [t + " please" * words for t in tasks], seeds)
     assert counters["stats"]["unique_graphs"] == compiled  # nothing compiled under robots
     torch._dynamo.reset()
+
+
+def test_a_cut_prompt_has_the_strides_of_a_recorded_batch_even_for_one_row():
+    """A compiled sampler's guards check strides: a cut prompt must look like a padded or recorded
+    batch (standard strides), also for one row, whose view is "contiguous" with the full row's stride."""
+    import torch
+
+    from lerobot_armory.policies.pi05_static import SamplerInputs
+
+    for rows in (1, 3):
+        tokens = torch.arange(rows * 48).view(rows, 48)
+        inputs = SamplerInputs((torch.zeros(rows, 3, 4, 4),), tokens, torch.ones(rows, 48, dtype=torch.bool), torch.zeros(rows, 5, 2))
+        cut = inputs.prompt_trimmed(16)
+        assert cut.tokens.stride() == cut.masks.stride() == (16, 1)
+        assert torch.equal(cut.tokens, tokens[:, :16])
 
 
 def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_dir):
