@@ -196,11 +196,11 @@ def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], rep
     a compiled model's CUDA graphs belong to that thread."""
     import torch
 
-    batch = engine.to_batch(obs)
-    batch["task"] = tasks
-    kwargs = {"noise": engine._noise(seeds)} if engine.noise_shape is not None else {}
     times = []
-    with torch.inference_mode():
+    with torch.inference_mode():  # inputs made in the mode served batches are (a compiled sampler guards on it)
+        batch = engine.to_batch(obs)
+        batch["task"] = tasks
+        kwargs = {"noise": engine._noise(seeds)} if engine.noise_shape is not None else {}
         ready = engine.preprocessor(batch)
         sync()
         for _ in range(reps):

@@ -335,7 +335,9 @@ class StaticPi05:
         vision tower as one batch (LeRobot runs it once per camera): rows never mix, and one pass
         of 2B images launches half the kernels of two passes of B."""
         pwe = self.model.paligemma_with_expert
-        if len(images) > 1 and len({tuple(i.shape) for i in images}) == 1:
+        # Shapes compared pairwise, not hashed into a set: a compiler with a dynamic batch size
+        # would have to make the batch size a constant to hash it (one compilation per size).
+        if len(images) > 1 and all(i.shape == images[0].shape for i in images[1:]):
             per_camera = pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0])
         else:
             per_camera = tuple(pwe.embed_image(img) for img in images)

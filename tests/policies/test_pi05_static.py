@@ -307,13 +307,20 @@ def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
     )
 
 
-def test_two_cameras_pass_the_vision_tower_as_one_batch_with_the_same_chunks(tmp_path_factory):
-    """With two cameras the static sampler runs SigLIP once on both (LeRobot runs it per camera):
-    the chunks still equal LeRobot's, unpadded and padded."""
+@pytest.fixture(scope="module")
+def two_camera_dir(tmp_path_factory):
+    """A tiny π0.5 with two cameras (as LIBERO's: a view and a wrist)."""
     from lerobot_armory.policies.demo.build import main
 
     path = tmp_path_factory.mktemp("pi05-2cam") / "pi05"
     main(["--kind=pi05", "--size=tiny", f"--output={path}", "--chunk_size=10", "--cameras=front,wrist", "--state_dim=3"])
+    return path
+
+
+def test_two_cameras_pass_the_vision_tower_as_one_batch_with_the_same_chunks(two_camera_dir):
+    """With two cameras the static sampler runs SigLIP once on both (LeRobot runs it per camera):
+    the chunks still equal LeRobot's, unpadded and padded."""
+    path = two_camera_dir
     lerobot = PolicyEngine(PolicyOptions(str(path), "cpu"))
     static = PolicyEngine(PolicyOptions(str(path), "cpu"), engine=EngineOptions(static_sampler=True))
     static.warmup(4, log_progress=False)
@@ -638,12 +645,12 @@ def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_va
     torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
 
 
-def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_warm_up(pi05_dir, monkeypatch, caplog):
+def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_warm_up(two_camera_dir, monkeypatch, caplog):
     """``--engine.compile_sampler=true`` compiles the sampler with its batch and prompt dimensions
     dynamic: one compilation at warm-up serves buckets 2 and 4 at all three prompt lengths (bucket 1
     would be one more: dynamo specialises a size of 1), said up front, none left for the first
-    robots. Dynamo's ``eager`` backend stands in for inductor here: the same tracing and guards,
-    without minutes of code generation."""
+    robots. Two cameras, as π0.5 on LIBERO has. Dynamo's ``eager`` backend stands in for inductor
+    here: the same tracing and guards, without minutes of code generation."""
     import logging
 
     import torch
@@ -654,7 +661,7 @@ def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_
     torch._dynamo.reset()
     counters.clear()
     options = EngineOptions(static_sampler=True, compile_sampler=True, graph_buckets="2,4", prompt_buckets="16,32")
-    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=options)
+    engine = PolicyEngine(PolicyOptions(str(two_camera_dir), "cpu"), engine=options)
     with caplog.at_level(logging.INFO, logger="lerobot_armory"):
         engine.warmup(4, log_progress=True)
         engine.profile(4, log_progress=False)
@@ -663,8 +670,8 @@ def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_
     assert compiled == 1
     for b in (1, 2, 3):  # batches that fill their bucket and batches padded to it
         for words in (0, 12):  # prompts in different prompt buckets
-            obs, tasks, seeds, _ = batch(b)
-            engine.infer(obs, [t + " please" * words for t in tasks], seeds)
+            obs = [engine.example_observation(seed=k) for k in range(b)]
+            engine.infer(obs, [TASKS[k % 3] + " please" * words for k in range(b)], list(range(b)))
     assert counters["stats"]["unique_graphs"] == compiled  # nothing compiled under robots
     torch._dynamo.reset()
 
