@@ -20,10 +20,12 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   (three kernels for both, where HF's is four each plus a scale on the scores); v passes the same
   three kernels unrotated (its rows of the table are cos 1, sin 0: bit for bit), so keys and values
   leave them side by side as one tensor and enter the K/V cache in **one copy**, where two were;
-- **attention without layout copies**: with one K/V head (π0.5: eight query heads on one), the
-  projection's ``(B, L, heads, d)`` memory is already ``(B, L·heads, d)`` query rows, so the
-  scores, the softmax and the weighted sum run on it as it lies, and the output is the
-  ``(B, L, heads·d)`` the output projection takes (HF transposes twice and copies K/V per head);
+- **attention with one layout copy**: with one K/V head (π0.5: eight query heads on one), every
+  (token, head) query row attends the same keys, so q is gathered once into ``(B, L·heads, d)``
+  rows (one copy: in the fused projection each token's q heads sit beside its k and v), the
+  scores, the softmax and the weighted sum run on those rows and k and v where they lie, and the
+  output is the ``(B, L, heads·d)`` the output projection takes (HF transposes q and the output
+  and copies K/V per query head);
 - **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``).
 - **bfloat16 without float32 detours it does not need**: the adaptive norm's float32 sum is
   rounded to bf16 as it is stored (``out=``, one kernel where a cast is a second), and attention
