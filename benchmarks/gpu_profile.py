@@ -10,7 +10,8 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   (``--engine.cuda_graphs=on``, buckets 1, 2, 4, 8); ``pi05-bf16-graphs-sdpa`` with
   ``--engine.attention=sdpa``; ``pi05-bf16-graphs-tf32`` with ``--engine.matmul_precision=high``
   (LeRobot keeps the SigLIP tower in float32 even in bf16: TF32 speeds its products);
-  ``pi05-bf16-graphs-compiled`` with ``--engine.compile_sampler=true``; ``pi05-fp32-graphs`` in
+  ``pi05-bf16-graphs-compiled`` with ``--engine.compile_sampler=true`` (and
+  ``pi05-bf16-graphs-tf32-compiled``, today's default plus it); ``pi05-fp32-graphs`` in
   float32; a ``-ordered`` suffix (``pi05-bf16-graphs-ordered``, ``pi05-bf16-graphs-tf32-ordered``):
   ``--engine.fused_kernels=false``, LeRobot's sequence of operations in the static sampler (the
   graphs configurations fuse by default); a ``-fullprompt`` suffix: ``--engine.prompt_buckets=off``,
@@ -75,7 +76,7 @@ CONFIGS = (
     "act", "pi05-fp32", "pi05-bf16", "pi05-fp32-compiled", "pi05-bf16-compiled",
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
-    "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16",
+    "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -99,8 +100,9 @@ def engine_options(config: str) -> Any:
         static_sampler=True,
         attention="sdpa" if "sdpa" in flags else "eager",
         fused_kernels="ordered" not in flags,
-        # Compiled: inductor compiles each (bucket, prompt length) on its own; the measured prompts
-        # are cut to 64 either way, so 64 and the full length are all a compiled run records.
+        # Compiled: the measured prompts are cut to 64 either way, so 64 and the full length are all
+        # a compiled run records (fewer shapes for inductor to see at warm-up; its compilations are
+        # two, bucket 1 and the others, whatever the prompt lengths).
         prompt_buckets="off" if "fullprompt" in flags else ("64" if "compiled" in flags else "auto"),
         compile_sampler="compiled" in flags,
         graph_buckets=ARGS.graph_buckets,
@@ -276,6 +278,9 @@ def profile_config(engine: Any, config: str, overrides: list[str], device: str, 
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
+    if "-graphs" in config and "compiled" in config:
+        # Whole-sampler inductor compilations: the narrow π0.5 (the full one's depth) took 608 s for one on a 2-core CPU.
+        print(f"[{config}] compiling the static sampler: once for bucket 1 and once for the other buckets (minutes each)", flush=True)
     engine.warmup(ARGS.max_batch_size, log_progress=False)
     capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
     print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
