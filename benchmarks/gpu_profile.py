@@ -32,7 +32,8 @@ own time: LeRobot's ``predict_action_chunk``, or the static sampler / its graph)
 ``--reps`` after the engine's warm-up, synchronised. With graphs, the seconds to record each
 bucket, the peak GPU memory, and how far its chunks are from LeRobot's eager sampler's on the
 same inputs (b = 1, 3, 8; measured when the eager configuration of that dtype ran first in the
-call) are written too, and (``--kernels``; run it in a call of its own: profiling graph replays has
+call) are written too (``--float32_reference``: and, for every bf16 configuration, from LeRobot's
+eager sampler on the same weights in float32, loaded after the others), and (``--kernels``; run it in a call of its own: profiling graph replays has
 faulted CUDA in some versions) where a pass's device time goes: one
 pass at b = 1 and at the largest b traced with ``torch.profiler`` (the kernels inside a graph's
 replay one by one), its kernel time summed by kind — matrix products, attention, norms, copies,
@@ -270,8 +271,11 @@ def kernel_breakdown(engine: Any, b: int, reps: int = 3) -> dict[str, Any]:
     }
 
 
-def profile_config(engine: Any, config: str, overrides: list[str], device: str, reference: dict[str, dict[int, Any]]) -> dict[str, Any]:
-    """Warm up (record the graphs) and measure one configuration on a loaded engine; returns its run."""
+def profile_config(
+    engine: Any, config: str, overrides: list[str], device: str, reference: dict[str, dict[int, Any]], chunk_sets: dict[str, dict[int, Any]]
+) -> dict[str, Any]:
+    """Warm up (record the graphs) and measure one configuration on a loaded engine; returns its
+    run (its chunks go to ``chunk_sets[config]``)."""
     import torch
 
     engine.use_sampler(engine_options(config))
@@ -285,7 +289,7 @@ def profile_config(engine: Any, config: str, overrides: list[str], device: str, 
     capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
     print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
     engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
-    got = chunks(engine)
+    got = chunk_sets[config] = chunks(engine)
     if "-graphs" not in config and "-compiled" not in config:
         reference[overrides[0] if overrides else config] = got
     params = sum(p.numel() for p in engine.policy.parameters())
@@ -309,6 +313,35 @@ def profile_config(engine: Any, config: str, overrides: list[str], device: str, 
     if device == "cuda":
         run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     return run
+
+
+def float32_reference(runs: dict[str, Any], chunk_sets: dict[str, dict[int, Any]], work: Path, device: str, out: Path, name: str) -> None:
+    """``run["vs_float32"]`` for every bf16 π0.5 configuration: how far its chunks are from LeRobot's
+    eager sampler on the same weights computed in float32 (the bf16 directory loaded with
+    ``--policy.dtype=float32``: bf16 values are exact in float32, so only the arithmetic differs)."""
+    from lerobot_armory.engine.policy_engine import PolicyEngine
+    from lerobot_armory.engine.options import PolicyOptions
+
+    bf16 = [c for c in runs if c.startswith("pi05-bf16") and c in chunk_sets]
+    if not bf16:
+        return
+    path, _ = build(bf16[0], ARGS.size, work, ARGS.compile_mode)
+    print(f"[float32 reference] loading {path} --policy.dtype=float32 (LeRobot's eager sampler)", flush=True)
+    if device == "cuda":
+        import torch
+
+        torch.cuda.empty_cache()  # the last configuration's engine is gone; its cached blocks too
+    try:
+        engine = PolicyEngine(PolicyOptions(path, device, overrides=["dtype=float32"]), engine=engine_options("pi05-fp32"))
+        want = chunks(engine)
+    except Exception as exc:  # an extra: its failure loses no figure already written
+        print(f"  float32 reference failed: {type(exc).__name__}: {str(exc).strip()[:200]}", flush=True)
+        return
+    del engine
+    for config in bf16:
+        runs[config]["vs_float32"] = agreement(want, chunk_sets[config])
+        print(f"  {config}: chunks vs the float32 reference (b = 1, 3, 8): {runs[config]['vs_float32']}", flush=True)
+    write(out, name, {config: runs[config] for config in bf16})
 
 
 def add_kernels(engine: Any, run: dict[str, Any]) -> None:
@@ -403,6 +436,7 @@ def main() -> None:
     print(f"device: {name}; configs: {', '.join(configs)}; b = 1..{ARGS.max_batch_size}; π0.5 size {ARGS.size}", flush=True)
     runs: dict[str, dict[str, Any]] = {}
     reference: dict[str, dict[int, Any]] = {}  # LeRobot's eager chunks, by dtype override
+    chunk_sets: dict[str, dict[int, Any]] = {}  # every configuration's chunks
     failed: list[str] = []
     if ARGS.kernels and device == "cuda":
         # Start CUPTI before any graph is recorded (PyTorch's advice for profiling graph replays).
@@ -425,7 +459,7 @@ def main() -> None:
             print(f"  loaded in {time.perf_counter() - t0:.0f} s", flush=True)
         assert engine is not None
         try:
-            runs[config] = profile_config(engine, config, overrides, device, reference)
+            runs[config] = profile_config(engine, config, overrides, device, reference, chunk_sets)
         except Exception as exc:  # one configuration failing (a capture, say) must not lose the others
             failed.append(config)
             print(f"[{config}] FAILED: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}", flush=True)
@@ -436,6 +470,8 @@ def main() -> None:
             add_kernels(engine, runs[config])
             write(out, name, {config: runs[config]})
     engine = None
+    if ARGS.float32_reference:
+        float32_reference(runs, chunk_sets, work, device, out, name)
     write(out, name, {})  # redraw the figure from everything written so far
     print(f"wrote {out} and {out.with_suffix('.png')} (load it with --latency_profile={out})")
     targets = Targets()
@@ -468,6 +504,11 @@ def parse() -> argparse.Namespace:
         "--kernels", action=argparse.BooleanOptionalAction, default=False,
         help="for the static sampler's configurations, trace one pass at b = 1 and the largest b with torch.profiler: "
         "kernel time by kind (matrix products, attention, norms, copies, elementwise) and the longest kernels",
+    )  # fmt: skip
+    p.add_argument(
+        "--float32_reference", action=argparse.BooleanOptionalAction, default=False,
+        help="after the configurations, load the bf16 π0.5 again in float32 and give each bf16 configuration's chunk distance "
+        "from LeRobot's eager float32 chunks on the same weights",
     )  # fmt: skip
     p.add_argument("--out", default=None, help="JSON to merge into (default docs/results/gpu/<device>.json on a GPU)")
     p.add_argument("--work_dir", default=None, help="where the policy directories are built (default: a temp dir)")

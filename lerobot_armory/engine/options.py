@@ -60,9 +60,13 @@ class EngineOptions:
             (``torch.nn.functional.scaled_dot_product_attention``).
         fused_kernels: the static sampler runs each transformer layer with fewer kernels (one
             projection for q/k/v and one for the MLP's gate/up, whose weights become views of one
-            tensor each; one-kernel RMSNorm; q and k rotated together; residuals as ``addcmul``):
-            half the kernels a π0.5 sample launches, the same values in another rounding order
-            (``policies/pi05_kernels.py``). ``false``: LeRobot's own sequence of operations.
+            tensor each; one-kernel RMSNorm with the time conditioning folded into its weight and
+            the next projection's bias; q, k and v rotated together, keys and values stored
+            straight into the cache; residuals as ``addcmul``; the residual stream in float32):
+            a third of the kernels LeRobot's π0.5 sample launches, the same values in another
+            rounding order in float32 and, in bfloat16, chunks ~10× nearer a float32 π0.5's than
+            LeRobot's own bf16 ones (``policies/pi05_kernels.py``). ``false``: LeRobot's own
+            sequence of operations (and its bf16 rounding).
         compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph) before its
             graphs are recorded: fused kernels, fewer of them. The batch and prompt dimensions
             are dynamic, so warm-up compiles twice (bucket 1, and every other bucket at every
@@ -78,8 +82,8 @@ class EngineOptions:
         vision_dtype: the static sampler's SigLIP tower and projector: ``float32`` (LeRobot's:
             it keeps them in float32 even in a bfloat16 π0.5, a training concern) or ``bfloat16``
             (half their memory, bf16 matrix units; the weights are cast once at load). The narrow
-            π0.5's chunks on the CPU: 1.58e-2 from a float32 π0.5's, against 1.32e-2 with the
-            tower in float32 (LeRobot's bf16: 1.30–1.38e-2).
+            π0.5's chunks on the CPU (fused kernels): 2.0e-3 from a float32 π0.5's, against
+            1.3e-3 with the tower in float32 (LeRobot's own bf16: 1.30–1.38e-2).
     """
 
     emulate_profile: str | None = None

@@ -4,7 +4,7 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,137 kernels in LeRobot's sequence and 4,536 fused in float32; 10,172 and 5,006 in bfloat16
+9,136 kernels in LeRobot's sequence and 3,978 fused in float32; 10,170 and 4,381 in bfloat16
 (``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
@@ -14,40 +14,58 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   gate/up) weights are made *views* of one concatenated tensor (:func:`fuse_weights`): no weight
   is copied, none changes value, and LeRobot's modules keep working on them;
 - **RMSNorm as one kernel** (``torch.nn.functional.rms_norm``: ``_fused_rms_norm`` on CUDA, where
-  LeRobot's ``square, mean, add, rsqrt, mul`` is five), the adaptive norm's scale and shift as one
-  ``addcmul``, the plain norm's ``1 + weight`` computed once;
-- **the rotary embedding of q and k together, with the attention scale folded into q's table**
-  (three kernels for both, where HF's is four each plus a scale on the scores); v passes the same
-  three kernels unrotated (its rows of the table are cos 1, sin 0: bit for bit), so keys and values
-  leave them side by side as one tensor and enter the K/V cache in **one copy**, where two were;
-- **attention with one layout copy**: with one K/V head (π0.5: eight query heads on one), every
-  (token, head) query row attends the same keys, so q is gathered once into ``(B, L·heads, d)``
-  rows (one copy: in the fused projection each token's q heads sit beside its k and v), the
-  scores, the softmax and the weighted sum run on those rows and k and v where they lie, and the
-  output is the ``(B, L, heads·d)`` the output projection takes (HF transposes q and the output
-  and copies K/V per query head);
-- **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``).
-- **bfloat16 without float32 detours it does not need**: the adaptive norm's float32 sum is
-  rounded to bf16 as it is stored (``out=``, one kernel where a cast is a second), and attention
-  scores, mask and softmax stay in bf16 (softmax computes in float32 inside either way; LeRobot's
-  float32 mask makes its scores and probabilities float32, then casts them back).
+  LeRobot's ``square, mean, add, rsqrt, mul`` is five), the plain norm's ``1 + weight`` computed
+  once; the **adaptive norm's time conditioning folded away** (:meth:`Fused.fold`, once per
+  policy): its scale is the norm's weight and its shift the next projection's bias
+  (``W(n·s + t) = W(n·s) + W·t``, the bias added in the matrix product), so an adaptive norm is
+  one kernel where LeRobot's is six;
+- **the rotary embedding of q, k and v together, with the attention scale folded into q's table**
+  (HF's is four kernels each for q and k plus a scale on the scores): v's rows of the table are
+  cos 1, sin 0, so v passes unrotated, bit for bit; the rotation's last kernel runs once for q's
+  rows (a fresh q, in the layout attention reads) and once for k's and v's, **stored straight
+  into the K/V cache** (LeRobot's order: two copies a layer pass, HF's cache a concatenation);
+- **attention in the projection's layout**: with one K/V head (π0.5: eight query heads on one),
+  every (token, head) query row attends the same keys, so the scores, the softmax and the
+  weighted sum run on q's ``(B, L·heads, d)`` rows and on k and v where they lie in the cache, and
+  the output is the ``(B, L, heads·d)`` the output projection takes (HF transposes q and the
+  output and copies K/V per query head);
+- **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``);
+- **bfloat16 where it is cheap, float32 where it is free**: the residual stream stays float32
+  (:meth:`Fused.stream`): the norms read it as it is and round once, as they hand the projections
+  their bf16 input (LeRobot casts the bf16 stream to float32 before every norm, and rounds every
+  residual sum to bf16); attention scores, mask and softmax stay in bf16 (softmax computes in
+  float32 inside either way; LeRobot's float32 mask makes its scores and probabilities float32,
+  then casts them back). The weights stay as LeRobot loads them.
 
-Numerics: the same operations in float32 (or LeRobot's dtypes under bfloat16) with a different
-rounding order: a fused ``a + b·c`` rounds once where two kernels round twice, the fused norm
-reduces in its own order. Folding the scale into q is exact when it is a power of two (π0.5's
-head size 256 gives 1/16). ``tests/policies/test_pi05_static.py`` holds the fused chunks to
-LeRobot's within 1e-5 in float32. In bfloat16 the softmax's float32 sum may run in another order
-than LeRobot's float32 softmax (the last bit of a probability); the chunks stay as far from a
-float32 π0.5's as LeRobot's own bf16 chunks (``docs/results/pi05_static``).
+Numerics: in float32, the same operations with a different rounding order (a fused ``a + b·c``
+rounds once where two kernels round twice, the fused norm reduces in its own order, the shift
+is summed inside the matrix product): ``tests/policies/test_pi05_static.py`` holds the fused
+chunks to LeRobot's within 1e-5. Folding the scale into q is exact when it is a power of two
+(π0.5's head size 256 gives 1/16). In bfloat16 the float32 residual stream is what matters: the
+fused chunks are about 10× nearer a float32 π0.5's than LeRobot's own bf16 chunks are (narrow
+π0.5, CPU: 1.3e-3 against 1.3e-2; ``docs/results/pi05_static``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Modulation:
+    """One adaptive RMSNorm's time conditioning at one flow step (LeRobot's ``PiGemmaRMSNorm``
+    given ``cond``): ``normed · scale1 + shift``, then ``gate`` on the residual after the layer
+    part it feeds. Made once per policy (every batch row shares the flow time: one row broadcasts)."""
+
+    scale1: Tensor  # 1 + scale, float32 (1, 1, W); (W,) once folded
+    shift: Tensor | None  # float32 (1, 1, W); None once folded into ``bias``
+    gate: Tensor  # in the expert's dtype (1, 1, W)
+    bias: Tensor | None = None  # the next projection's weight times ``shift`` (:meth:`Fused.fold`)
 
 
 class LeRobotOrder:
@@ -73,39 +91,51 @@ class LeRobotOrder:
         return additive[:, None]
 
     @staticmethod
+    def stream(x: Tensor, dtype: torch.dtype) -> Tensor:
+        """The residual stream's start: LeRobot's is in the layers' dtype."""
+        return x.to(dtype)
+
+    @staticmethod
+    def fold(mod: Modulation, into: Any) -> Modulation:
+        """``mod`` as :meth:`ada_norm` takes it before the projections of ``into`` (a layer's
+        attention or MLP): LeRobot's order folds nothing."""
+        return mod
+
+    @staticmethod
     def norm(norm: Any, h: Tensor) -> Tensor:
         return norm(h, cond=None)[0]
 
     @staticmethod
-    def ada_norm(norm: Any, h: Tensor, scale1: Tensor, shift: Tensor) -> Tensor:
+    def ada_norm(norm: Any, h: Tensor, mod: Modulation) -> Tensor:
         """``PiGemmaRMSNorm.forward(h, cond)`` with the conditioning precomputed."""
-        return (norm._norm(h) * scale1 + shift).to(h.dtype)
+        assert mod.shift is not None
+        return (norm._norm(h) * mod.scale1 + mod.shift).to(h.dtype)
 
     @staticmethod
-    def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Any]:
-        """Projections and HF's ``apply_rotary_pos_emb``: q and the pair (k, v), each ``(B, heads, L, d)``."""
+    def new_cache(attn: Any, x: Tensor, length: int) -> Any:
+        """An empty K/V cache of ``length`` positions for the rows of ``x`` (the layer's input)."""
+        shape = (x.shape[0], attn.config.num_key_value_heads, length, attn.head_dim)
+        return x.new_empty(shape), x.new_empty(shape)
+
+    @staticmethod
+    def cached(cache: Any, length: int) -> Any:
+        """The keys and values of the first ``length`` positions (a view)."""
+        return cache[0][:, :, :length], cache[1][:, :, :length]
+
+    @staticmethod
+    def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor], cache: Any, start: int, bias: Tensor | None = None) -> Tensor:
+        """Projections and HF's ``apply_rotary_pos_emb``; keys and values written into ``cache`` from
+        position ``start`` on, in place (HF's cache concatenates a copy); returns q ``(B, heads, L, d)``."""
+        assert bias is None  # fold() folds nothing here
         cos, signed_sin = rope
         shape = (*x.shape[:-1], -1, attn.head_dim)
         q = attn.q_proj(x).view(shape).transpose(1, 2)
         k = attn.k_proj(x).view(shape).transpose(1, 2)
         v = attn.v_proj(x).view(shape).transpose(1, 2)
-        return q * cos + _swap_halves(q) * signed_sin, (k * cos + _swap_halves(k) * signed_sin, v)
-
-    @staticmethod
-    def cache(kv: Any, length: int) -> Any:
-        """A K/V cache of ``length`` positions holding ``kv`` (:meth:`qkv`'s) in its first ones."""
-        k, v = kv
-        k_buf = k.new_empty(k.shape[0], k.shape[1], length, k.shape[3])
-        v_buf = v.new_empty(v.shape[0], v.shape[1], length, v.shape[3])
-        k_buf[:, :, : k.shape[2]] = k
-        v_buf[:, :, : v.shape[2]] = v
-        return k_buf, v_buf
-
-    @staticmethod
-    def write(cache: Any, kv: Any, start: int) -> None:
-        """``kv`` into ``cache`` from position ``start`` on, in place (HF's cache concatenates a copy)."""
-        cache[0][:, :, start:] = kv[0]
-        cache[1][:, :, start:] = kv[1]
+        end = start + x.shape[1]
+        cache[0][:, :, start:end] = k * cos + _swap_halves(k) * signed_sin
+        cache[1][:, :, start:end] = v
+        return q * cos + _swap_halves(q) * signed_sin
 
     def attend(self, attn: Any, q: Tensor, kv: Any, mask: Tensor) -> Tensor:
         """Attention of ``q`` (B, Hq, Lq, d) over the pair ``kv`` (B, Hkv, Lk, d); returns (B, Lq, Hq·d)."""
@@ -116,7 +146,8 @@ class LeRobotOrder:
         return _gated_residual(h, y, gate)
 
     @staticmethod
-    def mlp(mlp: Any, x: Tensor) -> Tensor:
+    def mlp(mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
+        assert bias is None  # fold() folds nothing here
         return mlp(x)
 
     @staticmethod
@@ -148,6 +179,7 @@ class Fused(LeRobotOrder):
         self.qkv_weight: dict[Any, Tensor] = {}
         self.gate_up_weight: dict[Any, Tensor] = {}
         self.norm_weight: dict[Any, Tensor] = {}
+        self.layer_dtype: dict[Any, torch.dtype] = {}  # per layer norm: its layer's (its projections')
         self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
@@ -156,8 +188,8 @@ class Fused(LeRobotOrder):
             # In the dtype of the model's rotary table (its hidden states'), made here: a tensor
             # filled from Python inside a recorded region would be a host-to-device copy.
             # q's rows scaled, k's rotated, v's unrotated (cos 1, sin 0: v · 1 + swap(v) · 0 is v,
-            # bit for bit), so one rotation serves q, k and v and the keys and values leave it
-            # side by side, one copy into the cache where two were.
+            # bit for bit), so one rotation serves q, k and v and writes the keys and values
+            # side by side straight into the cache.
             scale = torch.ones(heads + 2 * kv_heads, 1, device=weight.device)
             scale[:heads] = attn.scaling
             scale[heads + kv_heads :] = 0.0
@@ -170,6 +202,7 @@ class Fused(LeRobotOrder):
                 self.qkv_weight[attn] = fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj])
                 self.gate_up_weight[mlp] = fuse_weights([mlp.gate_proj, mlp.up_proj])
                 for norm in (layer.input_layernorm, layer.post_attention_layernorm):
+                    self.layer_dtype[norm] = attn.q_proj.weight.dtype
                     if norm.dense is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
                         self.norm_weight[norm] = 1.0 + norm.weight.detach().float()
 
@@ -187,32 +220,60 @@ class Fused(LeRobotOrder):
         needs (exp gives 0 either way) and an attended one is added 0, exactly as in float32."""
         return additive[:, :, None].to(dtype)
 
+    @staticmethod
+    def stream(x: Tensor, dtype: torch.dtype) -> Tensor:
+        """The residual stream's start, in float32 whatever the layers' dtype: each norm then reads
+        it as it is (LeRobot's bf16 layers cast it to float32 before every norm, one kernel each)
+        and each residual sum is stored unrounded (LeRobot rounds it to bf16 once a layer part)."""
+        return x.float()
+
+    def fold(self, mod: Modulation, into: Any) -> Modulation:
+        """The conditioning of the norm before ``into``'s projections (a layer's attention or MLP),
+        folded where it costs no kernel: ``scale1`` becomes the norm's weight (one ``rms_norm``)
+        and ``shift`` the projection's bias, ``W · shift`` (a bias in the matrix product's
+        epilogue), so ``W(normed · scale1 + shift)`` is ``W(normed · scale1) + W · shift``."""
+        weight = self.qkv_weight[into] if into in self.qkv_weight else self.gate_up_weight[into]
+        assert mod.shift is not None
+        with torch.no_grad():
+            bias = torch.nn.functional.linear(mod.shift.reshape(-1), weight.float()).to(weight.dtype)
+        return Modulation(mod.scale1.reshape(-1), None, mod.gate, bias)
+
     def norm(self, norm: Any, h: Tensor) -> Tensor:
-        return torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), self.norm_weight[norm], norm.eps).type_as(h)
+        """On the float32 stream, in one kernel, rounded to the layers' dtype for the projections."""
+        return torch.nn.functional.rms_norm(h, (h.shape[-1],), self.norm_weight[norm], norm.eps).to(self.layer_dtype[norm])
+
+    def ada_norm(self, norm: Any, h: Tensor, mod: Modulation) -> Tensor:
+        """Folded (:meth:`fold`): ``normed · scale1`` in one kernel, the shift left to the next
+        projection's bias. Not folded (the final norm, before LeRobot's float32 action
+        projection): the whole ``normed · scale1 + shift`` in float32."""
+        if mod.shift is None:
+            return torch.nn.functional.rms_norm(h, (h.shape[-1],), mod.scale1, norm.eps).to(self.layer_dtype[norm])
+        return torch.addcmul(mod.shift, torch.nn.functional.rms_norm(h, (h.shape[-1],), None, norm.eps), mod.scale1)
 
     @staticmethod
-    def ada_norm(norm: Any, h: Tensor, scale1: Tensor, shift: Tensor) -> Tensor:
-        normed = torch.nn.functional.rms_norm(h.float(), (h.shape[-1],), None, norm.eps)
-        # Computed in float32 and rounded to h's dtype as it is stored: one kernel where
-        # ``addcmul(...).to(h.dtype)`` is two, the same rounding (one, after the sum).
-        return torch.addcmul(shift, normed, scale1, out=torch.empty_like(h))
+    def new_cache(attn: Any, x: Tensor, length: int) -> Tensor:
+        return x.new_empty(x.shape[0], length, 2 * attn.config.num_key_value_heads, attn.head_dim)
 
-    def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+    @staticmethod
+    def cached(cache: Tensor, length: int) -> Tensor:
+        return cache[:, :length]
+
+    def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor], cache: Tensor, start: int, bias: Tensor | None = None) -> Tensor:
+        """One projection (``bias``: a folded shift), one rotation for q, k and v; the rotation's
+        last kernel runs twice, once for q's rows (a fresh contiguous q, the layout attention
+        gathers its rows in) and once for k's and v's, stored straight into ``cache``: no copy."""
         heads, kv_heads = _heads(attn)
-        qkv = torch.nn.functional.linear(x, self.qkv_weight[attn]).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
+        qkv = torch.nn.functional.linear(x, self.qkv_weight[attn], bias).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
         cos, signed_sin = rope
-        qkv = torch.addcmul(qkv * cos, _swap_halves(qkv), signed_sin)  # q scaled and rotated, k rotated, v as it was
-        return qkv[:, :, :heads], qkv[:, :, heads:]
-
-    @staticmethod
-    def cache(kv: Tensor, length: int) -> Tensor:
-        buf = kv.new_empty(kv.shape[0], length, *kv.shape[2:])
-        buf[:, : kv.shape[1]] = kv
-        return buf
-
-    @staticmethod
-    def write(cache: Tensor, kv: Tensor, start: int) -> None:
-        cache[:, start:] = kv  # keys and values in one copy
+        rotated, swapped = qkv * cos, _swap_halves(qkv)  # q scaled, k rotated, v as it was (after the addcmul)
+        kv, dest = (rotated[:, :, heads:], swapped[:, :, heads:], signed_sin[:, :, heads:]), cache[:, start : start + x.shape[1]]
+        if torch.compiler.is_compiling():
+            # Dynamo refuses an ``out=`` that is not contiguous (a graph break); inductor fuses
+            # the copy into the addcmul's kernel anyway.
+            dest.copy_(torch.addcmul(*kv))
+        else:
+            torch.addcmul(*kv, out=dest)
+        return torch.addcmul(rotated[:, :, :heads], swapped[:, :, :heads], signed_sin[:, :, :heads])
 
     def attend(self, attn: Any, q: Tensor, kv: Tensor, mask: Tensor) -> Tensor:
         """``q`` (B, Lq, Hq, d), scaled; ``kv`` (B, Lk, 2·Hkv, d); ``mask`` (B, Lq, 1, Lk)."""
@@ -238,8 +299,8 @@ class Fused(LeRobotOrder):
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
-    def mlp(self, mlp: Any, x: Tensor) -> Tensor:
-        gate, up = torch.nn.functional.linear(x, self.gate_up_weight[mlp]).chunk(2, dim=-1)
+    def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
+        gate, up = torch.nn.functional.linear(x, self.gate_up_weight[mlp], bias).chunk(2, dim=-1)
         return mlp.down_proj(mlp.act_fn(gate) * up)
 
     @staticmethod

@@ -25,8 +25,10 @@ LeRobot is forked) in the order ``sample_actions`` runs them, with these changes
 - RTC's guidance is closed-form (see below), with one weight row and one leftover per batch row
   as inputs, so a guided batch is the same graph as an unguided one;
 - each layer's operations come from ``pi05_kernels``: ``Fused`` by default (the same values with
-  half the kernels: fused projections, one-kernel norms, q and k rotated together), or
-  ``LeRobotOrder`` (``fused=False``), LeRobot's and HF's operations one for one.
+  less than half the kernels: fused projections, one-kernel norms with the time conditioning
+  folded into their weight and the next projection's bias, q, k and v rotated together and
+  stored straight into the cache, a float32 residual stream), or ``LeRobotOrder``
+  (``fused=False``), LeRobot's and HF's operations one for one.
 
 Row independence: no operation mixes batch rows, so a batch padded with extra rows gives its
 real rows exactly what the same rows give in a batch of the padded size. The engine pads a
@@ -44,7 +46,9 @@ the norms, the time MLP, the action projections). The K/V layout for grouped-que
 (one K/V head for eight query heads) is broadcast instead of copied, which may change float
 rounding in the last bit. ``attention="sdpa"`` uses ``F.scaled_dot_product_attention`` with
 LeRobot's additive mask (same masking, a fused kernel on a GPU). The fused kernels compute the
-same values in another rounding order (``pi05_kernels``: 4.8e-7 from LeRobot's chunks in float32).
+same values in another rounding order (``pi05_kernels``: 4.8e-7 from LeRobot's chunks in float32)
+and, in bfloat16, keep the residual stream in float32: their chunks are ~10× nearer a float32
+π0.5's than LeRobot's bf16 chunks are.
 """
 
 from __future__ import annotations
@@ -58,20 +62,10 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
+from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder, Modulation
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
-
-
-@dataclass(frozen=True)
-class Modulation:
-    """One adaptive RMSNorm's time conditioning at one flow step (LeRobot's ``PiGemmaRMSNorm``
-    given ``cond``): ``normed · scale1 + shift``, gate for the residual after it."""
-
-    scale1: Tensor  # 1 + scale, float32 (1, 1, W): broadcast over the batch
-    shift: Tensor  # float32 (1, 1, W)
-    gate: Tensor  # in the expert's dtype (1, 1, W)
 
 
 @dataclass(frozen=True)
@@ -280,7 +274,10 @@ class StaticPi05:
         for step in range(self.num_steps):
             cond = self._time_condition(self.time_table[step].expand(1))
             layers = tuple(
-                (self._modulation(lay.input_layernorm, cond, dtype), self._modulation(lay.post_attention_layernorm, cond, dtype))
+                (
+                    self.ops.fold(self._modulation(lay.input_layernorm, cond, dtype), lay.self_attn),
+                    self.ops.fold(self._modulation(lay.post_attention_layernorm, cond, dtype), lay.mlp),
+                )
                 for lay in self.expert.layers
             )
             steps.append(StepConditioning(layers, self._modulation(self.expert.norm, cond, dtype)))
@@ -316,7 +313,7 @@ class StaticPi05:
         valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, :].expand(b, h, p + h)
         mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
-        rope = self.ops.rope(self.expert, self._expert_input(inputs.noise.new_zeros(b, h, 1)), positions)
+        rope = self.ops.rope(self.expert, self._like(self.expert, inputs.noise), positions)
         conditioning = self.prepare()
         x_t = inputs.noise
         for step, time in enumerate(self.times):
@@ -355,16 +352,18 @@ class StaticPi05:
         p = pad.shape[1]
         mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
-        h = embs.to(torch.bfloat16) if self._bf16(self.vlm) else embs
-        rope = self.ops.rope(self.vlm, h, positions)
+        h = self.ops.stream(embs, self._dtype(self.vlm))
+        rope = self.ops.rope(self.vlm, self._like(self.vlm, embs), positions)
         caches = []
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
-            q, kv = self.ops.qkv(layer.self_attn, self.ops.norm(layer.input_layernorm, h), rope)
-            caches.append(self.ops.cache(kv, p + self.chunk_size))
+            x = self.ops.norm(layer.input_layernorm, h)
+            cache = self.ops.new_cache(layer.self_attn, x, p + self.chunk_size)
+            q = self.ops.qkv(layer.self_attn, x, rope, cache, 0)
+            caches.append(cache)
             if i == last:
                 break  # the last layer's output is never read: only its keys and values are
-            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, kv, mask)), None)
+            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, self.ops.cached(cache, p), mask)), None)
             h = self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
         return caches
 
@@ -372,24 +371,27 @@ class StaticPi05:
         self, x_t: Tensor, cond: StepConditioning, caches: list[Any], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
     ) -> Tensor:
         """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
-        h = self._expert_input(self.model.action_in_proj(x_t))
+        h = self.ops.stream(self.model.action_in_proj(x_t), self._dtype(self.expert))
         for i, layer in enumerate(self.expert.layers):
             mod_in, mod_post = cond.layers[i]
-            q, kv = self.ops.qkv(layer.self_attn, self.ops.ada_norm(layer.input_layernorm, h, mod_in.scale1, mod_in.shift), rope)
-            self.ops.write(caches[i], kv, p)  # in place, behind the prefix
+            x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
+            q = self.ops.qkv(layer.self_attn, x, rope, caches[i], p, mod_in.bias)  # keys and values in place, behind the prefix
             attended = self.ops.attend(layer.self_attn, q, caches[i], mask)
             h = self.ops.residual(h, layer.self_attn.o_proj(attended), mod_in.gate)
-            x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post.scale1, mod_post.shift)
-            h = self.ops.residual(h, self.ops.mlp(layer.mlp, x), mod_post.gate)
-        h = self.ops.ada_norm(self.expert.norm, h, cond.final.scale1, cond.final.shift)
+            x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post)
+            h = self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
+        h = self.ops.ada_norm(self.expert.norm, h, cond.final)
         return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
 
     def _additive(self, valid: Tensor) -> Tensor:
         """LeRobot's additive mask (B, Lq, Lk): 0 where attended, its large negative constant elsewhere."""
         return torch.where(valid, 0.0, self.mask_value)
 
-    def _expert_input(self, x: Tensor) -> Tensor:
-        return x.to(torch.bfloat16) if self._bf16(self.expert) else x
+    @classmethod
+    def _like(cls, text_model: Any, x: Tensor) -> Tensor:
+        """An empty tensor of ``text_model``'s dtype on ``x``'s device: what a rotary table reads
+        of its input (HF's ``rotary_emb`` takes only its dtype and device)."""
+        return torch.empty(0, dtype=cls._dtype(text_model), device=x.device)
 
     @classmethod
     def _dtype(cls, text_model: Any) -> torch.dtype:

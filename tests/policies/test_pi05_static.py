@@ -275,21 +275,30 @@ def test_a_compiled_static_sampler_gives_the_same_chunks(pi05_dir, engines):
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(compile_sampler=True))
 
 
-def test_bf16_keeps_lerobots_dtypes(pi05_dir):
-    """``--policy.dtype=bfloat16``: the static sampler runs each part in the dtype LeRobot runs it
-    in (bf16 Gemma layers, float32 vision tower, norms and projections), so its chunks match
-    LeRobot's bf16 chunks (bit for bit on the development CPU; bf16 rounding allowed here)."""
+def test_in_bf16_the_static_sampler_keeps_lerobots_weights_and_comes_nearer_a_float32_pi05(pi05_dir):
+    """``--policy.dtype=bfloat16``: every weight stays in the dtype LeRobot loads it in (bf16 Gemma
+    layers, float32 vision tower and action projections). LeRobot's order of operations keeps
+    LeRobot's bf16 arithmetic (its chunks within a bf16 rounding of LeRobot's); the fused layers
+    keep the residual stream in float32 and so give chunks at most 0.3× as far from the float32
+    π0.5's as LeRobot's own bf16 chunks are (measured: 0.05×)."""
     import torch
 
     bf16 = ["dtype=bfloat16"]
+    float32 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
     lerobot = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16))
-    static = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16), engine=EngineOptions(static_sampler=True))
-    static.warmup(4, log_progress=False)
-    layer = static.policy.model.paligemma_with_expert.gemma_expert.model.layers[0]
-    assert layer.self_attn.q_proj.weight.dtype == torch.bfloat16
+    fused = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16), engine=EngineOptions(static_sampler=True))
+    ordered = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=bf16), engine=EngineOptions(static_sampler=True, fused_kernels=False))
+    for engine in (fused, ordered):
+        model = engine.policy.model
+        assert model.paligemma_with_expert.gemma_expert.model.layers[0].self_attn.q_proj.weight.dtype == torch.bfloat16
+        assert model.action_out_proj.weight.dtype == torch.float32
+    assert fused.fused_kernels and not ordered.fused_kernels
     for b in (1, 3):
         obs, tasks, seeds, _ = batch(b)
-        np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-2)
+        want, stock = float32.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds)
+        np.testing.assert_allclose(ordered.infer(obs, tasks, seeds), stock, atol=1e-2)
+        ours, theirs = np.abs(fused.infer(obs, tasks, seeds) - want).max(), np.abs(stock - want).max()
+        assert ours <= 0.3 * theirs, (b, ours, theirs)
 
 
 def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
@@ -470,10 +479,11 @@ def test_fused_kernels_halve_the_launches_of_a_sample(engines, pi05_dir):
         assert launches["fused"] <= 0.6 * launches["plain"], launches
 
 
-def test_fused_keys_and_values_leave_one_rotation_side_by_side_and_enter_the_cache_in_one_copy(engines):
+def test_fused_keys_and_values_leave_the_rotation_straight_into_the_cache(engines):
     """The fused rotary table leaves v's rows as they are (cos 1, sin 0: bit for bit), so keys and
-    values come out of one rotation as one tensor and each layer pass writes them into its cache
-    with one copy (LeRobot's order: two), with the same chunks."""
+    values come out of one rotation side by side, and its last kernel stores them straight into
+    the cache behind what is there (LeRobot's order: a copy of k and one of v per layer pass), with
+    the same chunks."""
     import torch
 
     from lerobot_armory.policies.op_trace import OpTrace
@@ -484,23 +494,31 @@ def test_fused_keys_and_values_leave_one_rotation_side_by_side_and_enter_the_cac
     attn = fused.expert.layers[0].self_attn
     x = torch.randn(2, 5, attn.q_proj.in_features, generator=torch.Generator().manual_seed(3))
     positions = torch.arange(5)[None].expand(2, 5) + 7
+    caches = {"plain": plain.ops.new_cache(attn, x, 9), "fused": fused.ops.new_cache(attn, x, 9)}
+    caches["plain"][0].fill_(7.0), caches["plain"][1].fill_(7.0), caches["fused"].fill_(7.0)
     with torch.no_grad():
-        _, (k, v) = plain.ops.qkv(attn, x, plain.ops.rope(plain.expert, x, positions))
-        _, kv = fused.ops.qkv(attn, x, fused.ops.rope(fused.expert, x, positions))
-    assert kv.shape == (2, 5, 2, attn.head_dim)
-    assert torch.equal(kv[:, :, 1], v[:, 0]) and torch.allclose(kv[:, :, 0], k[:, 0], atol=1e-6, rtol=0)
+        q_plain = plain.ops.qkv(attn, x, plain.ops.rope(plain.expert, x, positions), caches["plain"], 3)
+        with OpTrace() as trace:
+            q_fused = fused.ops.qkv(attn, x, fused.ops.rope(fused.expert, x, positions), caches["fused"], 3)
+    assert "aten.copy_.default" not in trace.launched
+    (k, v), kv = caches["plain"], caches["fused"]
+    assert kv.shape == (2, 9, 2, attn.head_dim) and torch.equal(kv[:, 3:8, 1], v[:, 0, 3:8])
+    assert torch.allclose(kv[:, 3:8, 0], k[:, 0, 3:8], atol=1e-6, rtol=0)
+    assert (kv[:, :3] == 7).all() and (kv[:, 8:] == 7).all()  # nothing written outside positions 3..7
+    assert q_fused.is_contiguous()
+    torch.testing.assert_close(q_fused, q_plain.transpose(1, 2) * attn.scaling, atol=1e-6, rtol=0)
 
     obs, tasks, seeds, prefixes = batch(3, seed=5)
     kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
     inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
     passes = len(fused.vlm.layers) + fused.num_steps * len(fused.expert.layers)
     chunks = {}
-    for name, s, copies in (("fused", fused, passes), ("plain", plain, 2 * passes)):
+    for name, s, copies in (("fused", fused, 0), ("plain", plain, 2 * passes)):
         with torch.no_grad():
             s.sample(inputs)  # the per-size constants, outside the count
             with OpTrace() as trace:
                 chunks[name] = s.sample(inputs)
-        assert trace.launched["aten.copy_.default"] == copies, (name, trace.launched["aten.copy_.default"], passes)
+        assert trace.launched.get("aten.copy_.default", 0) == copies, (name, trace.launched.get("aten.copy_.default"), passes)
     torch.testing.assert_close(chunks["fused"], chunks["plain"], atol=1e-5, rtol=0)
 
 
@@ -600,16 +618,18 @@ def test_a_robot_with_the_longest_prompt_costs_its_batch_mates_no_chunk_change(e
         np.testing.assert_allclose(together[k], cut.infer([obs[k]], [tasks[k]], [seeds[k]])[0], atol=1e-5, rtol=0)
 
 
-def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_values(pi05_dir):
-    """bf16: the fused adaptive norm rounds its float32 sum to bf16 as it stores it (one kernel and
-    the same single rounding as LeRobot's ``.to(bf16)``: bit for bit), and attention keeps mask,
-    scores and softmax in bf16 (LeRobot's float32 mask makes them float32, then casts back): no cast
-    inside the fused attention, its output LeRobot's within a bf16 rounding."""
+def test_in_bf16_fused_norms_read_the_float32_stream_and_attention_skips_lerobots_float32_round_trips(pi05_dir):
+    """bf16: the fused layers' residual stream is float32, so a norm reads it as it is and rounds
+    once, as it hands the projections their bf16 input; the adaptive norm's scale is the norm's
+    weight and its shift the next projection's bias (``W(n·s + t) = W(n·s) + W·t``): one norm
+    kernel and one cast where LeRobot casts, norms, scales and casts again. Attention keeps mask,
+    scores and softmax in bf16 (LeRobot's float32 mask makes them float32, then casts back): no
+    cast inside the fused attention, its output LeRobot's within a bf16 rounding."""
     import torch
     from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 
     from lerobot_armory.policies.op_trace import OpTrace
-    from lerobot_armory.policies.pi05_kernels import LeRobotOrder
+    from lerobot_armory.policies.pi05_kernels import LeRobotOrder, Modulation
     from lerobot_armory.policies.pi05_static import StaticPi05
 
     engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=bfloat16"]))
@@ -618,14 +638,21 @@ def test_in_bf16_fused_layers_skip_lerobots_float32_round_trips_with_the_same_va
     assert sampler.fused and layer.self_attn.q_proj.weight.dtype == torch.bfloat16
     gen = torch.Generator().manual_seed(0)
     width = layer.self_attn.q_proj.in_features
-    h = (3 * torch.randn(2, 5, width, generator=gen)).to(torch.bfloat16)
-    scale1, shift = 1 + torch.randn(2, 1, width, generator=gen), torch.randn(2, 1, width, generator=gen)
+    h = ops.stream((3 * torch.randn(2, 5, width, generator=gen)).to(torch.bfloat16), torch.bfloat16)
+    assert h.dtype == torch.float32
+    scale1, shift = 1 + torch.randn(1, 1, width, generator=gen), torch.randn(1, 1, width, generator=gen)
     norm = layer.input_layernorm
+    mod = ops.fold(Modulation(scale1, shift, torch.ones(1, 1, width, dtype=torch.bfloat16)), layer.self_attn)
     with torch.no_grad(), OpTrace() as trace:
-        normed = ops.ada_norm(norm, h, scale1, shift)
-    want = torch.addcmul(shift, torch.nn.functional.rms_norm(h.float(), (width,), None, norm.eps), scale1).to(torch.bfloat16)
-    assert normed.dtype == torch.bfloat16 and torch.equal(normed, want)
-    assert trace.launched["aten._to_copy.default"] == 1  # h.float() only: the output is stored as bf16
+        normed = ops.ada_norm(norm, h, mod)
+    want = (torch.nn.functional.rms_norm(h, (width,), None, norm.eps) * scale1).to(torch.bfloat16)
+    assert normed.dtype == torch.bfloat16 and trace.launches == 2  # the norm (its weight the scale), the cast
+    torch.testing.assert_close(normed, want, atol=0, rtol=2**-8)  # one bf16 rounding apart at most
+    assert mod.shift is None and mod.bias is not None
+    qkv_weight = ops.qkv_weight[layer.self_attn].float()
+    unfolded = torch.nn.functional.linear(torch.nn.functional.rms_norm(h, (width,), None, norm.eps) * scale1 + shift, qkv_weight)
+    folded = torch.nn.functional.linear(normed.float(), qkv_weight) + mod.bias.float()
+    torch.testing.assert_close(folded, unfolded, atol=0.02, rtol=0)  # bf16 roundings of the input and the bias (the shift's part: ~1)
 
     heads, d = layer.self_attn.config.num_attention_heads, layer.self_attn.head_dim
     q = torch.randn(2, 5, heads, d, generator=gen).to(torch.bfloat16)
