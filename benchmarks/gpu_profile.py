@@ -102,8 +102,8 @@ def engine_options(config: str) -> Any:
         attention="sdpa" if "sdpa" in flags else "eager",
         fused_kernels="ordered" not in flags,
         # Compiled: the measured prompts are cut to 64 either way, so 64 and the full length are all
-        # a compiled run records (fewer shapes for inductor to see at warm-up; its compilations are
-        # two, bucket 1 and the others, whatever the prompt lengths).
+        # a compiled run records (fewer shapes to run at warm-up; its compilations are four, two
+        # layer functions × bucket 1 and the others, whatever the prompt lengths).
         prompt_buckets="off" if "fullprompt" in flags else ("64" if "compiled" in flags else "auto"),
         compile_sampler="compiled" in flags,
         graph_buckets=ARGS.graph_buckets,
@@ -283,8 +283,8 @@ def profile_config(
         torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     if "-graphs" in config and "compiled" in config:
-        # Whole-sampler inductor compilations: the narrow π0.5 (the full one's depth) took 608 s for one on a 2-core CPU.
-        print(f"[{config}] compiling the static sampler: once for bucket 1 and once for the other buckets (minutes each)", flush=True)
+        # Layer by layer: the narrow π0.5 (the full one's depth) took 30 s for all four on a 2-core CPU.
+        print(f"[{config}] compiling the static sampler's two layer functions, each for bucket 1 and for the other buckets", flush=True)
     engine.warmup(ARGS.max_batch_size, log_progress=False)
     capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
     print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)

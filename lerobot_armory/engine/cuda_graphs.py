@@ -95,26 +95,6 @@ def parse_prompt_buckets(text: str, full: int) -> tuple[int, ...]:
     return (*below, full) if below else ()  # the full length alone: nothing to trim
 
 
-def compile_sampler(sample: Callable[[SamplerInputs], Tensor]) -> Callable[[SamplerInputs], Tensor]:
-    """``torch.compile`` (inductor, whole graph) of a static sampler's ``sample``, with the batch
-    and prompt dimensions of its inputs marked dynamic: one compilation serves every batch bucket
-    of two rows or more at every prompt length (dynamo specialises a dimension of size 1, so bucket
-    1 compiles once more), where compiling each shape on its own took buckets × prompt lengths
-    compilations (24 for the default buckets up to 8 with ``auto`` prompts, minutes each for the
-    full π0.5). A CUDA graph is still recorded per shape, from the compiled kernels."""
-    compiled = torch.compile(sample, fullgraph=True)
-
-    def run(inputs: SamplerInputs) -> Tensor:
-        # "maybe": a dimension the code did specialise costs a compilation per size, not an error.
-        for t in inputs.tensors():
-            torch._dynamo.maybe_mark_dynamic(t, 0)
-        for t in (inputs.tokens, inputs.masks):
-            torch._dynamo.maybe_mark_dynamic(t, 1)
-        return compiled(inputs)
-
-    return run
-
-
 def bucket_for(rows: int, buckets: tuple[int, ...]) -> int | None:
     """The smallest bucket that holds ``rows`` (None: larger than every bucket)."""
     return next((b for b in buckets if b >= rows), None)

@@ -67,11 +67,14 @@ class EngineOptions:
             rounding order in float32 and, in bfloat16, chunks ~10× nearer a float32 π0.5's than
             LeRobot's own bf16 ones (``policies/pi05_kernels.py``). ``false``: LeRobot's own
             sequence of operations (and its bf16 rounding).
-        compile_sampler: ``torch.compile`` the static sampler (inductor, whole graph) before its
-            graphs are recorded: fused kernels, fewer of them. The batch and prompt dimensions
-            are dynamic, so warm-up compiles twice (bucket 1, and every other bucket at every
-            prompt length together; minutes each for the full π0.5, logged) and the graphs of
-            each bucket and prompt length are recorded from those kernels.
+        compile_sampler: ``torch.compile`` (inductor) the static sampler's two layer functions,
+            a VLM layer and an action-expert layer, before its graphs are recorded: fused
+            kernels, fewer of them. One compilation serves every layer of a kind, so it traces
+            one layer, not the model's depth; the batch and prompt dimensions are dynamic, so
+            warm-up compiles each twice (bucket 1, and every other bucket at every prompt length
+            together): 30 s in all for the narrow π0.5 on a 2-core CPU, where the whole sampler
+            took 608 s for one compilation. The graphs of each bucket and prompt length are
+            recorded from those kernels.
         matmul_precision: float32 matrix products (``torch.set_float32_matmul_precision``, for the
             whole process): ``highest`` (true float32, LeRobot's numerics), ``high`` (TF32 on a
             GPU that has it) or ``auto`` (``high`` for a bfloat16 policy on a CUDA device, else

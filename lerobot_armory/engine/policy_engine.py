@@ -98,6 +98,7 @@ class PolicyEngine:
             self.cpu_threads = threads
         self._threads_set: set[int] = set()
         self._set_thread_count()
+        _register_cuda_guard_here()  # before the device thread traces anything
         # The one thread every forward pass runs on (see the module docstring).
         self._device_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="armory-device")
         self.path = options.path
@@ -193,7 +194,7 @@ class PolicyEngine:
         import torch
 
         from lerobot_armory.policies import pi05_static
-        from lerobot_armory.engine.cuda_graphs import BucketedSampler, compile_sampler
+        from lerobot_armory.engine.cuda_graphs import BucketedSampler
 
         o = self.engine_options
         self.fused_kernels = False
@@ -247,7 +248,9 @@ class PolicyEngine:
         self.fused_kernels = sampler.fused
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
-        sample = compile_sampler(sampler.sample) if o.compile_sampler else sampler.sample
+        if o.compile_sampler:
+            sampler.compile_layers()  # compiled at warm-up, on the first batch through them
+        sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
         return graphs, None
 
@@ -583,25 +586,26 @@ class PolicyEngine:
         )  # fmt: skip
 
     def _compile_shapes(self, log_progress: bool) -> None:
-        """Compile the static sampler now, not under robots, and run every (bucket, prompt length)
-        through it once.
+        """Compile the static sampler's layers now, not under robots, and run every (bucket,
+        prompt length) through them once.
 
-        The batch and prompt dimensions are dynamic (``cuda_graphs.compile_sampler``): bucket 1
-        compiles once and the buckets of two rows or more once together, each compilation taking
-        from seconds (a tiny model on a CPU) to minutes (the full π0.5); the other shapes then
-        only run. Said up front and each bucket logged as it is done; dynamo's recompile limit is
-        raised to fit every shape anyway (past it dynamo refuses a whole-graph compilation: a
-        batch's error), should a dimension be specialised after all. Graphs recorded afterwards
-        replay the compiled kernels."""
+        Two functions are compiled, a VLM layer and an action-expert layer
+        (``StaticPi05.compile_layers``), with the batch and prompt dimensions dynamic: each
+        compiles once for bucket 1 and once for the buckets of two rows or more together, each
+        compilation tracing one layer (seconds on a CPU for the narrow π0.5, where the whole
+        sampler took minutes); the other shapes then only run. Said up front and each bucket
+        logged as it is done; dynamo's recompile limit is raised to fit every shape anyway
+        (past it dynamo refuses a whole-graph compilation: a batch's error), should a dimension
+        be specialised after all. Graphs recorded afterwards replay the compiled kernels."""
         assert self.sampler is not None
         buckets, lengths = self.sampler.buckets, max(1, len(self.prompt_buckets))
         shapes = len(buckets) * lengths
         _allow_recompiles(shapes)
-        compilations = int(1 in buckets) + int(any(b > 1 for b in buckets))
+        compilations = 2 * (int(1 in buckets) + int(any(b > 1 for b in buckets)))
         if log_progress:
             log.info(
-                "compiling the static sampler: %d compilation(s) (bucket 1 apart; batch and prompt lengths dynamic), "
-                "then %d shapes run once (%d batch buckets x %d prompt lengths)", compilations, shapes, len(buckets), lengths,
+                "compiling the static sampler's two layer functions: %d compilation(s) (bucket 1 apart; batch and prompt "
+                "lengths dynamic), then %d shapes run once (%d batch buckets x %d prompt lengths)", compilations, shapes, len(buckets), lengths,
             )  # fmt: skip
         for bucket in reversed(buckets):
             start = time.perf_counter()
@@ -951,6 +955,20 @@ def _compiled_functions(policy: Any) -> list[tuple[Any, str, Any]]:
             if callable(value) and hasattr(value, "_torchdynamo_orig_callable"):
                 out.append((owner, name, value))
     return out
+
+
+def _register_cuda_guard_here() -> None:
+    """Without a CUDA device, torch's fake tensors (what torch.compile traces with) register a
+    no-op CUDA device guard the first time they run, apparently in the running thread's storage.
+    An engine compiles on its own device thread: once that engine was dropped, the next engine's
+    compilation crashed the process (a segmentation fault; torch 2.11's CUDA wheel on a machine
+    without a GPU). Registered by the thread that builds the engine, it outlives device threads."""
+    import torch
+
+    if not torch.cuda.is_available():
+        ensure = getattr(torch._C, "_ensureCUDADeviceGuardSet", None)
+        if ensure is not None:
+            ensure()
 
 
 def _allow_recompiles(shapes: int) -> None:

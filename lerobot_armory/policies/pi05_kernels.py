@@ -56,6 +56,10 @@ from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
 
 
+# Buffers Fused registers on LeRobot's modules (non-persistent: never in a state dict).
+_QKV, _GATE_UP, _NORM = "armory_qkv_weight", "armory_gate_up_weight", "armory_weight"
+
+
 @dataclass(frozen=True)
 class Modulation:
     """One adaptive RMSNorm's time conditioning at one flow step (LeRobot's ``PiGemmaRMSNorm``
@@ -123,6 +127,11 @@ class LeRobotOrder:
         return cache[0][:, :, :length], cache[1][:, :, :length]
 
     @staticmethod
+    def length(cache: Any) -> int:
+        """Positions the cache holds."""
+        return cache[0].shape[2]
+
+    @staticmethod
     def qkv(attn: Any, x: Tensor, rope: tuple[Tensor, Tensor], cache: Any, start: int, bias: Tensor | None = None) -> Tensor:
         """Projections and HF's ``apply_rotary_pos_emb``; keys and values written into ``cache`` from
         position ``start`` on, in place (HF's cache concatenates a copy); returns q ``(B, heads, L, d)``."""
@@ -176,10 +185,11 @@ class Fused(LeRobotOrder):
         why = fusable_reason(text_models)
         if why is not None:
             raise ValueError(why)
-        self.qkv_weight: dict[Any, Tensor] = {}
-        self.gate_up_weight: dict[Any, Tensor] = {}
-        self.norm_weight: dict[Any, Tensor] = {}
-        self.layer_dtype: dict[Any, torch.dtype] = {}  # per layer norm: its layer's (its projections')
+        # The fused weights live on LeRobot's modules as non-persistent buffers (not in a state
+        # dict, not saved), so a compiled layer (:meth:`StaticPi05.compile_layers`) reads each
+        # layer's own: torch.compile lifts a module's buffers as inputs, where a dict keyed by
+        # module would hand every layer the first one's.
+        self.compute_dtype = text_models[0].layers[0].self_attn.q_proj.weight.dtype  # the projections' (fusable_reason: one)
         self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
@@ -199,12 +209,21 @@ class Fused(LeRobotOrder):
             self.rope_scale[model] = (scale.to(table_dtype), offset.to(table_dtype))
             for layer in model.layers:
                 attn, mlp = layer.self_attn, layer.mlp
-                self.qkv_weight[attn] = fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj])
-                self.gate_up_weight[mlp] = fuse_weights([mlp.gate_proj, mlp.up_proj])
+                attn.register_buffer(_QKV, fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj]), persistent=False)
+                mlp.register_buffer(_GATE_UP, fuse_weights([mlp.gate_proj, mlp.up_proj]), persistent=False)
                 for norm in (layer.input_layernorm, layer.post_attention_layernorm):
-                    self.layer_dtype[norm] = attn.q_proj.weight.dtype
                     if norm.dense is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
-                        self.norm_weight[norm] = 1.0 + norm.weight.detach().float()
+                        norm.register_buffer(_NORM, 1.0 + norm.weight.detach().float(), persistent=False)
+
+    @staticmethod
+    def qkv_weight(attn: Any) -> Tensor:
+        """The layer's q, k and v weights as one tensor (theirs are views of it)."""
+        return getattr(attn, _QKV)
+
+    @staticmethod
+    def gate_up_weight(mlp: Any) -> Tensor:
+        """The MLP's gate and up weights as one tensor (theirs are views of it)."""
+        return getattr(mlp, _GATE_UP)
 
     def rope(self, text_model: Any, x: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
         """One table for q's, k's and v's heads side by side: q's rows times the attention scale
@@ -232,7 +251,8 @@ class Fused(LeRobotOrder):
         folded where it costs no kernel: ``scale1`` becomes the norm's weight (one ``rms_norm``)
         and ``shift`` the projection's bias, ``W · shift`` (a bias in the matrix product's
         epilogue), so ``W(normed · scale1 + shift)`` is ``W(normed · scale1) + W · shift``."""
-        weight = self.qkv_weight[into] if into in self.qkv_weight else self.gate_up_weight[into]
+        weight = getattr(into, _QKV, None)
+        weight = getattr(into, _GATE_UP) if weight is None else weight
         assert mod.shift is not None
         with torch.no_grad():
             bias = torch.nn.functional.linear(mod.shift.reshape(-1), weight.float()).to(weight.dtype)
@@ -240,14 +260,14 @@ class Fused(LeRobotOrder):
 
     def norm(self, norm: Any, h: Tensor) -> Tensor:
         """On the float32 stream, in one kernel, rounded to the layers' dtype for the projections."""
-        return torch.nn.functional.rms_norm(h, (h.shape[-1],), self.norm_weight[norm], norm.eps).to(self.layer_dtype[norm])
+        return torch.nn.functional.rms_norm(h, (h.shape[-1],), getattr(norm, _NORM), norm.eps).to(self.compute_dtype)
 
     def ada_norm(self, norm: Any, h: Tensor, mod: Modulation) -> Tensor:
         """Folded (:meth:`fold`): ``normed · scale1`` in one kernel, the shift left to the next
         projection's bias. Not folded (the final norm, before LeRobot's float32 action
         projection): the whole ``normed · scale1 + shift`` in float32."""
         if mod.shift is None:
-            return torch.nn.functional.rms_norm(h, (h.shape[-1],), mod.scale1, norm.eps).to(self.layer_dtype[norm])
+            return torch.nn.functional.rms_norm(h, (h.shape[-1],), mod.scale1, norm.eps).to(self.compute_dtype)
         return torch.addcmul(mod.shift, torch.nn.functional.rms_norm(h, (h.shape[-1],), None, norm.eps), mod.scale1)
 
     @staticmethod
@@ -258,12 +278,16 @@ class Fused(LeRobotOrder):
     def cached(cache: Tensor, length: int) -> Tensor:
         return cache[:, :length]
 
+    @staticmethod
+    def length(cache: Tensor) -> int:
+        return cache.shape[1]
+
     def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor], cache: Tensor, start: int, bias: Tensor | None = None) -> Tensor:
         """One projection (``bias``: a folded shift), one rotation for q, k and v; the rotation's
         last kernel runs twice, once for q's rows (a fresh contiguous q, the layout attention
         gathers its rows in) and once for k's and v's, stored straight into ``cache``: no copy."""
         heads, kv_heads = _heads(attn)
-        qkv = torch.nn.functional.linear(x, self.qkv_weight[attn], bias).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
+        qkv = torch.nn.functional.linear(x, self.qkv_weight(attn), bias).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
         cos, signed_sin = rope
         rotated, swapped = qkv * cos, _swap_halves(qkv)  # q scaled, k rotated, v as it was (after the addcmul)
         kv, dest = (rotated[:, :, heads:], swapped[:, :, heads:], signed_sin[:, :, heads:]), cache[:, start : start + x.shape[1]]
@@ -300,7 +324,7 @@ class Fused(LeRobotOrder):
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
     def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
-        gate, up = torch.nn.functional.linear(x, self.gate_up_weight[mlp], bias).chunk(2, dim=-1)
+        gate, up = torch.nn.functional.linear(x, self.gate_up_weight(mlp), bias).chunk(2, dim=-1)
         return mlp.down_proj(mlp.act_fn(gate) * up)
 
     @staticmethod
@@ -340,6 +364,8 @@ def _fused_already(weights: list[Tensor]) -> Tensor | None:
 
 def fusable_reason(text_models: list[Any]) -> str | None:
     """Why :class:`Fused` cannot run these models' layers (None: it can)."""
+    if len({layer.self_attn.q_proj.weight.dtype for model in text_models for layer in model.layers}) > 1:
+        return "the layers' projections are in more than one dtype"
     for model in text_models:
         for layer in model.layers:
             attn, mlp = layer.self_attn, layer.mlp

@@ -256,6 +256,7 @@ class StaticPi05:
         self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
         self.time_table = torch.tensor(self.times, dtype=torch.float32, device=device)
         self.conditioning: tuple[StepConditioning, ...] | None = None  # made once (prepare)
+        self._compiled: tuple[Any, Any] | None = None  # compile_layers()
         self.guidance_table = None
         if guided:
             self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
@@ -298,15 +299,49 @@ class StaticPi05:
         scale, shift, gate = norm.dense(cond).unsqueeze(1).chunk(3, dim=-1)
         return Modulation(1 + scale.float(), shift.float(), gate.to(dtype))
 
+    def compile_layers(self) -> None:
+        """``torch.compile`` (inductor, each a whole graph) the two layer functions every sample
+        runs 18 and 180 times, a VLM layer over the prefix and an action-expert layer, for
+        :meth:`sample_compiled`. Compiled per layer, not per sample: one compilation serves every
+        layer of a kind (they differ in weights only, which torch.compile takes as inputs), so a
+        compilation traces one layer, not the model's full depth (narrow π0.5, 2-core CPU: one
+        compilation of the whole sampler took 608 s, all four of these 30 s). The inputs' batch
+        and prompt dimensions are marked dynamic: a function compiles once for one row and once
+        for every larger batch at every prompt length. The vision tower and each step's action
+        projections stay eager."""
+        if self._compiled is not None:
+            return
+        vlm, expert = torch.compile(self._vlm_layer, fullgraph=True), torch.compile(self._expert_layer, fullgraph=True)
+
+        def vlm_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+            _mark_dynamic((h, x, cache, mask, rope), h.shape[0], {x.shape[1], self.ops.length(cache)})
+            return vlm(layer, h, x, cache, mask, rope)
+
+        def expert_layer(layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], *mods: Modulation) -> Tensor:
+            # The suffix is chunk_size long whatever the batch: only the cache's length varies.
+            _mark_dynamic((h, cache, mask, rope), h.shape[0], {self.ops.length(cache)})
+            return expert(layer, h, cache, mask, rope, *mods)
+
+        self._compiled = (vlm_layer, expert_layer)
+
+    def sample_compiled(self, inputs: SamplerInputs) -> Tensor:
+        """:meth:`sample` through the compiled layers (:meth:`compile_layers` first)."""
+        if self._compiled is None:
+            raise RuntimeError("compile_layers() first")
+        return self.sample(inputs, layers=self._compiled)
+
     @torch.no_grad()
-    def sample(self, inputs: SamplerInputs) -> Tensor:
+    def sample(self, inputs: SamplerInputs, layers: tuple[Any, Any] | None = None) -> Tensor:
         """Actions ``(B, chunk_size, max_action_dim)`` float32 for one batch (LeRobot's
-        ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``)."""
+        ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``).
+        ``layers``: the VLM and expert layer functions (default: :meth:`_vlm_layer`,
+        :meth:`_expert_layer`)."""
+        vlm_layer, expert_layer = layers or (self._vlm_layer, self._expert_layer)
         if self.guided != (inputs.rtc_weights is not None):
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
         images, img_masks = self.policy._preprocess_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
         prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
-        caches = self._prefix_cache(prefix_embs, prefix_pad)
+        caches = self._prefix_cache(prefix_embs, prefix_pad, vlm_layer)
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # whole suffix; its positions follow the prefix's valid tokens.
         b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
@@ -317,7 +352,7 @@ class StaticPi05:
         conditioning = self.prepare()
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, conditioning[step], caches, p, mask, rope)
+            v_t = self._velocity(x_t, conditioning[step], caches, mask, rope, expert_layer)
             if self.guided:
                 assert self.guidance_table is not None and inputs.rtc_leftover is not None
                 # LeRobot's correction, closed form (module docstring): the weighted error.
@@ -346,7 +381,7 @@ class StaticPi05:
         pads.append(masks)
         return torch.cat(embs, dim=1), torch.cat(pads, dim=1)
 
-    def _prefix_cache(self, embs: Tensor, pad: Tensor) -> list[Any]:
+    def _prefix_cache(self, embs: Tensor, pad: Tensor, vlm_layer: Any) -> list[Any]:
         """Run the VLM over the prefix; return per layer a K/V cache (the ops' layout) of
         ``P + chunk_size`` positions with the prefix's (post-rotary) keys and values in the first ``P``."""
         p = pad.shape[1]
@@ -359,29 +394,41 @@ class StaticPi05:
         for i, layer in enumerate(self.vlm.layers):
             x = self.ops.norm(layer.input_layernorm, h)
             cache = self.ops.new_cache(layer.self_attn, x, p + self.chunk_size)
-            q = self.ops.qkv(layer.self_attn, x, rope, cache, 0)
             caches.append(cache)
-            if i == last:
-                break  # the last layer's output is never read: only its keys and values are
-            h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, self.ops.cached(cache, p), mask)), None)
-            h = self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
+            if i == last:  # the last layer's output is never read: only its keys and values are
+                self.ops.qkv(layer.self_attn, x, rope, cache, 0)
+                break
+            h = vlm_layer(layer, h, x, cache, mask, rope)
         return caches
 
+    def _vlm_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+        """One VLM layer over the prefix, its input ``x`` normed already: keys and values into
+        ``cache`` (from position 0), the residual stream after the layer returned."""
+        p = x.shape[1]
+        q = self.ops.qkv(layer.self_attn, x, rope, cache, 0)
+        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, self.ops.cached(cache, p), mask)), None)
+        return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
+
     def _velocity(
-        self, x_t: Tensor, cond: StepConditioning, caches: list[Any], p: int, mask: Tensor, rope: tuple[Tensor, Tensor]
+        self, x_t: Tensor, cond: StepConditioning, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any
     ) -> Tensor:
         """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
         h = self.ops.stream(self.model.action_in_proj(x_t), self._dtype(self.expert))
         for i, layer in enumerate(self.expert.layers):
-            mod_in, mod_post = cond.layers[i]
-            x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
-            q = self.ops.qkv(layer.self_attn, x, rope, caches[i], p, mod_in.bias)  # keys and values in place, behind the prefix
-            attended = self.ops.attend(layer.self_attn, q, caches[i], mask)
-            h = self.ops.residual(h, layer.self_attn.o_proj(attended), mod_in.gate)
-            x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post)
-            h = self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
+            h = expert_layer(layer, h, caches[i], mask, rope, *cond.layers[i])
         h = self.ops.ada_norm(self.expert.norm, h, cond.final)
         return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
+
+    def _expert_layer(
+        self, layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mod_in: Modulation, mod_post: Modulation
+    ) -> Tensor:
+        """One action-expert layer: the suffix's keys and values written into ``cache`` in place,
+        behind the prefix's (its last ``chunk_size`` positions), the residual stream returned."""
+        x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
+        q = self.ops.qkv(layer.self_attn, x, rope, cache, self.ops.length(cache) - h.shape[1], mod_in.bias)
+        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, cache, mask)), mod_in.gate)
+        x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post)
+        return self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
 
     def _additive(self, valid: Tensor) -> Tensor:
         """LeRobot's additive mask (B, Lq, Lk): 0 where attended, its large negative constant elsewhere."""
@@ -402,3 +449,19 @@ class StaticPi05:
     def _bf16(text_model: Any) -> bool:
         # PiGemmaModel.forward casts its input to bfloat16 when its layers are bfloat16.
         return len(text_model.layers) > 0 and text_model.layers[0].self_attn.q_proj.weight.dtype == torch.bfloat16
+
+
+def _mark_dynamic(tensors: Sequence[Any], batch: int, lengths: set[int]) -> None:
+    """Mark the batch and prompt dimensions of ``tensors`` (nested in tuples too) dynamic for
+    torch.compile: dimension 0 of size ``batch``, and every later one whose size is in
+    ``lengths`` (``maybe``: a dimension the code specialises costs a compilation, not an error; a
+    static one marked by a coincidence of sizes only loses its specialisation)."""
+    for t in tensors:
+        if isinstance(t, tuple):
+            _mark_dynamic(t, batch, lengths)
+            continue
+        if t.shape[0] == batch:
+            torch._dynamo.maybe_mark_dynamic(t, 0)
+        for dim in range(1, t.dim()):
+            if t.shape[dim] in lengths:
+                torch._dynamo.maybe_mark_dynamic(t, dim)
