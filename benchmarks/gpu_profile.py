@@ -286,8 +286,9 @@ def profile_config(
         # Layer by layer: the narrow π0.5 (the full one's depth) took 30 s for all four on a 2-core CPU.
         print(f"[{config}] compiling the static sampler's two layer functions, each for bucket 1 and for the other buckets", flush=True)
     engine.warmup(ARGS.max_batch_size, log_progress=False)
+    warmup_s = time.perf_counter() - t0  # compilations and graph recordings included
     capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
-    print(f"[{config}] warmed up in {time.perf_counter() - t0:.0f} s: {engine.description}", flush=True)
+    print(f"[{config}] warmed up in {warmup_s:.0f} s: {engine.description}", flush=True)
     engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
     got = chunk_sets[config] = chunks(engine)
     if "-graphs" not in config and "-compiled" not in config:
@@ -302,6 +303,7 @@ def profile_config(
         "engine_ms": [round(x, 2) for x in engine_ms],
         "bare_ms": [round(x, 2) for x in bare_ms],
         "reps": ARGS.reps,
+        "warmup_s": round(warmup_s, 1),
     }
     if capture:
         run["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
