@@ -65,7 +65,7 @@ for s in "$@"; do
     env) step env 40 env_report ;;
     smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
     graphs) step graphs 510 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
-    compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-compiled --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/compiled.json" --work_dir=/tmp/gp ;;
+    compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-compiled --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/compiled.json" --work_dir=/tmp/gp ;;
     fused) step fused 520 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32-fullprompt,pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/fused.json" --work_dir=/tmp/gp ;;
     kernels) step kernels 200 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
     buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
