@@ -248,8 +248,7 @@ class StaticPi05:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")
         if vision_dtype is not None:  # after every check: a refused sampler leaves the weights as they were
             paligemma = pwe.paligemma.model
-            paligemma.vision_tower.to(vision_dtype)
-            paligemma.multi_modal_projector.to(vision_dtype)
+            _cast_all_or_nothing([paligemma.vision_tower, paligemma.multi_modal_projector], vision_dtype)
         device = next(self.model.parameters()).device
         # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
         self.dt = -1.0 / self.num_steps
@@ -449,6 +448,18 @@ class StaticPi05:
     def _bf16(text_model: Any) -> bool:
         # PiGemmaModel.forward casts its input to bfloat16 when its layers are bfloat16.
         return len(text_model.layers) > 0 and text_model.layers[0].self_attn.q_proj.weight.dtype == torch.bfloat16
+
+
+def _cast_all_or_nothing(modules: Sequence[Any], dtype: torch.dtype) -> None:
+    """``module.to(dtype)`` for ``modules``' floating-point parameters and buffers, all or nothing:
+    every cast tensor is made before any replaces its original, so a failure on the way (out of
+    memory: the cast copies coexist with the originals until the swap) leaves every module as it
+    was, where ``Module.to`` would leave the first ones cast and the rest not."""
+    originals = [t for m in modules for t in (*m.parameters(), *m.buffers()) if t.is_floating_point() and t.dtype != dtype]
+    cast = [t.detach().to(dtype) for t in originals]
+    with torch.no_grad():
+        for t, c in zip(originals, cast, strict=True):
+            t.data = c
 
 
 def _mark_dynamic(tensors: Sequence[Any], batch: int, lengths: set[int]) -> None:

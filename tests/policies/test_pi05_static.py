@@ -726,6 +726,37 @@ def test_a_compiled_engine_dropped_leaves_the_next_one_compiling(pi05_dir, two_c
     torch._dynamo.reset()
 
 
+def test_a_vision_cast_that_runs_out_of_memory_leaves_every_weight_as_it_was(pi05_dir, monkeypatch):
+    """``--engine.vision_dtype=bfloat16`` on a loaded engine (``use_sampler``) that runs out of
+    memory halfway through the cast: the error reaches the caller, no weight of the tower or the
+    projector has changed dtype or value, and the engine serves the same chunks as before."""
+    import torch
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    model = engine.policy.model.paligemma_with_expert.paligemma.model
+    before = {k: v.clone() for k, v in (*model.vision_tower.state_dict().items(), *model.multi_modal_projector.state_dict().items())}
+    obs, tasks, seeds, _ = batch(2)
+    want = engine.infer(obs, tasks, seeds)
+    real_to, calls = torch.Tensor.to, []
+
+    def to(self, *args, **kwargs):
+        if torch.bfloat16 in args or kwargs.get("dtype") == torch.bfloat16:
+            calls.append(1)
+            if len(calls) == 5:
+                raise torch.OutOfMemoryError("CUDA out of memory (simulated)")
+        return real_to(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.Tensor, "to", to)
+    with pytest.raises(torch.OutOfMemoryError):
+        engine.use_sampler(EngineOptions(static_sampler=True, vision_dtype="bfloat16"))
+    monkeypatch.undo()
+    assert len(calls) == 5
+    after = {k: v for k, v in (*model.vision_tower.state_dict().items(), *model.multi_modal_projector.state_dict().items())}
+    assert all(after[k].dtype == before[k].dtype and torch.equal(after[k], before[k]) for k in before)
+    assert engine.vision_cast is None
+    np.testing.assert_array_equal(engine.infer(obs, tasks, seeds), want)
+
+
 def test_a_cut_prompt_has_the_strides_of_a_recorded_batch_even_for_one_row():
     """A compiled sampler's guards check strides: a cut prompt must look like a padded or recorded
     batch (standard strides), also for one row, whose view is "contiguous" with the full row's stride."""
