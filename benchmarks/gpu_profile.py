@@ -21,6 +21,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   policy is loaded again for the configuration after it);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
+- ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
+  sizes, the state as a suffix token, a 48-token prompt), LeRobot's eager sampler against our
+  static π0 sampler (``policies/pi0_static.py``) recorded as graphs with TF32, the default.
 
 Configurations of one policy and dtype share one load (the full π0.5 takes minutes to load): the
 policy is measured with each sampler in turn, in the same call, so the figures compare.
@@ -78,6 +81,7 @@ CONFIGS = (
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
+    "pi0-bf16", "pi0-bf16-graphs-tf32",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -134,14 +138,15 @@ def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, l
             )  # fmt: skip
         return str(path), []
     dtype = "bfloat16" if "bf16" in config else "float32"
+    kind = policy_kind(config)
     # Saved in the dtype it is served in: a bf16 directory is half the bytes to write and load.
-    path = work / f"pi05-{size}-{dtype}"
+    path = work / f"{kind}-{size}-{dtype}"
     if not (path / "config.json").is_file():
-        print(f"building π0.5 {size} {dtype} (random weights) in {path} ...", flush=True)
+        print(f"building {kind} {size} {dtype} (random weights) in {path} ...", flush=True)
         t0 = time.perf_counter()
         make_demo_policy(
             DemoPolicyConfig(
-                output=str(path), kind="pi05", size=size, chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224, dtype=dtype,
+                output=str(path), kind=kind, size=size, chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224, dtype=dtype,
                 device="cuda" if _cuda() else "cpu",  # random weights created on the GPU: seconds, not minutes
             )
         )
@@ -150,6 +155,17 @@ def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, l
     if config.endswith("compiled") and "-graphs" not in config:
         overrides += ["compile_model=true", f"compile_mode={compile_mode}"]
     return str(path), overrides
+
+
+def policy_kind(config: str) -> str:
+    """The LeRobot policy type a π configuration serves (``pi05-…`` or ``pi0-…``)."""
+    return config.split("-")[0]
+
+
+def reference_key(config: str, overrides: list[str]) -> str:
+    """Which LeRobot eager run a configuration's chunks are compared with: the same policy type
+    and dtype (one load)."""
+    return f"{policy_kind(config)}:{overrides[0] if overrides else config}"
 
 
 def chunks(engine: Any, sizes: tuple[int, ...] = (1, 3, 8)) -> dict[int, Any]:
@@ -292,7 +308,7 @@ def profile_config(
     engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
     got = chunk_sets[config] = chunks(engine)
     if "-graphs" not in config and "-compiled" not in config:
-        reference[overrides[0] if overrides else config] = got
+        reference[reference_key(config, overrides)] = got
     params = sum(p.numel() for p in engine.policy.parameters())
     run = {
         "policy": f"{engine.config.type} {ARGS.size if config != 'act' else ''}".strip(),
@@ -307,7 +323,7 @@ def profile_config(
     }
     if capture:
         run["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
-    ref = reference.get(overrides[0] if overrides else config)
+    ref = reference.get(reference_key(config, overrides))
     if ref is not None and ref is not got:
         # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.
         run["vs_lerobot_eager"] = agreement(ref, got)
@@ -318,15 +334,19 @@ def profile_config(
 
 
 def float32_reference(runs: dict[str, Any], chunk_sets: dict[str, dict[int, Any]], work: Path, device: str, out: Path, name: str) -> None:
-    """``run["vs_float32"]`` for every bf16 π0.5 configuration: how far its chunks are from LeRobot's
-    eager sampler on the same weights computed in float32 (the bf16 directory loaded with
+    """``run["vs_float32"]`` for every bf16 π0.5 and π0 configuration: how far its chunks are from
+    LeRobot's eager sampler on the same weights computed in float32 (the bf16 directory loaded with
     ``--policy.dtype=float32``: bf16 values are exact in float32, so only the arithmetic differs)."""
+    for kind in ("pi05", "pi0"):
+        bf16 = [c for c in runs if c.startswith(f"{kind}-bf16") and c in chunk_sets]
+        if bf16:
+            _float32_reference(bf16, runs, chunk_sets, work, device, out, name)
+
+
+def _float32_reference(bf16: list[str], runs: dict[str, Any], chunk_sets: dict[str, dict[int, Any]], work: Path, device: str, out: Path, name: str) -> None:
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.options import PolicyOptions
 
-    bf16 = [c for c in runs if c.startswith("pi05-bf16") and c in chunk_sets]
-    if not bf16:
-        return
     path, _ = build(bf16[0], ARGS.size, work, ARGS.compile_mode)
     print(f"[float32 reference] loading {path} --policy.dtype=float32 (LeRobot's eager sampler)", flush=True)
     if device == "cuda":

@@ -1,4 +1,4 @@
-"""Kernels per π0.5 batch, counted on a CPU: LeRobot's eager sampler against our static sampler.
+"""Kernels per π0.5 (or π0) batch, counted on a CPU: LeRobot's eager sampler against our static sampler.
 
 On a GPU, LeRobot 0.6.1's π0.5 is bound by kernel launches, and a CUDA graph can only record a
 region that never waits for the host. Neither needs a GPU to be seen: this script builds the
@@ -20,9 +20,11 @@ Targets: the static sampler has no host sync and traces as one graph with no bre
 size (what a capture needs); with its fused layers (the default) it launches at most 0.4×
 LeRobot's kernels (a regression guard: 0.32–0.35× measured on 2026-11-27, in float32 and bf16;
 what remains is the model's own arithmetic, about 20 kernels an expert layer and step, which
-only ``--engine.compile_sampler`` reduces further). Exits 1 on a miss.
+only ``--engine.compile_sampler`` reduces further). Exits 1 on a miss. ``--kind=pi0`` counts
+LeRobot's π0 the same way (the same depths, a 48-token prompt, the state as a token of the
+action expert's suffix).
 
-    .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8]
+    .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8] [--dtype=bfloat16] [--kind=pi0]
 """
 
 from __future__ import annotations
@@ -105,15 +107,16 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,8", help="batch sizes to count")
     p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="--policy.dtype (bf16 keeps LeRobot's float32 islands)")
+    p.add_argument("--kind", default="pi05", choices=("pi05", "pi0"), help="the policy type")
     args = p.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
     overrides = [f"dtype={args.dtype}"]
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="armory-pi05-ops-"))
-    path = str(work / "pi05-narrow")
+    path = str(work / f"{args.kind}-narrow")
     t0 = time.perf_counter()
     make_demo_policy(
-        DemoPolicyConfig(output=path, kind="pi05", size="narrow", chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224)
+        DemoPolicyConfig(output=path, kind=args.kind, size="narrow", chunk_size=50, state_dim=8, cameras="base,wrist", image_size=224)
     )
     eager = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1, overrides=overrides))
     ordered = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1, overrides=overrides), engine=EngineOptions(static_sampler=True, fused_kernels=False))
@@ -121,7 +124,8 @@ def main() -> None:
     ordered.warmup(max(sizes), log_progress=False)
     static.warmup(max(sizes), log_progress=False)
     params = sum(p.numel() for p in eager.policy.parameters()) / 1e6
-    print(f"π0.5 narrow, {args.dtype} ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
+    name = {"pi05": "π0.5", "pi0": "π0"}[args.kind]
+    print(f"{name} narrow, {args.dtype} ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
     print(f"{'b':>2} | {'sampler':<8} | {'aten ops':>8} | {'launches':>8} | {'host syncs':>10} | {'CPU ms':>7} | most launched")
     targets = Targets()
     for b in sizes:

@@ -37,3 +37,13 @@ def pi05_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
     main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
     return out
+
+
+@pytest.fixture(scope="session")
+def pi0_dir(tmp_path_factory):
+    """``lerobot-armory-make-demo-policy --kind=pi0 --size=tiny`` (chunk 10, armory_sim features)."""
+    from lerobot_armory.policies.demo.build import main
+
+    out = tmp_path_factory.mktemp("pi0") / "pi0-tiny"
+    main(["--kind=pi0", "--size=tiny", f"--output={out}", "--chunk_size=10"])
+    return out

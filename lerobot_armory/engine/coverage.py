@@ -87,7 +87,7 @@ def check_policy(path: str, timing: bool = True) -> PolicyCheck:
     from lerobot_armory.engine import rtc as rtc_mod
     from lerobot_armory.engine.options import PolicyOptions
     from lerobot_armory.engine.policy_engine import PolicyEngine
-    from lerobot_armory.policies import pi05_static
+    from lerobot_armory.policies import static_sampler
 
     try:
         engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
@@ -115,7 +115,7 @@ def check_policy(path: str, timing: bool = True) -> PolicyCheck:
         check.prompts = _prompts(engine, current[0], seeds[0], hist and histories[0])
     rtc_why = rtc_mod.unsupported_reason(engine.policy) if engine.kind.inputs == "current" else "needs a flow-matching sampler"
     check.rtc = "yes" if rtc_why is None else f"no: {rtc_why}"
-    graph_why = pi05_static.unsupported_reason(engine.policy)
+    graph_why = static_sampler.unsupported_reason(engine.policy)
     check.static_sampler = "yes" if graph_why is None else "no"
     if timing:
         check.cpu_ms = {b: _median_ms(engine, b) for b in (1, 4)}

@@ -193,15 +193,16 @@ class PolicyEngine:
         graphs at warm-up, why the policy's own sampler is used instead or None)."""
         import torch
 
-        from lerobot_armory.policies import pi05_static
+        from lerobot_armory.policies import static_sampler
         from lerobot_armory.engine.cuda_graphs import BucketedSampler
 
         o = self.engine_options
         self.fused_kernels = False
+        self._sampler_takes_state = False  # the static sampler embeds the state (π0)
         self.prompt_buckets: tuple[int, ...] = ()  # trimmed prompt lengths, ascending (none: untrimmed)
         self._prompt_forced: int | None = None  # while profiling: every batch at this prompt length
         cuda = torch.device(self.device).type == "cuda"
-        why = pi05_static.unsupported_reason(self.policy)
+        why = static_sampler.unsupported_reason(self.policy)
         if o.cuda_graphs == "on" and not cuda:
             raise ConfigError("engine.cuda_graphs", f"on needs a CUDA device; this engine runs on {self.device}")
         graphs = o.cuda_graphs == "on" or (o.cuda_graphs == "auto" and cuda and why is None)
@@ -233,7 +234,7 @@ class PolicyEngine:
             self.prompt_buckets = parse_prompt_buckets(o.prompt_buckets, full)
         rtc = self.rtc_options
         try:
-            sampler = pi05_static.StaticPi05(
+            sampler = static_sampler.make_static_sampler(
                 self.policy,
                 guided=rtc is not None,
                 max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0,
@@ -246,6 +247,7 @@ class PolicyEngine:
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
+        self._sampler_takes_state = sampler.takes_state
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
         if o.compile_sampler:
@@ -472,6 +474,7 @@ class PolicyEngine:
         inputs = SamplerInputs(
             tuple(processed[k] for k in self.config.image_features),
             processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise,
+            state=self.policy.prepare_state(processed) if self._sampler_takes_state else None,
         )  # fmt: skip
         length = prompt_length or self._prompt_forced or self._prompt_bucket(inputs.masks)
         if length is not None and length < inputs.prompt_length:

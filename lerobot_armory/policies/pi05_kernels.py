@@ -42,8 +42,11 @@ rounds once where two kernels round twice, the fused norm reduces in its own ord
 is summed inside the matrix product): ``tests/policies/test_pi05_static.py`` holds the fused
 chunks to LeRobot's within 1e-5. Folding the scale into q is exact when it is a power of two
 (π0.5's head size 256 gives 1/16). In bfloat16 the float32 residual stream is what matters: the
-fused chunks are about 10× nearer a float32 π0.5's than LeRobot's own bf16 chunks are (narrow
-π0.5, CPU: 1.3e-3 against 1.3e-2; ``docs/results/pi05_static``).
+fused chunks are nearer a float32 model's than LeRobot's own bf16 chunks, by how much depends on
+how much the bf16 products weigh against the stream's rounding: 0.07–0.09× LeRobot's distance on a
+random-weight π0.5 (whose small expert gates damp the products), 0.3–0.5× with its gates raised
+to ≈ 1, 0.8× on π0 (no gates), narrow models on the CPU (``benchmarks/bf16_accuracy.py``,
+``docs/results/pi05_static``).
 """
 
 from __future__ import annotations
@@ -107,6 +110,11 @@ class LeRobotOrder:
 
     @staticmethod
     def norm(norm: Any, h: Tensor) -> Tensor:
+        return norm(h, cond=None)[0]
+
+    @staticmethod
+    def final_norm(norm: Any, h: Tensor) -> Tensor:
+        """A model's last plain norm (π0's expert, before its float32 action projection)."""
         return norm(h, cond=None)[0]
 
     @staticmethod
@@ -211,9 +219,9 @@ class Fused(LeRobotOrder):
                 attn, mlp = layer.self_attn, layer.mlp
                 attn.register_buffer(_QKV, fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj]), persistent=False)
                 mlp.register_buffer(_GATE_UP, fuse_weights([mlp.gate_proj, mlp.up_proj]), persistent=False)
-                for norm in (layer.input_layernorm, layer.post_attention_layernorm):
-                    if norm.dense is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
-                        norm.register_buffer(_NORM, 1.0 + norm.weight.detach().float(), persistent=False)
+            for norm in (*(n for lay in model.layers for n in (lay.input_layernorm, lay.post_attention_layernorm)), model.norm):
+                if getattr(norm, "dense", None) is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
+                    norm.register_buffer(_NORM, 1.0 + norm.weight.detach().float(), persistent=False)
 
     @staticmethod
     def qkv_weight(attn: Any) -> Tensor:
@@ -260,7 +268,13 @@ class Fused(LeRobotOrder):
 
     def norm(self, norm: Any, h: Tensor) -> Tensor:
         """On the float32 stream, in one kernel, rounded to the layers' dtype for the projections."""
-        return torch.nn.functional.rms_norm(h, (h.shape[-1],), getattr(norm, _NORM), norm.eps).to(self.compute_dtype)
+        return self.final_norm(norm, h).to(self.compute_dtype)
+
+    @staticmethod
+    def final_norm(norm: Any, h: Tensor) -> Tensor:
+        """On the float32 stream, in one kernel, left in float32 (LeRobot rounds it to the layers'
+        dtype, then casts it back to float32 for the action projection)."""
+        return torch.nn.functional.rms_norm(h, (h.shape[-1],), getattr(norm, _NORM), norm.eps)
 
     def ada_norm(self, norm: Any, h: Tensor, mod: Modulation) -> Tensor:
         """Folded (:meth:`fold`): ``normed · scale1`` in one kernel, the shift left to the next

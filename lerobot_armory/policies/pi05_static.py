@@ -47,8 +47,8 @@ the norms, the time MLP, the action projections). The K/V layout for grouped-que
 rounding in the last bit. ``attention="sdpa"`` uses ``F.scaled_dot_product_attention`` with
 LeRobot's additive mask (same masking, a fused kernel on a GPU). The fused kernels compute the
 same values in another rounding order (``pi05_kernels``: 4.8e-7 from LeRobot's chunks in float32)
-and, in bfloat16, keep the residual stream in float32: their chunks are ~10× nearer a float32
-π0.5's than LeRobot's bf16 chunks are.
+and, in bfloat16, keep the residual stream in float32: their chunks are about as near a float32
+model's as LeRobot's bf16 chunks, usually nearer (``benchmarks/bf16_accuracy.py``).
 """
 
 from __future__ import annotations
@@ -89,6 +89,8 @@ class SamplerInputs:
         rtc_weights: ``(B, chunk_size, 1)`` float32 guidance weights (zeros: no guidance), or
             None when the sampler was built without RTC.
         rtc_leftover: ``(B, chunk_size, max_action_dim)`` float32 actions to guide toward.
+        state: ``(B, max_state_dim)`` the state, padded as the policy pads it, for a sampler that
+            embeds it (π0: :attr:`StaticPi05.takes_state`); None for π0.5, whose prompt holds it.
     """
 
     images: tuple[Tensor, ...]
@@ -97,6 +99,7 @@ class SamplerInputs:
     noise: Tensor
     rtc_weights: Tensor | None = None
     rtc_leftover: Tensor | None = None
+    state: Tensor | None = None
 
     @property
     def rows(self) -> int:
@@ -105,6 +108,8 @@ class SamplerInputs:
     def tensors(self) -> list[Tensor]:
         """Every tensor, in a fixed order (a CUDA graph's static inputs)."""
         out = [*self.images, self.tokens, self.masks, self.noise]
+        if self.state is not None:
+            out.append(self.state)
         if self.rtc_weights is not None:
             assert self.rtc_leftover is not None
             out += [self.rtc_weights, self.rtc_leftover]
@@ -113,8 +118,9 @@ class SamplerInputs:
     def with_tensors(self, tensors: Sequence[Tensor]) -> SamplerInputs:
         """The same structure over other tensors (in :meth:`tensors` order)."""
         n = len(self.images)
-        rtc = tuple(tensors[n + 3 :])
-        return SamplerInputs(tuple(tensors[:n]), tensors[n], tensors[n + 1], tensors[n + 2], *(rtc or (None, None)))
+        state = tensors[n + 3] if self.state is not None else None
+        rtc = tuple(tensors[n + 3 + (state is not None) :])
+        return SamplerInputs(tuple(tensors[:n]), tensors[n], tensors[n + 1], tensors[n + 2], *(rtc or (None, None)), state=state)
 
     @property
     def prompt_length(self) -> int:
@@ -132,7 +138,7 @@ class SamplerInputs:
         if not 0 < length <= self.prompt_length:
             raise ValueError(f"cannot trim a prompt of {self.prompt_length} tokens to {length}")
         tokens, masks = (t[:, :length].clone(memory_format=torch.contiguous_format) for t in (self.tokens, self.masks))
-        return SamplerInputs(self.images, tokens, masks, self.noise, self.rtc_weights, self.rtc_leftover)
+        return SamplerInputs(self.images, tokens, masks, self.noise, self.rtc_weights, self.rtc_leftover, self.state)
 
     def padded(self, rows: int) -> SamplerInputs:
         """The same batch grown to ``rows`` by repeating its last row (padding must be valid data:
@@ -149,33 +155,8 @@ class SamplerInputs:
         return SamplerInputs(
             tuple(grow(i) for i in self.images),  # type: ignore[misc]
             grow(self.tokens), grow(self.masks), grow(self.noise),  # type: ignore[arg-type]
-            grow(self.rtc_weights), grow(self.rtc_leftover),
+            grow(self.rtc_weights), grow(self.rtc_leftover), grow(self.state),
         )  # fmt: skip
-
-
-def unsupported_reason(policy: Any) -> str | None:
-    """Why :class:`StaticPi05` cannot run this policy (None: it can)."""
-    config = getattr(policy, "config", None)
-    kind = getattr(config, "type", type(policy).__name__)
-    if kind != "pi05":
-        return f"{kind} has no static sampler yet (π0.5 only); it is served by LeRobot's own sampler"
-    model = getattr(policy, "model", None)
-    pwe = getattr(model, "paligemma_with_expert", None)
-    if pwe is None or not hasattr(model, "action_in_proj"):
-        return f"{type(model).__name__} is not LeRobot 0.6's PI05Pytorch"
-    if getattr(config, "gradient_checkpointing", False):
-        return "gradient checkpointing is a training option"
-    vlm, expert = _text_model(pwe), pwe.gemma_expert.model
-    if len(vlm.layers) != len(expert.layers):
-        return f"the VLM has {len(vlm.layers)} layers and the expert {len(expert.layers)}: π0.5 pairs them one to one"
-    for name, layers in (("VLM", vlm.layers), ("expert", expert.layers)):
-        attn = layers[0].self_attn
-        if attn.q_proj.out_features != attn.config.num_attention_heads * attn.head_dim:
-            return f"the {name}'s attention projections do not match its head count"
-    heads = {(lay.self_attn.config.num_key_value_heads, lay.self_attn.head_dim) for lay in (*vlm.layers, *expert.layers)}
-    if len(heads) != 1:
-        return f"the VLM's and the expert's K/V heads differ ({sorted(heads)}): they cannot share a cache"
-    return None
 
 
 def _text_model(pwe: Any) -> Any:
@@ -193,6 +174,11 @@ def vision_dtype_of(policy: Any) -> torch.dtype | None:
 class StaticPi05:
     """``PI05Pytorch.sample_actions`` without host synchronisation or per-step copies.
 
+    The base of the π0 family's static samplers: a subclass (``pi0_static.StaticPi0``) changes
+    what is specific to its model, the time conditioning (:meth:`prepare`), the suffix's tokens
+    (:meth:`_embed_suffix`, :attr:`suffix_pattern`), an expert layer and the final norm; the
+    prefix, the caches, the Euler loop and RTC are shared.
+
     Args:
         policy: a loaded LeRobot ``PI05Policy`` (its weights are used in place).
         guided: take RTC inputs (``SamplerInputs.rtc_*``) and apply LeRobot's guidance.
@@ -208,8 +194,15 @@ class StaticPi05:
             (LeRobot keeps them in float32).
 
     Raises:
-        ValueError: the policy is not supported (:func:`unsupported_reason`) or a bad option.
+        ValueError: the policy is not supported (:meth:`unsupported_reason`) or a bad option.
     """
+
+    kind = "pi05"  # LeRobot's ``config.type``
+    model_name = "PI05Pytorch"
+    model_parts: tuple[str, ...] = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
+    adaptive_norms = True  # the expert's norms take the flow time (π0.5's adaRMS)
+    takes_state = False  # the sampler embeds the state (SamplerInputs.state); π0.5's prompt holds it
+    state_tokens = 0  # suffix tokens before the actions
 
     def __init__(
         self,
@@ -220,7 +213,7 @@ class StaticPi05:
         fused: bool = True,
         vision_dtype: torch.dtype | None = None,
     ) -> None:
-        why = unsupported_reason(policy)
+        why = self.unsupported_reason(policy)
         if why is not None:
             raise ValueError(why)
         if attention not in ATTENTION:
@@ -243,6 +236,7 @@ class StaticPi05:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)
         self.chunk_size = int(self.config.chunk_size)
+        self.suffix_length = self.state_tokens + self.chunk_size
         self.num_steps = int(self.config.num_inference_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_steps}")
@@ -250,6 +244,9 @@ class StaticPi05:
             paligemma = pwe.paligemma.model
             _cast_all_or_nothing([paligemma.vision_tower, paligemma.multi_modal_projector], vision_dtype)
         device = next(self.model.parameters()).device
+        # Which suffix token attends which (LeRobot's ``make_att_2d_masks`` of its suffix's
+        # attention pattern): π0.5's actions attend each other fully; made here, once.
+        self.suffix_pattern = self._suffix_pattern().to(device)
         # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
         self.dt = -1.0 / self.num_steps
         self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
@@ -259,6 +256,43 @@ class StaticPi05:
         self.guidance_table = None
         if guided:
             self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
+
+    @classmethod
+    def unsupported_reason(cls, policy: Any) -> str | None:
+        """Why this sampler cannot run ``policy`` (None: it can)."""
+        config = getattr(policy, "config", None)
+        kind = getattr(config, "type", type(policy).__name__)
+        if kind != cls.kind:
+            return f"{kind} is not {cls.kind}"
+        model = getattr(policy, "model", None)
+        pwe = getattr(model, "paligemma_with_expert", None)
+        if pwe is None or any(not hasattr(model, part) for part in cls.model_parts):
+            return f"{type(model).__name__} is not LeRobot 0.6's {cls.model_name}"
+        if getattr(config, "gradient_checkpointing", False):
+            return "gradient checkpointing is a training option"
+        vlm, expert = _text_model(pwe), pwe.gemma_expert.model
+        if len(vlm.layers) != len(expert.layers):
+            return f"the VLM has {len(vlm.layers)} layers and the expert {len(expert.layers)}: {cls.kind} pairs them one to one"
+        for name, layers in (("VLM", vlm.layers), ("expert", expert.layers)):
+            attn = layers[0].self_attn
+            if attn.q_proj.out_features != attn.config.num_attention_heads * attn.head_dim:
+                return f"the {name}'s attention projections do not match its head count"
+        heads = {(lay.self_attn.config.num_key_value_heads, lay.self_attn.head_dim) for lay in (*vlm.layers, *expert.layers)}
+        if len(heads) != 1:
+            return f"the VLM's and the expert's K/V heads differ ({sorted(heads)}): they cannot share a cache"
+        norms = [expert.norm, *(n for lay in expert.layers for n in (lay.input_layernorm, lay.post_attention_layernorm))]
+        if any((getattr(n, "dense", None) is not None) != cls.adaptive_norms for n in norms):
+            return f"the action expert's norms {'do not all' if cls.adaptive_norms else 'all do not'} take the flow time, as {cls.kind}'s do"
+        return None
+
+    def _suffix_pattern(self) -> Tensor:
+        """``(S, S)`` bool: suffix token i attends suffix token j (and every valid prefix token).
+        LeRobot's pattern for π0 and π0.5 (``make_att_2d_masks`` of its ``att_masks``): the state
+        tokens (π0's one; π0.5 has none) attend each other, not the actions; every action attends
+        the whole suffix."""
+        pattern = torch.ones(self.suffix_length, self.suffix_length, dtype=torch.bool)
+        pattern[: self.state_tokens, self.state_tokens :] = False
+        return pattern
 
     # -- the sampler ---------------------------------------------------------------------------
 
@@ -342,16 +376,17 @@ class StaticPi05:
         prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
         caches = self._prefix_cache(prefix_embs, prefix_pad, vlm_layer)
         # What every denoising step shares: the suffix attends every valid prefix token and the
-        # whole suffix; its positions follow the prefix's valid tokens.
-        b, p, h = prefix_pad.shape[0], prefix_pad.shape[1], self.chunk_size
-        valid = torch.cat([prefix_pad, prefix_pad.new_ones(b, h)], dim=1)[:, None, :].expand(b, h, p + h)
+        # suffix as its pattern says; its positions follow the prefix's valid tokens.
+        b, p, s = prefix_pad.shape[0], prefix_pad.shape[1], self.suffix_length
+        valid = torch.cat([prefix_pad[:, None, :].expand(b, s, p), self.suffix_pattern.expand(b, s, s)], dim=2)
         mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
-        positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(h, device=prefix_pad.device)[None, :]
+        positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(s, device=prefix_pad.device)[None, :]
         rope = self.ops.rope(self.expert, self._like(self.expert, inputs.noise), positions)
         conditioning = self.prepare()
+        fixed = self._sample_constants(inputs)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, conditioning[step], caches, mask, rope, expert_layer)
+            v_t = self._velocity(x_t, conditioning[step], fixed, caches, mask, rope, expert_layer)
             if self.guided:
                 assert self.guidance_table is not None and inputs.rtc_leftover is not None
                 # LeRobot's correction, closed form (module docstring): the weighted error.
@@ -382,7 +417,7 @@ class StaticPi05:
 
     def _prefix_cache(self, embs: Tensor, pad: Tensor, vlm_layer: Any) -> list[Any]:
         """Run the VLM over the prefix; return per layer a K/V cache (the ops' layout) of
-        ``P + chunk_size`` positions with the prefix's (post-rotary) keys and values in the first ``P``."""
+        ``P + S`` positions (S: the suffix's) with the prefix's (post-rotary) keys and values in the first ``P``."""
         p = pad.shape[1]
         mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
@@ -392,7 +427,7 @@ class StaticPi05:
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
             x = self.ops.norm(layer.input_layernorm, h)
-            cache = self.ops.new_cache(layer.self_attn, x, p + self.chunk_size)
+            cache = self.ops.new_cache(layer.self_attn, x, p + self.suffix_length)
             caches.append(cache)
             if i == last:  # the last layer's output is never read: only its keys and values are
                 self.ops.qkv(layer.self_attn, x, rope, cache, 0)
@@ -403,20 +438,44 @@ class StaticPi05:
     def _vlm_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
         """One VLM layer over the prefix, its input ``x`` normed already: keys and values into
         ``cache`` (from position 0), the residual stream after the layer returned."""
-        p = x.shape[1]
-        q = self.ops.qkv(layer.self_attn, x, rope, cache, 0)
-        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, self.ops.cached(cache, p), mask)), None)
+        return self._plain_layer(layer, h, x, cache, 0, self.ops.cached(cache, x.shape[1]), mask, rope)
+
+    def _plain_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, start: int, kv: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+        """A Gemma layer with plain norms, its input ``x`` normed already: keys and values into
+        ``cache`` from ``start``, attention over ``kv`` (the cache's attended part)."""
+        q = self.ops.qkv(layer.self_attn, x, rope, cache, start)
+        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, kv, mask)), None)
         return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
 
     def _velocity(
-        self, x_t: Tensor, cond: StepConditioning, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any
+        self, x_t: Tensor, cond: Any, fixed: Any, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any
     ) -> Tensor:
-        """One denoising step of the action expert (LeRobot's ``denoise_step``)."""
-        h = self.ops.stream(self.model.action_in_proj(x_t), self._dtype(self.expert))
+        """One denoising step of the action expert (LeRobot's ``denoise_step``): ``cond`` is the
+        step's time conditioning (:meth:`prepare`), ``fixed`` what a sample's steps share
+        (:meth:`_sample_constants`)."""
+        h = self._embed_suffix(x_t, cond, fixed)
         for i, layer in enumerate(self.expert.layers):
-            h = expert_layer(layer, h, caches[i], mask, rope, *cond.layers[i])
-        h = self.ops.ada_norm(self.expert.norm, h, cond.final)
-        return self.model.action_out_proj(h[:, -self.chunk_size :].to(dtype=torch.float32))
+            h = expert_layer(layer, h, caches[i], mask, rope, *self._layer_conditioning(cond, i))
+        # The norm is per token: the actions' rows alone give the same values.
+        return self.model.action_out_proj(self._final_norm(h[:, -self.chunk_size :], cond).to(dtype=torch.float32))
+
+    # -- what π0.5's model does its own way (a subclass changes these) ---------------------------
+
+    def _sample_constants(self, inputs: SamplerInputs) -> Any:
+        """What every denoising step of a sample reads besides ``x_t`` (π0.5: nothing)."""
+        return None
+
+    def _embed_suffix(self, x_t: Tensor, cond: StepConditioning, fixed: Any) -> Tensor:
+        """The suffix's tokens, as the expert's residual stream (π0.5: the actions, projected)."""
+        return self.ops.stream(self.model.action_in_proj(x_t), self._dtype(self.expert))
+
+    @staticmethod
+    def _layer_conditioning(cond: StepConditioning, layer: int) -> tuple[Modulation, ...]:
+        """What ``_expert_layer`` takes after its common arguments, for layer ``layer``."""
+        return cond.layers[layer]
+
+    def _final_norm(self, h: Tensor, cond: StepConditioning) -> Tensor:
+        return self.ops.ada_norm(self.expert.norm, h, cond.final)
 
     def _expert_layer(
         self, layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mod_in: Modulation, mod_post: Modulation

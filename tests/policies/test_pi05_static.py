@@ -14,6 +14,7 @@ from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
 from tests.support.vla import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
+from tests.support.vla import assert_static_equals_lerobot, rtc_batch as batch
 
 BUCKETS = (1, 2, 4, 8)
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
@@ -33,33 +34,12 @@ def engines(pi05_dir):
     return lerobot, static
 
 
-def batch(b: int, seed: int = 0) -> tuple[list, list[str], list[int], list[rtc.Prefix | None]]:
-    """b robots' observations, prompts (of different lengths), noise seeds and RTC prefixes (every
-    third robot without one; leftovers of every length, delays 0..4)."""
-    rng = np.random.default_rng(seed + b)
-    obs = [observation(k + seed, k) for k in range(b)]
-    tasks = [TASKS[k % 3] + " now" * k for k in range(b)]
-    seeds = [noise_seed(f"robot{k}", seed) for k in range(b)]
-    prefixes = [
-        None if k % 3 == 0 else rtc.Prefix(rng.uniform(-1, 1, (int(rng.integers(1, 11)), 2)).astype(np.float32), int(rng.integers(0, 5)))
-        for k in range(b)
-    ]
-    return obs, tasks, seeds, prefixes
-
-
 @pytest.mark.parametrize("b", range(1, 9))
 def test_static_chunks_equal_lerobots_at_every_batch_size_padded_to_its_bucket(engines, b):
     """b = 3 runs as a padded batch of 4, b = 5..7 as 8: the real rows equal LeRobot's sampler on
     the unpadded batch (fp32, 1e-5), unguided and guided (per-row RTC, rows without a prefix)."""
     lerobot, static = engines
-    obs, tasks, seeds, prefixes = batch(b)
-    np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
-    actions, model_actions = static.infer_guided(obs, tasks, seeds, prefixes)
-    want_actions, want_model = lerobot.infer_guided(obs, tasks, seeds, prefixes)
-    np.testing.assert_allclose(model_actions, want_model, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(actions, want_actions, atol=1e-5, rtol=0)
-    if any(p is not None for p in prefixes):  # the guidance did something
-        assert np.abs(static.infer(obs, tasks, seeds) - actions).max() > 1e-3
+    assert_static_equals_lerobot(lerobot, static, b)
 
 
 def test_a_guided_row_equals_lerobots_stock_rtc_for_that_robot_alone(engines, pi05_dir):

@@ -14,6 +14,7 @@ from lerobot_armory.schedulers import EarliestDeadlineConfig
 from lerobot_armory.entrypoints.server import ArmoryServer
 from lerobot_armory.engine.emulation import EmulatedLatencyEngine
 from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine import rtc
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.entrypoints.grpc.service import PolicyInfo
 from tests.support.pusher import wait_for
@@ -27,6 +28,33 @@ def observation(robot: int, index: int) -> dict[str, np.ndarray]:
     """A distinct, reproducible armory_sim-shaped observation per (robot, index)."""
     rng = np.random.default_rng(1000 * robot + index)
     return {STATE: rng.uniform(-1, 1, 2).astype(np.float32), IMAGE: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)}
+
+
+def rtc_batch(b: int, seed: int = 0) -> tuple[list, list[str], list[int], list[rtc.Prefix | None]]:
+    """b robots' observations, prompts (of different lengths), noise seeds and RTC prefixes (every
+    third robot without one; leftovers of every length, delays 0..4)."""
+    rng = np.random.default_rng(seed + b)
+    obs = [observation(k + seed, k) for k in range(b)]
+    tasks = [TASKS[k % 3] + " now" * k for k in range(b)]
+    seeds = [noise_seed(f"robot{k}", seed) for k in range(b)]
+    prefixes = [
+        None if k % 3 == 0 else rtc.Prefix(rng.uniform(-1, 1, (int(rng.integers(1, 11)), 2)).astype(np.float32), int(rng.integers(0, 5)))
+        for k in range(b)
+    ]
+    return obs, tasks, seeds, prefixes
+
+
+def assert_static_equals_lerobot(lerobot: PolicyEngine, static: PolicyEngine, b: int) -> None:
+    """``static`` (a static sampler, buckets padding b) serves :func:`rtc_batch` (b) as ``lerobot``
+    (LeRobot's sampler) does, fp32, 1e-5: unguided, guided per row, and the guidance did something."""
+    obs, tasks, seeds, prefixes = rtc_batch(b)
+    np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+    actions, model_actions = static.infer_guided(obs, tasks, seeds, prefixes)
+    want_actions, want_model = lerobot.infer_guided(obs, tasks, seeds, prefixes)
+    np.testing.assert_allclose(model_actions, want_model, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(actions, want_actions, atol=1e-5, rtol=0)
+    if any(p is not None for p in prefixes):  # the guidance did something
+        assert np.abs(static.infer(obs, tasks, seeds) - actions).max() > 1e-3
 
 
 class PromptRobot:
