@@ -299,10 +299,20 @@ def test_engine_rejects_missing_and_non_chunking_policies(engine, tmp_path, monk
 
 
 def test_server_cli_fails_with_one_line_on_a_missing_policy(capsys, tmp_path):
+    import logging
+
     from lerobot_armory.entrypoints.server import main
 
-    with pytest.raises(SystemExit) as info:
-        main([f"--policy.path={tmp_path / 'missing'}", "--port=0"])
+    # main() points the root logger at this test's captured stderr, which closes when the test
+    # ends: left there, every later log line of any test's server thread fails to write.
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    try:
+        with pytest.raises(SystemExit) as info:
+            main([f"--policy.path={tmp_path / 'missing'}", "--port=0"])
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
     assert info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     errors = [line for line in err if "error" in line]
