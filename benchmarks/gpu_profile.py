@@ -455,7 +455,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown config(s) {unknown}; known: {', '.join(CONFIGS)}")
     work = Path(ARGS.work_dir or tempfile.mkdtemp(prefix="armory-gpu-profile-"))
-    print(f"device: {name}; configs: {', '.join(configs)}; b = 1..{ARGS.max_batch_size}; π0.5 size {ARGS.size}", flush=True)
+    print(f"device: {name}; configs: {', '.join(configs)}; b = 1..{ARGS.max_batch_size}; π0.5 / π0 size {ARGS.size}", flush=True)
     runs: dict[str, dict[str, Any]] = {}
     reference: dict[str, dict[int, Any]] = {}  # LeRobot's eager chunks, by dtype override
     chunk_sets: dict[str, dict[int, Any]] = {}  # every configuration's chunks
@@ -518,7 +518,7 @@ def main() -> None:
 def parse() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--configs", default="pi05-bf16,act", help=f"comma-separated subset of {', '.join(CONFIGS)}")
-    p.add_argument("--size", default="full", choices=("full", "tiny"), help="π0.5 size (tiny: to check the script)")
+    p.add_argument("--size", default="full", choices=("full", "tiny"), help="π0.5 and π0 size (tiny: to check the script)")
     p.add_argument("--max_batch_size", type=int, default=8)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--compile_mode", default="reduce-overhead", help="torch.compile mode for the *-compiled configs")
