@@ -47,3 +47,15 @@ def pi0_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("pi0") / "pi0-tiny"
     main(["--kind=pi0", "--size=tiny", f"--output={out}", "--chunk_size=10"])
     return out
+
+
+@pytest.fixture(scope="session")
+def smolvla_dir(tmp_path_factory):
+    """``lerobot-armory-make-demo-policy --kind=smolvla`` (chunk 10, armory_sim features)."""
+    from lerobot_armory.policies.demo.build import main
+
+    out = tmp_path_factory.mktemp("smolvla") / "smolvla-tiny"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HF_HUB_OFFLINE", "1")
+        main(["--kind=smolvla", f"--output={out}", "--chunk_size=10"])
+    return out

@@ -38,7 +38,7 @@ class EngineOptions:
     Attributes:
         emulate_profile: a built-in profile name or JSON file; the engine then takes exactly
             ``d_infer(b)`` per batch (the real model must be faster than that).
-        cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5, π0),
+        cuda_graphs: ``auto`` (on for a CUDA device and a policy with a static sampler: π0.5, π0, SmolVLA),
             ``on`` (refuse to start without them) or ``off`` (LeRobot's own eager sampler). With
             graphs, batches are padded to buckets and each bucket is one recorded CUDA graph
             (``engine/cuda_graphs.py``); a policy that cannot be captured is served eagerly and
@@ -65,7 +65,7 @@ class EngineOptions:
             straight into the cache; residuals as ``addcmul``; the residual stream in float32):
             a third of the kernels LeRobot's π0.5 sample launches, the same values in another
             rounding order in float32 and, in bfloat16, chunks about as near a float32 model's as
-            LeRobot's own bf16 ones, usually nearer (``policies/pi05_kernels.py``). ``false``: LeRobot's own
+            LeRobot's own bf16 ones, nearer on π0.5 (``policies/pi05_kernels.py``). ``false``: LeRobot's own
             sequence of operations (and its bf16 rounding).
         compile_sampler: ``torch.compile`` (inductor) the static sampler's two layer functions,
             a VLM layer and an action-expert layer, before its graphs are recorded: fused

@@ -250,6 +250,8 @@ class PolicyEngine:
         self._sampler_takes_state = sampler.takes_state
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
+        if o.compile_sampler and not getattr(sampler, "compilable", True):
+            raise ConfigError("engine.compile_sampler", f"{self.config.type}'s static sampler is not compiled yet; leave it false")
         if o.compile_sampler:
             sampler.compile_layers()  # compiled at warm-up, on the first batch through them
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample

@@ -45,7 +45,7 @@ chunks to LeRobot's within 1e-5. Folding the scale into q is exact when it is a 
 fused chunks are nearer a float32 model's than LeRobot's own bf16 chunks, by how much depends on
 how much the bf16 products weigh against the stream's rounding: 0.07–0.09× LeRobot's distance on a
 random-weight π0.5 (whose small expert gates damp the products), 0.3–0.5× with its gates raised
-to ≈ 1, 0.8× on π0 (no gates), narrow models on the CPU (``benchmarks/bf16_accuracy.py``,
+to ≈ 1, 0.6–1.3× on π0 (no gates: within noise of LeRobot's), on the CPU (``benchmarks/bf16_accuracy.py``,
 ``docs/results/pi05_static``).
 """
 

@@ -48,7 +48,7 @@ rounding in the last bit. ``attention="sdpa"`` uses ``F.scaled_dot_product_atten
 LeRobot's additive mask (same masking, a fused kernel on a GPU). The fused kernels compute the
 same values in another rounding order (``pi05_kernels``: 4.8e-7 from LeRobot's chunks in float32)
 and, in bfloat16, keep the residual stream in float32: their chunks are about as near a float32
-model's as LeRobot's bf16 chunks, usually nearer (``benchmarks/bf16_accuracy.py``).
+model's as LeRobot's bf16 chunks, nearer on π0.5 (``benchmarks/bf16_accuracy.py``).
 """
 
 from __future__ import annotations
@@ -159,12 +159,35 @@ class SamplerInputs:
         )  # fmt: skip
 
 
+def policy_type(policy: Any) -> str:
+    """LeRobot's ``config.type`` of ``policy`` (its class name when it has none)."""
+    return getattr(getattr(policy, "config", None), "type", type(policy).__name__)
+
+
+@dataclass(frozen=True)
+class FlowSchedule:
+    """LeRobot's Euler schedule (``euler_integrate``): ``t = 1 + k·dt``, ``dt = -1/steps``; the flow
+    times as a device table, and RTC's guidance weight per step (None: unguided)."""
+
+    dt: float
+    times: list[float]
+    time_table: Tensor
+    guidance_table: Tensor | None
+
+    @classmethod
+    def make(cls, steps: int, guided: bool, max_guidance_weight: float, device: torch.device) -> FlowSchedule:
+        dt = -1.0 / steps
+        times = [1.0 + k * dt for k in range(steps)]
+        guidance = torch.stack([guidance_weight(t, max_guidance_weight) for t in times]).to(device) if guided else None
+        return cls(dt, times, torch.tensor(times, dtype=torch.float32, device=device), guidance)
+
+
 def _text_model(pwe: Any) -> Any:
     return pwe.paligemma.model.language_model
 
 
 def vision_dtype_of(policy: Any) -> torch.dtype | None:
-    """The dtype π0.5's SigLIP tower holds its weights in (None: not a π0.5)."""
+    """The dtype a π0 / π0.5 SigLIP tower holds its weights in (None: no PaliGemma tower)."""
     tower = getattr(getattr(getattr(getattr(policy, "model", None), "paligemma_with_expert", None), "paligemma", None), "model", None)
     params = getattr(getattr(tower, "vision_tower", None), "parameters", None)
     first = next(params(), None) if params is not None else None
@@ -203,6 +226,7 @@ class StaticPi05:
     adaptive_norms = True  # the expert's norms take the flow time (π0.5's adaRMS)
     takes_state = False  # the sampler embeds the state (SamplerInputs.state); π0.5's prompt holds it
     state_tokens = 0  # suffix tokens before the actions
+    compilable = True  # --engine.compile_sampler: compile_layers()
 
     def __init__(
         self,
@@ -248,23 +272,17 @@ class StaticPi05:
         # attention pattern): π0.5's actions attend each other fully; made here, once.
         self.suffix_pattern = self._suffix_pattern().to(device)
         # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
-        self.dt = -1.0 / self.num_steps
-        self.times = [1.0 + k * self.dt for k in range(self.num_steps)]
-        self.time_table = torch.tensor(self.times, dtype=torch.float32, device=device)
+        schedule = FlowSchedule.make(self.num_steps, guided, max_guidance_weight, device)
+        self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
         self.conditioning: tuple[StepConditioning, ...] | None = None  # made once (prepare)
         self._compiled: tuple[Any, Any] | None = None  # compile_layers()
-        self.guidance_table = None
-        if guided:
-            self.guidance_table = torch.stack([guidance_weight(t, max_guidance_weight) for t in self.times]).to(device)
 
     @classmethod
     def unsupported_reason(cls, policy: Any) -> str | None:
         """Why this sampler cannot run ``policy`` (None: it can)."""
-        config = getattr(policy, "config", None)
-        kind = getattr(config, "type", type(policy).__name__)
+        config, model, kind = getattr(policy, "config", None), getattr(policy, "model", None), policy_type(policy)
         if kind != cls.kind:
             return f"{kind} is not {cls.kind}"
-        model = getattr(policy, "model", None)
         pwe = getattr(model, "paligemma_with_expert", None)
         if pwe is None or any(not hasattr(model, part) for part in cls.model_parts):
             return f"{type(model).__name__} is not LeRobot 0.6's {cls.model_name}"
@@ -282,7 +300,8 @@ class StaticPi05:
             return f"the VLM's and the expert's K/V heads differ ({sorted(heads)}): they cannot share a cache"
         norms = [expert.norm, *(n for lay in expert.layers for n in (lay.input_layernorm, lay.post_attention_layernorm))]
         if any((getattr(n, "dense", None) is not None) != cls.adaptive_norms for n in norms):
-            return f"the action expert's norms {'do not all' if cls.adaptive_norms else 'all do not'} take the flow time, as {cls.kind}'s do"
+            want = "all take" if cls.adaptive_norms else "take none of"
+            return f"the action expert's norms do not match {cls.kind}'s, which {want} the flow time"
         return None
 
     def _suffix_pattern(self) -> Tensor:
@@ -351,7 +370,7 @@ class StaticPi05:
             return vlm(layer, h, x, cache, mask, rope)
 
         def expert_layer(layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], *mods: Modulation) -> Tensor:
-            # The suffix is chunk_size long whatever the batch: only the cache's length varies.
+            # The suffix's length is fixed (the chunk, and π0's state token): only the cache's varies.
             _mark_dynamic((h, cache, mask, rope), h.shape[0], {self.ops.length(cache)})
             return expert(layer, h, cache, mask, rope, *mods)
 

@@ -14,7 +14,8 @@ from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
 from tests.support.vla import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
-from tests.support.vla import assert_static_equals_lerobot, rtc_batch as batch
+from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
+from tests.support.vla import rtc_batch as batch
 
 BUCKETS = (1, 2, 4, 8)
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
@@ -68,26 +69,8 @@ def test_a_guided_row_equals_lerobots_stock_rtc_for_that_robot_alone(engines, pi
 def test_padding_rows_never_change_a_real_rows_chunk(engines):
     """The same three real rows padded to 4 with their own last row, with another robot's row, or
     with extreme values: the real rows' chunks are bit for bit the same."""
-    import torch
-
     _, static = engines
-    obs, tasks, seeds, prefixes = batch(4, seed=9)
-    kwargs = {"noise": static._noise(seeds)}
-    kwargs.update(rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu"))
-    processed = static.preprocessor({**static.to_batch(obs), "task": tasks})
-    inputs = static._sampler_inputs(processed, kwargs)
-    sample = static.sampler.sample
-    with torch.inference_mode():
-        real = inputs.with_tensors([t[:3] for t in inputs.tensors()])
-        own = sample(real.padded(4))[:3]
-        other = sample(inputs)[:3]
-        wild = inputs.with_tensors([t.clone() for t in inputs.tensors()])
-        wild.noise[3] = 1e4
-        wild.images[0][3] = 1.0
-        assert wild.rtc_leftover is not None and wild.rtc_weights is not None
-        wild.rtc_leftover[3], wild.rtc_weights[3] = -1e4, 1.0
-        extreme = sample(wild)[:3]
-    assert torch.equal(own, other) and torch.equal(own, extreme)
+    assert_padding_never_changes_a_real_row(static)
 
 
 @pytest.mark.parametrize("guided", [False, True])
@@ -96,37 +79,10 @@ def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket
     ``torch.compile(fullgraph=True)`` traces the whole sampler (vision tower, prefix, all ten
     denoising steps, RTC) as one graph with no break, and no op in it waits for the host. LeRobot's
     own sampler, traced by the same counter, does wait (the check can fail)."""
-    import torch
-    import torch._dynamo
-
-    from lerobot_armory.policies.op_trace import OpTrace
     from lerobot_armory.policies.pi05_static import StaticPi05
 
     lerobot, static = engines
-    sampler = StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight)
-    for b in BUCKETS:
-        obs, tasks, seeds, prefixes = batch(b)
-        kwargs = {"noise": static._noise(seeds)}
-        if guided:
-            kwargs.update(rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu"))
-        processed = static.preprocessor({**static.to_batch(obs), "task": tasks})
-        inputs = static._sampler_inputs(processed, kwargs)
-        if not guided:
-            inputs.rtc_weights = inputs.rtc_leftover = None
-        sampler.prepare()  # the constants exist before the region is traced or recorded
-        torch._dynamo.reset()
-        with torch.inference_mode():
-            explained = torch._dynamo.explain(sampler.sample)(inputs)
-            assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
-            compiled = torch.compile(sampler.sample, fullgraph=True, backend="eager", dynamic=False)
-            torch.testing.assert_close(compiled(inputs), sampler.sample(inputs), atol=0, rtol=0)
-            with OpTrace() as trace:
-                sampler.sample(inputs)
-        assert not trace.host_syncs, dict(trace.host_syncs)
-        assert trace.launches > 100
-    with torch.inference_mode(), OpTrace() as theirs:
-        lerobot.forward(processed, {"noise": kwargs["noise"]})
-    assert theirs.host_syncs["aten.lift_fresh.default"] >= 3 * sampler.num_steps  # 3+ torch.tensor(list) per step
+    assert_traces_as_one_graph_with_no_host_sync(StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
 
 
 def test_buckets_default_to_every_size_to_16_then_multiples_of_8_ending_at_the_cap():

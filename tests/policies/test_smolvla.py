@@ -39,18 +39,6 @@ def no_network(monkeypatch):
 
 
 @pytest.fixture(scope="session")
-def smolvla_dir(tmp_path_factory):
-    """``lerobot-armory-make-demo-policy --kind=smolvla`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.policies.demo.build import main
-
-    out = tmp_path_factory.mktemp("smolvla") / "smolvla-tiny"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HF_HUB_OFFLINE", "1")
-        main(["--kind=smolvla", f"--output={out}", "--chunk_size=10"])
-    return out
-
-
-@pytest.fixture(scope="session")
 def smolvla(smolvla_dir):
     import torch
 

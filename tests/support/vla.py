@@ -1,10 +1,12 @@
-"""Shared by the VLA tests (π0.5, SmolVLA): armory_sim-shaped observations, robots with their own
-prompt, and the check that served chunks equal each robot's chunk computed alone."""
+"""Shared by the VLA tests (π0.5, π0, SmolVLA): armory_sim-shaped observations, robots with their own
+prompt, the check that served chunks equal each robot's chunk computed alone, and the static
+samplers' checks (equal to LeRobot's, padding-safe, one traced graph with no host sync)."""
 
 from __future__ import annotations
 
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -55,6 +57,67 @@ def assert_static_equals_lerobot(lerobot: PolicyEngine, static: PolicyEngine, b:
     np.testing.assert_allclose(actions, want_actions, atol=1e-5, rtol=0)
     if any(p is not None for p in prefixes):  # the guidance did something
         assert np.abs(static.infer(obs, tasks, seeds) - actions).max() > 1e-3
+
+
+def sampler_inputs(engine: PolicyEngine, b: int, seed: int = 0, guided: bool = True, horizon: int = 8) -> Any:
+    """The static sampler's inputs for :func:`rtc_batch` (b, seed) as ``engine`` builds them (RTC
+    inputs when ``guided``, else none)."""
+    obs, tasks, seeds, prefixes = rtc_batch(b, seed)
+    kwargs = {"noise": engine._noise(seeds)}
+    if guided:
+        kwargs.update(rtc.guidance_kwargs(prefixes, engine.chunk_size, horizon, "cpu"))
+    inputs = engine._sampler_inputs(engine.preprocessor({**engine.to_batch(obs), "task": tasks}), kwargs)
+    if not guided:
+        inputs.rtc_weights = inputs.rtc_leftover = None
+    return inputs
+
+
+def assert_padding_never_changes_a_real_row(static: PolicyEngine) -> None:
+    """Three real rows padded to 4 with their own last row, with another robot's row, or with a
+    row of extreme values (state, image, noise, RTC leftover and weight): the real rows' chunks
+    are bit for bit the same."""
+    import torch
+
+    inputs = sampler_inputs(static, 4, seed=9)
+    sample = static.sampler.sample
+    with torch.inference_mode():
+        own = sample(inputs.with_tensors([t[:3] for t in inputs.tensors()]).padded(4))[:3]
+        wild = inputs.with_tensors([t.clone() for t in inputs.tensors()])
+        assert wild.rtc_leftover is not None and wild.rtc_weights is not None
+        wild.noise[3], wild.images[0][3] = 1e4, 1.0
+        wild.rtc_leftover[3], wild.rtc_weights[3] = -1e4, 1.0
+        if wild.state is not None:
+            wild.state[3] = 1e6
+        assert torch.equal(own, sample(inputs)[:3]) and torch.equal(own, sample(wild)[:3])
+
+
+def assert_traces_as_one_graph_with_no_host_sync(sampler: Any, static: PolicyEngine, lerobot: PolicyEngine, guided: bool) -> None:
+    """What predicts a CUDA graph capture, on the CPU: for every bucket 1, 2, 4, 8, dynamo traces
+    ``sampler.sample`` (vision tower, prefix, every step, RTC when ``guided``) as one graph with no
+    break, its compiled form gives the same chunks, and no op in it waits for the host; LeRobot's
+    own sampler, counted the same way, waits (so the check can fail)."""
+    import torch
+    import torch._dynamo
+
+    from lerobot_armory.policies.op_trace import OpTrace
+
+    sampler.prepare()  # the constants exist before the region is traced or recorded
+    for b in (1, 2, 4, 8):
+        inputs = sampler_inputs(static, b, guided=guided)
+        torch._dynamo.reset()
+        with torch.inference_mode():
+            explained = torch._dynamo.explain(sampler.sample)(inputs)
+            assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
+            compiled = torch.compile(sampler.sample, fullgraph=True, backend="eager", dynamic=False)
+            torch.testing.assert_close(compiled(inputs), sampler.sample(inputs), atol=0, rtol=0)
+            with OpTrace() as trace:
+                sampler.sample(inputs)
+        assert not trace.host_syncs, dict(trace.host_syncs)
+        assert trace.launches > 100
+    obs, tasks, seeds, _ = rtc_batch(2)
+    with torch.inference_mode(), OpTrace() as theirs:
+        lerobot.forward(lerobot.preprocessor({**lerobot.to_batch(obs), "task": tasks}), {"noise": lerobot._noise(seeds)})
+    assert theirs.host_syncs["aten.lift_fresh.default"] >= 2 * sampler.num_steps  # torch.tensor(list) per step
 
 
 class PromptRobot:

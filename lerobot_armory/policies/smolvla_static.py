@@ -1,0 +1,319 @@
+"""A static sampler for LeRobot's SmolVLA: ``VLAFlowMatching.sample_actions`` as one fixed sequence
+of kernels per batch shape (what a CUDA graph records), in LeRobot's own order of operations.
+
+Why: LeRobot 0.6.1's SmolVLA cannot be recorded as it is. Every sample builds its attention
+patterns and flow times from Python lists (``torch.tensor(list, device=...)``: a host-to-device
+copy, forbidden while a graph records), scales the image embeddings by a ``torch.tensor`` of a
+Python float, and HF's SmolVLM vision embeddings write their position ids through a boolean mask
+(``position_ids[mask] = ...``: an output whose size depends on the data, so the host waits). It
+also recomputes, at every denoising step, what depends on the prefix alone.
+
+:class:`StaticSmolVLA` runs the policy's own modules (the vision tower, the connector, every
+projection, norm and MLP, LeRobot's ``apply_rope`` and ``eager_attention_forward``; nothing copied
+or forked) in the order ``sample_actions`` runs them, with these changes:
+
+- the vision embeddings' position ids are computed from the image's shape by HF's formula for a
+  full patch mask (no boolean indexing), and the encoder gets no mask (all patches attend all:
+  HF's full-mask case);
+- the prefix's attention pattern (images and language attend each other, the state token
+  attends everything before it) and the suffix's (causal) are built on the device; the image
+  scale and the special image tokens' embeddings are made once (:meth:`prepare`);
+- the prefix writes its keys and values once per self-attention layer into a buffer with room for
+  the suffix, and each step writes the suffix's in place behind them (LeRobot appends to HF's
+  cache, then crops it); a cross-attention layer's keys and values — the expert's projections of
+  the VLM's prefix keys and values — are computed once a sample, not at every step;
+- RTC's guidance is closed-form, as in :mod:`.pi05_static` (one weight row and leftover per batch
+  row, so guided and unguided batches share one graph).
+
+Row independence holds (no operation mixes batch rows), so bucket padding never changes a real
+row. In float32 the chunks equal LeRobot's (``tests/policies/test_smolvla_static.py``, 1e-5 at
+every bucket, RTC too). Not done yet: fused kernels, ``--engine.compile_sampler``, and an expert
+with fewer layers than the VLM (SmolVLA's default pairs them one to one).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding, make_att_2d_masks
+from torch import Tensor
+
+from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
+
+
+class StaticSmolVLA:
+    """``VLAFlowMatching.sample_actions`` without host synchronisation or per-step copies
+    (arguments as :class:`~lerobot_armory.policies.pi05_static.StaticPi05`'s; ``attention`` must
+    be ``eager``, LeRobot's own, and ``vision_dtype`` None; ``fused`` is accepted and has no effect
+    yet, :attr:`unfused_reason` says so)."""
+
+    kind = "smolvla"
+    takes_state = True  # SmolVLA's state is a prefix token
+    compilable = False  # --engine.compile_sampler: not yet
+
+    def __init__(
+        self,
+        policy: Any,
+        guided: bool = False,
+        max_guidance_weight: float = 10.0,
+        attention: str = "eager",
+        fused: bool = True,
+        vision_dtype: torch.dtype | None = None,
+    ) -> None:
+        why = self.unsupported_reason(policy)
+        if why is not None:
+            raise ValueError(why)
+        if attention != "eager":
+            raise ValueError(f"SmolVLA's static sampler runs LeRobot's own (eager) attention, got {attention!r}")
+        if vision_dtype is not None:
+            raise ValueError("SmolVLA's static sampler keeps the vision tower in the dtype it was loaded in")
+        self.policy, self.model, self.config = policy, policy.model, policy.config
+        self.vwe = self.model.vlm_with_expert
+        vlm = self.vwe.get_vlm_model()
+        self.text, self.expert, self.vision, self.connector = vlm.text_model, self.vwe.lm_expert, vlm.vision_model, vlm.connector
+        self.guided = guided
+        self.fused = False
+        self.unfused_reason = "SmolVLA's static sampler runs LeRobot's own sequence of operations (no fused kernels yet)" if fused else None
+        self.chunk_size = int(self.config.chunk_size)
+        self.num_steps = int(self.config.num_steps)
+        if self.num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
+        self.head_dim = self.vwe.vlm.config.text_config.head_dim
+        every = self.vwe.self_attn_every_n_layers
+        cross = "cross" in self.vwe.attention_mode
+        # LeRobot's SmolVLMWithExpertModel.forward: a layer is self-attention unless the mode is
+        # cross-attention and the layer is not one of every n.
+        self.self_attention = [not cross or (every > 0 and i % every == 0) for i in range(self.vwe.num_vlm_layers)]
+        device = next(self.model.parameters()).device
+        schedule = FlowSchedule.make(self.num_steps, guided, max_guidance_weight, device)
+        self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
+        # The suffix's actions attend causally (LeRobot's att_masks of ones).
+        self.suffix_pattern = torch.ones(self.chunk_size, self.chunk_size, dtype=torch.bool, device=device).tril()
+        self.conditioning: tuple[Tensor, ...] | None = None  # prepare(): each step's time embedding
+        self._constants: dict[str, Tensor] = {}
+
+    @classmethod
+    def unsupported_reason(cls, policy: Any) -> str | None:
+        """Why this sampler cannot run ``policy`` (None: it can)."""
+        config, model, kind = getattr(policy, "config", None), getattr(policy, "model", None), policy_type(policy)
+        if kind != cls.kind:
+            return f"{kind} is not {cls.kind}"
+        vwe = getattr(model, "vlm_with_expert", None)
+        parts = ("state_proj", "action_in_proj", "action_out_proj", "action_time_mlp_in", "action_time_mlp_out")
+        if vwe is None or any(not hasattr(model, p) for p in parts):
+            return f"{type(model).__name__} is not LeRobot 0.6's VLAFlowMatching"
+        if not getattr(config, "use_cache", True):
+            return "use_cache=false recomputes the prefix at every step: the static sampler caches it"
+        if vwe.num_expert_layers != vwe.num_vlm_layers:
+            return f"the expert has {vwe.num_expert_layers} layers for the VLM's {vwe.num_vlm_layers}: the static sampler pairs them one to one"
+        if getattr(config, "n_obs_steps", 1) != 1:
+            return "n_obs_steps > 1 stacks observations in the policy's queues"
+        return None
+
+    # -- the sampler ---------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def prepare(self) -> tuple[Tensor, ...]:
+        """Each step's time embedding ``(1, 1, W)``, the image scale and the special image tokens'
+        embeddings, made once on the device (outside any traced or recorded region)."""
+        if self.conditioning is not None:
+            return self.conditioning
+        m = self.model
+        dtype = m.action_in_proj.weight.dtype  # LeRobot casts the time embedding to the actions'
+        steps = []
+        for step in range(self.num_steps):
+            emb = create_sinusoidal_pos_embedding(
+                self.time_table[step].expand(1), self.vwe.expert_hidden_size, self.config.min_period, self.config.max_period,
+                device=self.time_table.device,
+            )  # fmt: skip
+            steps.append(emb.type(dtype=dtype)[:, None, :])
+        device = self.time_table.device
+        # LeRobot multiplies the image embeddings by a tensor of sqrt(width) in their dtype; made
+        # here (a tensor from a Python number inside a recorded region is a host copy). The
+        # connector's output width is the text model's: the prefix concatenates both.
+        width = self.text.config.hidden_size
+        self._constants["image_scale"] = torch.tensor(width**0.5, dtype=self._vision_out_dtype(), device=device)
+        if m.add_image_special_tokens:
+            self._constants["image_start"] = self.vwe.embed_language_tokens(m.global_image_start_token.to(device))
+            self._constants["image_end"] = self.vwe.embed_language_tokens(m.image_end_token.to(device))
+        self.conditioning = tuple(steps)
+        return self.conditioning
+
+    def compile_layers(self) -> None:
+        raise ValueError("SmolVLA's static sampler is not compiled yet (--engine.compile_sampler=false)")
+
+    def sample_compiled(self, inputs: SamplerInputs) -> Tensor:
+        raise ValueError("SmolVLA's static sampler is not compiled yet (--engine.compile_sampler=false)")
+
+    @torch.no_grad()
+    def sample(self, inputs: SamplerInputs) -> Tensor:
+        """Actions ``(B, chunk_size, max_action_dim)`` float32 for one batch (LeRobot's
+        ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``)."""
+        if self.guided != (inputs.rtc_weights is not None):
+            raise ValueError("RTC inputs must be given exactly when the sampler is guided")
+        if inputs.state is None:
+            raise ValueError("SmolVLA's static sampler needs the state (SamplerInputs.state)")
+        times = self.prepare()
+        embs, pad, att = self._embed_prefix(inputs)
+        b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
+        caches = self._prefix_cache(embs, pad, att)
+        # A cross-attention layer's keys and values depend on the prefix alone: once a sample.
+        cross = {i: self._cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
+        valid = torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2)
+        positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
+        x_t = inputs.noise
+        for step, time in enumerate(self.times):
+            v_t = self._velocity(x_t, times[step], caches, cross, valid, positions)
+            if self.guided:
+                assert self.guidance_table is not None and inputs.rtc_leftover is not None
+                err = (inputs.rtc_leftover - (x_t - time * v_t)) * inputs.rtc_weights
+                v_t = v_t - self.guidance_table[step] * err
+            x_t = x_t + self.dt * v_t
+        return x_t
+
+    def _embed_prefix(self, inputs: SamplerInputs) -> tuple[Tensor, Tensor, Tensor]:
+        """LeRobot's ``embed_prefix``: (embeddings, pad mask, attention pattern ``att_masks``)."""
+        from lerobot.policies.smolvla.modeling_smolvla import pad_tensor
+
+        images, img_masks = self.policy.prepare_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
+        embs, pads, att_ones = [], [], []
+        start, end = self._constants.get("image_start"), self._constants.get("image_end")
+        for img, img_mask in zip(images, img_masks, strict=False):
+            b = img.shape[0]
+            if start is not None:
+                embs.append(start.unsqueeze(0).expand(b, -1, -1))
+                pads.append(torch.ones(b, start.shape[0], dtype=torch.bool, device=img.device))
+            emb = self._embed_image(img) * self._constants["image_scale"]
+            embs.append(emb)
+            pads.append(img_mask[:, None].expand(b, emb.shape[1]))
+            if end is not None:
+                embs.append(end.unsqueeze(0).expand(b, -1, -1))
+                pads.append(torch.ones(b, end.shape[0], dtype=torch.bool, device=img.device))
+        lang = self.vwe.embed_language_tokens(inputs.tokens)
+        embs.append(lang * math.sqrt(lang.shape[-1]))
+        pads.append(inputs.masks)
+        state = self.model.state_proj(inputs.state)
+        state = state[:, None, :] if state.ndim == 2 else state
+        embs.append(state)
+        pads.append(torch.ones(state.shape[0], state.shape[1], dtype=torch.bool, device=state.device))
+        att_ones.append(state.shape[1])
+        embs_t, pad_t = torch.cat(embs, dim=1), torch.cat(pads, dim=1)
+        length = pad_t.shape[1]
+        # Images and language: 0 (attend each other); the state tokens: 1 (they attend everything
+        # before them, nothing before attends them); LeRobot's padding to prefix_length: 0.
+        # (Compared, not assigned: ``att[i:] = True`` makes a tensor of the Python bool, a host copy.)
+        att = (torch.arange(length, device=pad_t.device) >= length - att_ones[0])[None, :]
+        if length < self.model.prefix_length:
+            embs_t = pad_tensor(embs_t, self.model.prefix_length, pad_value=0)
+            pad_t = pad_tensor(pad_t, self.model.prefix_length, pad_value=0)
+            att = pad_tensor(att, self.model.prefix_length, pad_value=0)
+        return embs_t, pad_t, att.expand(pad_t.shape[0], -1)
+
+    def _embed_image(self, pixels: Tensor) -> Tensor:
+        """LeRobot's ``embed_image`` (HF's SmolVLM vision transformer and connector) for full patch
+        masks, with the position ids computed from the shape alone."""
+        vision = self.vision
+        pixels = pixels.to(dtype=vision.dtype)
+        emb = vision.embeddings
+        x = emb.patch_embedding(pixels).flatten(2).transpose(1, 2)
+        x = x + emb.position_embedding(self._position_ids(pixels))
+        x = vision.encoder(inputs_embeds=x, attention_mask=None).last_hidden_state
+        return self.connector(vision.post_layernorm(x))
+
+    def _position_ids(self, pixels: Tensor) -> Tensor:
+        """HF's ``SmolVLMVisionEmbeddings`` position ids for a full patch mask (every patch
+        valid), by its own formula: the boolean-mask write that follows it is then the identity."""
+        emb = self.vision.embeddings
+        b, _, height, width = pixels.shape
+        rows, cols = height // emb.patch_size, width // emb.patch_size
+        side = emb.num_patches_per_side
+        boundaries = torch.arange(1 / side, 1.0, 1 / side, device=pixels.device)
+        coords = []
+        for n in (rows, cols):
+            frac = torch.arange(n, device=pixels.device, dtype=torch.float32) * (1.0 / n)
+            coords.append(torch.bucketize(torch.clamp(frac, max=(1.0 - 1e-6)).to(pixels.dtype), boundaries, right=True))
+        ids = coords[0][:, None] * side + coords[1][None, :]
+        return ids.reshape(1, -1).expand(b, -1)
+
+    def _prefix_cache(self, embs: Tensor, pad: Tensor, att: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Run the VLM over the prefix; return per layer (keys, values) ``(B, P + H, Hkv, D)`` with
+        the prefix's post-rotary keys and values in the first ``P`` positions."""
+        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
+
+        mask = make_att_2d_masks(pad, att)
+        positions = torch.cumsum(pad, dim=1) - 1
+        b, p = pad.shape
+        h = embs
+        caches = []
+        last = len(self.text.layers) - 1
+        for i, layer in enumerate(self.text.layers):
+            x = layer.input_layernorm(h).to(dtype=layer.self_attn.q_proj.weight.dtype)
+            shape = (*x.shape[:-1], -1, layer.self_attn.head_dim)
+            q = apply_rope(layer.self_attn.q_proj(x).view(shape), positions)
+            k = apply_rope(layer.self_attn.k_proj(x).view(shape), positions)
+            v = layer.self_attn.v_proj(x).view(shape)
+            cache = (k.new_empty(b, p + self.chunk_size, *k.shape[2:]), v.new_empty(b, p + self.chunk_size, *v.shape[2:]))
+            cache[0][:, :p] = k
+            cache[1][:, :p] = v
+            caches.append(cache)
+            if i == last:  # the last layer's output is never read: only its keys and values are
+                break
+            h = self._rest_of_layer(layer, h, self.vwe.eager_attention_forward(mask, b, self.head_dim, q, k, v))
+        return caches
+
+    @staticmethod
+    def _rest_of_layer(layer: Any, h: Tensor, att: Tensor) -> Tensor:
+        """The output projection, residuals, norm and MLP, as ``SmolVLMWithExpertModel.forward``
+        runs them after attention."""
+        if att.dtype != layer.self_attn.o_proj.weight.dtype:
+            att = att.to(layer.self_attn.o_proj.weight.dtype)
+        out = layer.self_attn.o_proj(att)
+        out += h
+        after = out.clone()
+        out = layer.mlp(layer.post_attention_layernorm(out))
+        out += after
+        return out
+
+    def _cross_kv(self, layer: Any, cache: tuple[Tensor, Tensor], p: int) -> tuple[Tensor, Tensor]:
+        """A cross-attention layer's keys and values: the expert's projections of the VLM's prefix
+        keys and values (LeRobot recomputes them at every step; they depend on the prefix alone)."""
+        attn = layer.self_attn
+        k, v = cache[0][:, :p], cache[1][:, :p]
+        keys = attn.k_proj(k.to(dtype=attn.k_proj.weight.dtype).reshape(*k.shape[:2], -1)).view(*k.shape[:2], -1, attn.head_dim)
+        values = attn.v_proj(v.to(dtype=attn.v_proj.weight.dtype).reshape(*v.shape[:2], -1)).view(*v.shape[:2], -1, attn.head_dim)
+        return keys, values
+
+    def _velocity(
+        self, x_t: Tensor, time_emb: Tensor, caches: list[Any], cross: dict[int, tuple[Tensor, Tensor]], valid: Tensor, positions: Tensor
+    ) -> Tensor:
+        """One denoising step (LeRobot's ``denoise_step``) through every expert layer."""
+        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
+
+        m = self.model
+        actions = m.action_in_proj(x_t)
+        mixed = m.action_time_mlp_in(torch.cat([actions, time_emb.expand_as(actions)], dim=2))
+        h = m.action_time_mlp_out(torch.nn.functional.silu(mixed))
+        b, n = h.shape[:2]
+        p = valid.shape[2] - n
+        for i, layer in enumerate(self.expert.layers):
+            attn = layer.self_attn
+            x = layer.input_layernorm(h).to(dtype=attn.q_proj.weight.dtype)
+            shape = (*x.shape[:-1], -1, attn.head_dim)
+            if self.self_attention[i]:
+                q = apply_rope(attn.q_proj(x).view(shape), positions)
+                keys, values = caches[i]
+                keys[:, p:] = apply_rope(attn.k_proj(x).view(shape), positions)
+                values[:, p:] = attn.v_proj(x).view(shape)
+                att = self.vwe.eager_attention_forward(valid, b, self.head_dim, q, keys, values)
+            else:  # cross-attention: the queries' positions start at 0 (LeRobot's)
+                q = apply_rope(attn.q_proj(x).view(shape), positions - torch.min(positions, dim=1, keepdim=True).values)
+                att = self.vwe.eager_attention_forward(valid[:, :, :p], b, self.head_dim, q, *cross[i])
+            h = self._rest_of_layer(layer, h, att)
+        out = self.expert.norm(h)[:, -self.chunk_size :].to(dtype=torch.float32)
+        return m.action_out_proj(out)
+
+    def _vision_out_dtype(self) -> torch.dtype:
+        """The dtype of the image embeddings LeRobot scales (the connector's output)."""
+        return next(self.connector.parameters()).dtype

@@ -1,0 +1,86 @@
+"""The static SmolVLA sampler against LeRobot's own ``VLAFlowMatching.sample_actions``: equal
+chunks at every batch size with bucket padding, with and without RTC, with LeRobot's optional
+prefix padding and image tokens; one traced graph and no host synchronisation per bucket where
+LeRobot's sampler waits; padding rows that cannot touch real ones; the options it refuses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lerobot_armory.engine import rtc
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.errors import ConfigError
+from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
+from tests.support.vla import rtc_batch as batch
+
+RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
+
+
+@pytest.fixture(scope="module")
+def engines(smolvla_dir):
+    """LeRobot's SmolVLA sampler and the static one (buckets 1, 2, 4, 8), both guided."""
+    import torch
+
+    torch.set_num_threads(1)
+    lerobot = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"), RTC)
+    static = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"), RTC, EngineOptions(static_sampler=True, graph_buckets="1,2,4,8"))
+    static.warmup(8, log_progress=False)
+    assert lerobot.sampler is None and static.sampler is not None
+    return lerobot, static
+
+
+
+
+@pytest.mark.parametrize("b", range(1, 9))
+def test_static_smolvla_chunks_equal_lerobots_at_every_batch_size_padded_to_its_bucket(engines, b):
+    """b = 3 runs as a padded batch of 4, b = 5..7 as 8: the real rows equal LeRobot's SmolVLA
+    on the unpadded batch (fp32, 1e-5; bit for bit on this CPU at most sizes), unguided and
+    guided per row. The tiny SmolVLA has a self-attention and a cross-attention layer."""
+    lerobot, static = engines
+    assert static.sampler.sample.__self__.self_attention == [True, False]  # both kinds of expert layer run
+    assert_static_equals_lerobot(lerobot, static, b)
+
+
+@pytest.mark.parametrize("override", ["prefix_length=200", "add_image_special_tokens=true"])
+def test_lerobots_prefix_padding_and_image_tokens_give_the_same_chunks(smolvla_dir, override):
+    """SmolVLA's options that change the prefix: padded to a fixed length (masked padding) and
+    the special image tokens around each camera's embeddings (made once, on the device)."""
+    lerobot = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu", overrides=[override]))
+    static = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu", overrides=[override]), engine=EngineOptions(static_sampler=True, graph_buckets="1,4"))
+    obs, tasks, seeds, _ = batch(3, seed=5)
+    np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+
+
+def test_padding_rows_and_a_hostile_row_never_change_a_real_rows_chunk(engines):
+    """Three real rows padded to 4 with their own last row, or beside a row whose state, image,
+    noise and leftover are extreme: the real rows' chunks are bit for bit the same."""
+    _, static = engines
+    assert_padding_never_changes_a_real_row(static)
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_the_whole_smolvla_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
+    """What predicts a CUDA graph capture, on the CPU: one dynamo graph, no break, no op waiting
+    for the host, at every bucket (vision tower, prefix, ten steps, RTC); LeRobot's own SmolVLA
+    sampler, counted the same way, waits (tensors made from Python data at every step)."""
+    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+
+    lerobot, static = engines
+    assert_traces_as_one_graph_with_no_host_sync(StaticSmolVLA(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
+
+
+def test_what_the_smolvla_sampler_does_not_do_yet_is_refused_in_one_line(smolvla_dir):
+    """SDPA attention, a compiled sampler and a bf16 vision cast are π0-family options: refused
+    with the option named, not silently ignored; with fused kernels asked (the default) it says
+    it runs LeRobot's order."""
+    path = str(smolvla_dir)
+    with pytest.raises(ConfigError, match="static sampler cannot run it.*eager"):
+        PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, attention="sdpa"))
+    with pytest.raises(ConfigError, match="engine.compile_sampler.*smolvla's static sampler is not compiled yet"):
+        PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, compile_sampler=True))
+    with pytest.raises(ConfigError, match="vision tower"):
+        PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, vision_dtype="bfloat16"))
+    engine = PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True))
+    assert not engine.fused_kernels and "static sampler" in engine.description
