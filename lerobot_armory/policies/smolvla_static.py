@@ -110,6 +110,8 @@ class StaticSmolVLA:
             return f"the expert has {vwe.num_expert_layers} layers for the VLM's {vwe.num_vlm_layers}: the static sampler pairs them one to one"
         if getattr(config, "n_obs_steps", 1) != 1:
             return "n_obs_steps > 1 stacks observations in the policy's queues"
+        if getattr(config, "adapt_to_pi_aloha", False):
+            return "adapt_to_pi_aloha converts the state and the actions around LeRobot's sampler"
         return None
 
     # -- the sampler ---------------------------------------------------------------------------

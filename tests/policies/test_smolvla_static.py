@@ -82,5 +82,8 @@ def test_what_the_smolvla_sampler_does_not_do_yet_is_refused_in_one_line(smolvla
         PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, compile_sampler=True))
     with pytest.raises(ConfigError, match="vision tower"):
         PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, vision_dtype="bfloat16"))
+    # ALOHA's conversions run around LeRobot's sampler (predict_action_chunk): not skipped silently.
+    with pytest.raises(ConfigError, match="engine.static_sampler.*adapt_to_pi_aloha"):
+        PolicyEngine(PolicyOptions(path, "cpu", overrides=["adapt_to_pi_aloha=true"]), engine=EngineOptions(static_sampler=True))
     engine = PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True))
     assert not engine.fused_kernels and "static sampler" in engine.description
