@@ -26,8 +26,9 @@ or forked) in the order ``sample_actions`` runs them, with these changes:
   row, so guided and unguided batches share one graph).
 
 Row independence holds (no operation mixes batch rows), so bucket padding never changes a real
-row. In float32 the chunks equal LeRobot's (``tests/policies/test_smolvla_static.py``, 1e-5 at
-every bucket, RTC too). Not done yet: fused kernels, ``--engine.compile_sampler``, and an expert
+row. The chunks equal LeRobot's (``tests/policies/test_smolvla_static.py``: 1e-5 at every bucket
+in float32, RTC too; bit for bit with a bf16 SmolVLM beside a float32 expert, as a real checkpoint
+loads, whose self-attention caches hold the promoted dtype LeRobot's concatenation gives). Not done yet: fused kernels, ``--engine.compile_sampler``, and an expert
 with fewer layers than the VLM (SmolVLA's default pairs them one to one).
 """
 
@@ -256,7 +257,11 @@ class StaticSmolVLA:
             q = apply_rope(layer.self_attn.q_proj(x).view(shape), positions)
             k = apply_rope(layer.self_attn.k_proj(x).view(shape), positions)
             v = layer.self_attn.v_proj(x).view(shape)
-            cache = (k.new_empty(b, p + self.chunk_size, *k.shape[2:]), v.new_empty(b, p + self.chunk_size, *v.shape[2:]))
+            # LeRobot concatenates the suffix's keys and values (the expert's dtype) onto the
+            # prefix's: the result has the promoted dtype (float32 behind a bf16 VLM's keys).
+            suffix = self.expert.layers[i].self_attn.k_proj.weight.dtype
+            dtype = torch.promote_types(k.dtype, suffix) if self.self_attention[i] else k.dtype
+            cache = (k.new_empty(b, p + self.chunk_size, *k.shape[2:], dtype=dtype), v.new_empty(b, p + self.chunk_size, *v.shape[2:], dtype=dtype))
             cache[0][:, :p] = k
             cache[1][:, :p] = v
             caches.append(cache)

@@ -87,3 +87,30 @@ def test_what_the_smolvla_sampler_does_not_do_yet_is_refused_in_one_line(smolvla
         PolicyEngine(PolicyOptions(path, "cpu", overrides=["adapt_to_pi_aloha=true"]), engine=EngineOptions(static_sampler=True))
     engine = PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True))
     assert not engine.fused_kernels and "static sampler" in engine.description
+
+
+@pytest.mark.parametrize("part", ["vlm", "all"])
+def test_a_bf16_smolvlm_gives_lerobots_chunks_bit_for_bit(smolvla_dir, part):
+    """A real SmolVLA loads its SmolVLM in bf16 (``torch_dtype="bfloat16"``) beside a float32
+    expert; LeRobot then concatenates the expert's float32 suffix keys onto the VLM's bf16 prefix
+    keys (promoted to float32), and the static cache holds them in that promoted dtype, so the
+    chunks are LeRobot's exactly (a bf16 cache rounded the suffix's keys: 7.5e-5 off)."""
+    import torch
+    from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
+
+    from lerobot_armory.policies.pi05_static import SamplerInputs
+    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+
+    engine = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"))
+    vwe = engine.policy.model.vlm_with_expert
+    (vwe.vlm if part == "vlm" else vwe).to(torch.bfloat16)
+    sampler = StaticSmolVLA(engine.policy)
+    obs, tasks, seeds, _ = batch(3, seed=2)
+    with torch.inference_mode():
+        processed = engine.preprocessor({**engine.to_batch(obs), "task": tasks})
+        noise = engine._noise(seeds)
+        want = engine.policy.predict_action_chunk(processed, noise=noise)
+        images = tuple(processed[k] for k in engine.config.image_features)
+        inputs = SamplerInputs(images, processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise, state=engine.policy.prepare_state(processed))
+        got = sampler.sample(inputs)[:, :, : want.shape[2]]
+    assert torch.equal(got, want), (got - want).abs().max()
