@@ -124,7 +124,12 @@ class PolicyEngine:
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
-        self.input_features: dict[str, Any] = dict(self.config.input_features)
+        from lerobot_armory.policies.cameras import placeholder_cameras
+
+        # Placeholder cameras (``--policy.empty_cameras``) are not on the wire: the policy's own
+        # image step fills them (−1 pixels, masked), as LeRobot does when a dataset lacks them.
+        placeholders = placeholder_cameras(self.config)
+        self.input_features: dict[str, Any] = {k: v for k, v in self.config.input_features.items() if k not in placeholders}
         action = self.config.output_features.get("action")
         if action is None:
             raise ConfigError("policy.path", f"{options.path}: the policy has no 'action' output feature")
@@ -470,11 +475,12 @@ class PolicyEngine:
         import torch
         from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
+        from lerobot_armory.policies.cameras import served_cameras
         from lerobot_armory.policies.pi05_static import SamplerInputs
 
         noise = kwargs["noise"]
         inputs = SamplerInputs(
-            tuple(processed[k] for k in self.config.image_features),
+            tuple(processed[k] for k in served_cameras(self.config)),
             processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise,
             state=self.policy.prepare_state(processed) if self._sampler_takes_state else None,
         )  # fmt: skip

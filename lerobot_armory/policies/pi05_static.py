@@ -62,6 +62,7 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
+from lerobot_armory.policies.cameras import served_cameras
 from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder, Modulation
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
@@ -82,8 +83,9 @@ class SamplerInputs:
     """One batch, as the sampler takes it (every tensor on the model's device, batch rows first).
 
     Attributes:
-        images: one ``(B, 3, H, W)`` float tensor per camera of the policy, as LeRobot's
-            pre-processor hands them to ``predict_action_chunk`` (in [0, 1]).
+        images: one ``(B, 3, H, W)`` float tensor per camera of the policy a robot sends
+            (:func:`served_cameras`), as LeRobot's pre-processor hands them to
+            ``predict_action_chunk`` (in [0, 1]).
         tokens / masks: the prompt's token ids ``(B, L)`` and attention mask ``(B, L)``.
         noise: ``(B, chunk_size, max_action_dim)`` float32, the flow's starting point.
         rtc_weights: ``(B, chunk_size, 1)`` float32 guidance weights (zeros: no guidance), or
@@ -391,7 +393,7 @@ class StaticPi05:
         vlm_layer, expert_layer = layers or (self._vlm_layer, self._expert_layer)
         if self.guided != (inputs.rtc_weights is not None):
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
-        images, img_masks = self.policy._preprocess_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
+        images, img_masks = self.policy._preprocess_images(dict(zip(served_cameras(self.config), inputs.images, strict=True)))
         prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
         caches = self._prefix_cache(prefix_embs, prefix_pad, vlm_layer)
         # What every denoising step shares: the suffix attends every valid prefix token and the

@@ -41,6 +41,7 @@ import torch
 from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding, make_att_2d_masks
 from torch import Tensor
 
+from lerobot_armory.policies.cameras import served_cameras
 from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
 
 
@@ -180,7 +181,7 @@ class StaticSmolVLA:
         """LeRobot's ``embed_prefix``: (embeddings, pad mask, attention pattern ``att_masks``)."""
         from lerobot.policies.smolvla.modeling_smolvla import pad_tensor
 
-        images, img_masks = self.policy.prepare_images(dict(zip(self.config.image_features, inputs.images, strict=True)))
+        images, img_masks = self.policy.prepare_images(dict(zip(served_cameras(self.config), inputs.images, strict=True)))
         embs, pads, att_ones = [], [], []
         start, end = self._constants.get("image_start"), self._constants.get("image_end")
         for img, img_mask in zip(images, img_masks, strict=False):

@@ -137,3 +137,27 @@ def test_a_compiled_pi0_sampler_gives_the_same_chunks(pi0_dir, engines):
     for b in (1, 2):
         obs, tasks, seeds, prefixes = batch(b, seed=2)
         np.testing.assert_allclose(compiled.infer_guided(obs, tasks, seeds, prefixes)[1], static.infer_guided(obs, tasks, seeds, prefixes)[1], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("kind", ["pi0_dir", "pi05_dir", "smolvla_dir"])
+def test_placeholder_cameras_are_not_on_the_wire_and_are_filled_as_lerobot_fills_them(kind, request):
+    """``--policy.empty_cameras=1`` adds an ``observation.images.empty_camera_0`` feature that no
+    robot has: it is not a wire feature, and LeRobot's own image step fills it (−1 pixels, masked)
+    in both samplers, so the chunks are those of ``predict_action_chunk`` on a batch without it
+    (before: robots had to send a 480×640 frame, served as a real camera)."""
+    import torch
+
+    path = str(request.getfixturevalue(kind))
+    options = PolicyOptions(path, "cpu", overrides=["empty_cameras=1"])
+    lerobot = PolicyEngine(options)
+    static = PolicyEngine(options, engine=EngineOptions(static_sampler=True, graph_buckets="1,2,4"))
+    assert "observation.images.empty_camera_0" in lerobot.config.image_features
+    assert all("empty_camera" not in spec.name for spec in lerobot.wire_features + static.wire_features)
+    obs, tasks, seeds, _ = batch(3, seed=1)
+    ours = lerobot.infer(obs, tasks, seeds)
+    np.testing.assert_allclose(static.infer(obs, tasks, seeds), ours, atol=1e-5, rtol=0)
+    with torch.inference_mode():  # what LeRobot's image step then sees: no placeholder, so it fills one
+        processed = lerobot.preprocessor({**lerobot.to_batch(obs), "task": tasks})
+        images, masks = (lerobot.policy.prepare_images if kind == "smolvla_dir" else lerobot.policy._preprocess_images)(processed)
+    assert "observation.images.empty_camera_0" not in processed and len(images) == 2
+    assert bool((images[1] == -1).all()) and not bool(masks[1].any())
