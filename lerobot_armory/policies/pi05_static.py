@@ -261,6 +261,7 @@ class StaticPi05:
             except ValueError as exc:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)
+        self.cameras = served_cameras(self.config)  # read once: a traced region cannot read config.type
         self.chunk_size = int(self.config.chunk_size)
         self.suffix_length = self.state_tokens + self.chunk_size
         self.num_steps = int(self.config.num_inference_steps)
@@ -393,7 +394,7 @@ class StaticPi05:
         vlm_layer, expert_layer = layers or (self._vlm_layer, self._expert_layer)
         if self.guided != (inputs.rtc_weights is not None):
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
-        images, img_masks = self.policy._preprocess_images(dict(zip(served_cameras(self.config), inputs.images, strict=True)))
+        images, img_masks = self.policy._preprocess_images(dict(zip(self.cameras, inputs.images, strict=True)))
         prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
         caches = self._prefix_cache(prefix_embs, prefix_pad, vlm_layer)
         # What every denoising step shares: the suffix attends every valid prefix token and the

@@ -78,6 +78,7 @@ class StaticSmolVLA:
         self.guided = guided
         self.fused = False
         self.unfused_reason = "SmolVLA's static sampler runs LeRobot's own sequence of operations (no fused kernels yet)" if fused else None
+        self.cameras = served_cameras(self.config)  # read once: a traced region cannot read config.type
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_steps)
         if self.num_steps < 1:
@@ -181,7 +182,7 @@ class StaticSmolVLA:
         """LeRobot's ``embed_prefix``: (embeddings, pad mask, attention pattern ``att_masks``)."""
         from lerobot.policies.smolvla.modeling_smolvla import pad_tensor
 
-        images, img_masks = self.policy.prepare_images(dict(zip(served_cameras(self.config), inputs.images, strict=True)))
+        images, img_masks = self.policy.prepare_images(dict(zip(self.cameras, inputs.images, strict=True)))
         embs, pads, att_ones = [], [], []
         start, end = self._constants.get("image_start"), self._constants.get("image_end")
         for img, img_mask in zip(images, img_masks, strict=False):
