@@ -56,7 +56,10 @@ from lerobot_armory.feature_spec import FeatureSpec
 log = logging.getLogger(__name__)
 
 # What ``_choose_sampler`` sets: kept by ``use_sampler`` so that refused options change nothing.
-_SAMPLER_STATE = ("engine_options", "matmul_precision", "sampler", "graphs_wanted", "sampler_note", "fused_kernels", "prompt_buckets", "_prompt_forced")
+_SAMPLER_STATE = (
+    "engine_options", "matmul_precision", "sampler", "graphs_wanted", "sampler_note", "fused_kernels", "prompt_buckets", "_prompt_forced",
+    "_sampler_takes_state", "_sampler_cameras",
+)
 
 # Pre-processor steps known to leave images alone or to work on any device. Images go to the device
 # before the pre-processor only when every step before its device step is one of these (GR00T's
@@ -203,7 +206,8 @@ class PolicyEngine:
 
         o = self.engine_options
         self.fused_kernels = False
-        self._sampler_takes_state = False  # the static sampler embeds the state (π0)
+        self._sampler_takes_state = False  # the static sampler embeds the state (π0, SmolVLA)
+        self._sampler_cameras: tuple[str, ...] = ()  # the cameras its inputs carry, in order
         self.prompt_buckets: tuple[int, ...] = ()  # trimmed prompt lengths, ascending (none: untrimmed)
         self._prompt_forced: int | None = None  # while profiling: every batch at this prompt length
         cuda = torch.device(self.device).type == "cuda"
@@ -252,10 +256,10 @@ class PolicyEngine:
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
-        self._sampler_takes_state = sampler.takes_state
+        self._sampler_takes_state, self._sampler_cameras = sampler.takes_state, sampler.cameras
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
-        if o.compile_sampler and not getattr(sampler, "compilable", True):
+        if o.compile_sampler and not sampler.compilable:
             raise ConfigError("engine.compile_sampler", f"{self.config.type}'s static sampler is not compiled yet; leave it false")
         if o.compile_sampler:
             sampler.compile_layers()  # compiled at warm-up, on the first batch through them
@@ -475,12 +479,11 @@ class PolicyEngine:
         import torch
         from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
-        from lerobot_armory.policies.cameras import served_cameras
         from lerobot_armory.policies.pi05_static import SamplerInputs
 
         noise = kwargs["noise"]
         inputs = SamplerInputs(
-            tuple(processed[k] for k in served_cameras(self.config)),
+            tuple(processed[k] for k in self._sampler_cameras),
             processed[OBS_LANGUAGE_TOKENS], processed[OBS_LANGUAGE_ATTENTION_MASK], noise,
             state=self.policy.prepare_state(processed) if self._sampler_takes_state else None,
         )  # fmt: skip
