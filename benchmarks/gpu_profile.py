@@ -22,7 +22,7 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
-  sizes, the state as a suffix token, a 48-token prompt), LeRobot's eager sampler against our
+  sizes, the state as a suffix token, a 48-token prompt, cut to 16 when graphed), LeRobot's eager sampler against our
   static π0 sampler (``policies/pi0_static.py``) recorded as graphs with TF32, the default.
 
 Configurations of one policy and dtype share one load (the full π0.5 takes minutes to load): the

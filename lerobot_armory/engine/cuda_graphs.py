@@ -13,8 +13,10 @@ measures the buckets), so it knows that b = 3 costs what b = 4 costs.
 
 Prompt buckets: LeRobot pads every π0.5 prompt to 200 tokens, and a LIBERO prompt (task and
 discretised state) uses a few dozen: the rest is masked arithmetic, ≈ a fifth of the prefix. The
-engine trims a batch's prompt columns to the smallest *prompt bucket* that holds its longest
+engine fits a batch's prompt columns to the smallest *prompt bucket* that holds its longest
 prompt (``--engine.prompt_buckets``), so one graph is recorded per (batch bucket, prompt bucket).
+Fitting also pads: SmolVLA's tokenizer pads a batch to its longest prompt, a new length nearly
+every batch, which no recorded graph would fit.
 
 Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
 a side stream before it is recorded, and recorded on that same stream (lazy initialisations and
@@ -68,13 +70,19 @@ def parse_buckets(text: str | None, max_batch_size: int) -> tuple[int, ...]:
     return tuple(sorted({s for s in sizes if s <= max_batch_size} | {max_batch_size}))
 
 
-AUTO_PROMPT_BUCKETS = (64, 128)  # below the policy's padded prompt length, which is always one
+# ``auto``'s lengths below the policy's full prompt length (always a bucket too): for a long prompt
+# (π0.5 pads to 200 tokens; a LIBERO task and discretised state use a few dozen), 64 and 128; for a
+# short one (π0's and SmolVLA's 48; a LIBERO task alone is 10–20 tokens), 16 and 32.
+AUTO_PROMPT_BUCKETS_LONG = (64, 128)
+AUTO_PROMPT_BUCKETS_SHORT = (16, 32)
+SHORT_PROMPT = 64  # a full length up to this is short
 
 
 def parse_prompt_buckets(text: str, full: int) -> tuple[int, ...]:
-    """The prompt lengths a batch is trimmed to, ascending, ending at ``full`` (the length LeRobot
-    pads every prompt to): ``auto`` (64 and 128 tokens, those below ``full``), ``off`` (none: every
-    batch keeps ``full``) or comma-separated lengths. Empty when nothing is below ``full``.
+    """The prompt lengths a batch is fitted to, ascending, ending at ``full`` (the tokenizer's max
+    length): ``auto`` (those of 64 and 128 tokens below ``full``; 16 and 32 when ``full`` is at
+    most 64), ``off`` (none: every batch has ``full`` columns) or comma-separated lengths. Empty
+    when nothing is below ``full``.
 
     Raises:
         ConfigError: a length that is not an integer in 1..full.
@@ -83,7 +91,7 @@ def parse_prompt_buckets(text: str, full: int) -> tuple[int, ...]:
     if word in ("off", "none", "false", "no"):
         return ()
     if word == "auto":
-        sizes = set(AUTO_PROMPT_BUCKETS)
+        sizes = set(AUTO_PROMPT_BUCKETS_SHORT if full <= SHORT_PROMPT else AUTO_PROMPT_BUCKETS_LONG)
     else:
         try:
             sizes = {int(s) for s in word.split(",") if s.strip()}

@@ -51,9 +51,12 @@ class EngineOptions:
             200 tokens and a LIBERO prompt (task and discretised state) uses a few dozen, so a
             batch is cut to the smallest of these lengths that holds its longest prompt (masked
             columns only: the same chunks) — ≈ a fifth of the prefix's arithmetic for a short
-            prompt. ``auto`` (64 and 128, and the full length), ``off``, or token counts like
-            ``64,128``. Each length is one more CUDA graph per batch bucket; ``d_infer(b)`` is
-            profiled at the full length (the scheduler plans for the longest prompt).
+            prompt; SmolVLA pads a batch to its longest prompt, so its batches are padded (masked)
+            to a length too, one a graph was recorded for. ``auto`` (64 and 128 for π0.5's 200
+            tokens, 16 and 32 for π0's and SmolVLA's 48; and the full length), ``off`` (the full
+            length only), or token counts like ``64,128``. Each length is one more CUDA graph per
+            batch bucket; ``d_infer(b)`` is profiled at the full length (the scheduler plans for
+            the longest prompt).
         static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,
             fewer operations); unset: wherever graphs are on.
         attention: the static sampler's attention: ``eager`` (LeRobot's own math) or ``sdpa``

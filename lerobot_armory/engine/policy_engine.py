@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 
 # What ``_choose_sampler`` sets: kept by ``use_sampler`` so that refused options change nothing.
 _SAMPLER_STATE = (
-    "engine_options", "matmul_precision", "sampler", "graphs_wanted", "sampler_note", "fused_kernels", "prompt_buckets", "_prompt_forced",
+    "engine_options", "matmul_precision", "sampler", "graphs_wanted", "sampler_note", "fused_kernels", "prompt_buckets", "_prompt_forced", "_prompt_full",
     "_sampler_takes_state", "_sampler_cameras",
 )
 
@@ -208,7 +208,8 @@ class PolicyEngine:
         self.fused_kernels = False
         self._sampler_takes_state = False  # the static sampler embeds the state (π0, SmolVLA)
         self._sampler_cameras: tuple[str, ...] = ()  # the cameras its inputs carry, in order
-        self.prompt_buckets: tuple[int, ...] = ()  # trimmed prompt lengths, ascending (none: untrimmed)
+        self.prompt_buckets: tuple[int, ...] = ()  # fitted prompt lengths, ascending (none: the full length)
+        self._prompt_full: int | None = None  # the tokenizer's max length: every batch's when no bucket is smaller
         self._prompt_forced: int | None = None  # while profiling: every batch at this prompt length
         cuda = torch.device(self.device).type == "cuda"
         why = static_sampler.unsupported_reason(self.policy)
@@ -241,6 +242,7 @@ class PolicyEngine:
             from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
 
             self.prompt_buckets = parse_prompt_buckets(o.prompt_buckets, full)
+            self._prompt_full = full
         rtc = self.rtc_options
         try:
             sampler = static_sampler.make_static_sampler(
@@ -475,7 +477,9 @@ class PolicyEngine:
     def _sampler_inputs(self, processed: dict[str, Any], kwargs: dict[str, Any], prompt_length: int | None = None) -> Any:
         """The static sampler's inputs from a pre-processed batch and the keyword arguments the
         policy's own ``predict_action_chunk`` would have been given (noise, RTC prefixes), the
-        prompt cut to its prompt bucket (or to ``prompt_length``)."""
+        prompt fitted to its prompt bucket (or to ``prompt_length``): cut, or padded where the
+        tokenizer pads a batch to its longest prompt (SmolVLA), so that every batch has a length a
+        graph was recorded for."""
         import torch
         from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
@@ -488,8 +492,10 @@ class PolicyEngine:
             state=self.policy.prepare_state(processed) if self._sampler_takes_state else None,
         )  # fmt: skip
         length = prompt_length or self._prompt_forced or self._prompt_bucket(inputs.masks)
-        if length is not None and length < inputs.prompt_length:
-            inputs = inputs.prompt_trimmed(length)
+        if length is None and self._prompt_full is not None and inputs.prompt_length < self._prompt_full:
+            length = self._prompt_full  # padded, never cut: only a bucket's check knows what is padding
+        if length is not None and length != inputs.prompt_length:
+            inputs = inputs.prompt_fitted(length)
         if self.rtc is None:
             return inputs
         rows, length, dim = noise.shape

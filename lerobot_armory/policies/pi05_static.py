@@ -126,20 +126,30 @@ class SamplerInputs:
 
     @property
     def prompt_length(self) -> int:
-        """Token columns of the prompt (LeRobot pads every prompt to its tokenizer's max length)."""
+        """Token columns of the prompt (π0 and π0.5 pad every prompt to their tokenizer's max
+        length; SmolVLA pads a batch's prompts to its longest)."""
         return int(self.tokens.shape[1])
 
-    def prompt_trimmed(self, length: int) -> SamplerInputs:
-        """The same batch with only the first ``length`` prompt columns. The caller makes sure
-        every dropped column is padding in every row: padding is masked everywhere, so the chunks
-        are the same (up to the rounding of shorter sums). The columns are copied into tensors of
-        the standard strides, not viewed: a compiled sampler's guards check strides, and a padded
-        or recorded batch has them, so a view would be one more compilation (a few hundred
-        integers a row). ``contiguous()`` is not enough: one row of a view is contiguous already,
-        with the full prompt's row stride."""
-        if not 0 < length <= self.prompt_length:
-            raise ValueError(f"cannot trim a prompt of {self.prompt_length} tokens to {length}")
-        tokens, masks = (t[:, :length].clone(memory_format=torch.contiguous_format) for t in (self.tokens, self.masks))
+    def prompt_fitted(self, length: int) -> SamplerInputs:
+        """The same batch with exactly ``length`` prompt columns: the first ``length`` of them, or
+        all of them followed by masked padding (token 0, mask false). The caller makes sure every
+        dropped column is padding in every row: padding is masked everywhere (as a key; a padded
+        query row is never read), so the chunks are the same up to the rounding of sums of another
+        length. Why padding: a CUDA graph holds one prompt length, and SmolVLA's tokenizer pads a
+        batch to its longest prompt, a different length nearly every batch.
+
+        The columns are copied into tensors of the standard strides, not viewed: a compiled
+        sampler's guards check strides, and a padded or recorded batch has them, so a view would
+        be one more compilation (a few hundred integers a row). ``contiguous()`` is not enough:
+        one row of a view is contiguous already, with the full prompt's row stride."""
+        if length < 1:
+            raise ValueError(f"a prompt needs at least one column, got {length}")
+        if length <= self.prompt_length:
+            tokens, masks = (t[:, :length].clone(memory_format=torch.contiguous_format) for t in (self.tokens, self.masks))
+        else:
+            extra = length - self.prompt_length
+            tokens = torch.cat([self.tokens, self.tokens.new_zeros(self.rows, extra)], dim=1)
+            masks = torch.cat([self.masks, self.masks.new_zeros(self.rows, extra)], dim=1)
         return SamplerInputs(self.images, tokens, masks, self.noise, self.rtc_weights, self.rtc_leftover, self.state)
 
     def padded(self, rows: int) -> SamplerInputs:

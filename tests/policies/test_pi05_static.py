@@ -144,6 +144,7 @@ def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(
     make = lambda b, s: static._sampler_inputs(  # noqa: E731
         static.preprocessor({**static.to_batch(batch(b, s)[0]), "task": batch(b, s)[1]}),
         {"noise": static._noise(batch(b, s)[2]), **rtc.guidance_kwargs(batch(b, s)[3], static.chunk_size, 8, "cpu")},
+        static.config.tokenizer_max_length,  # one prompt length, as recorded
     )
     with torch.inference_mode():
         first = make(4, 0)
@@ -483,7 +484,10 @@ def test_prompt_buckets_are_parsed_against_the_policys_prompt_length():
     from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
 
     assert parse_prompt_buckets("auto", 200) == (64, 128, 200)
-    assert parse_prompt_buckets("auto", 64) == ()  # nothing below the full length: nothing to cut
+    assert parse_prompt_buckets("auto", 100) == (64, 100)
+    assert parse_prompt_buckets("auto", 64) == (16, 32, 64)  # a short prompt (π0's, SmolVLA's 48): 16 and 32
+    assert parse_prompt_buckets("auto", 48) == (16, 32, 48)
+    assert parse_prompt_buckets("auto", 16) == ()  # nothing below the full length: nothing to cut
     assert parse_prompt_buckets("off", 200) == ()
     assert parse_prompt_buckets("32, 16", 64) == (16, 32, 64)
     for bad in ("0,16", "100", "sixteen"):
@@ -694,19 +698,27 @@ def test_a_vision_cast_that_runs_out_of_memory_leaves_every_weight_as_it_was(pi0
     np.testing.assert_array_equal(engine.infer(obs, tasks, seeds), want)
 
 
-def test_a_cut_prompt_has_the_strides_of_a_recorded_batch_even_for_one_row():
+def test_a_fitted_prompt_has_the_strides_of_a_recorded_batch_and_masks_what_it_adds():
     """A compiled sampler's guards check strides: a cut prompt must look like a padded or recorded
-    batch (standard strides), also for one row, whose view is "contiguous" with the full row's stride."""
+    batch (standard strides), also for one row, whose view is "contiguous" with the full row's
+    stride. A prompt grown to a longer bucket keeps every column and adds masked ones."""
     import torch
 
     from lerobot_armory.policies.pi05_static import SamplerInputs
 
     for rows in (1, 3):
-        tokens = torch.arange(rows * 48).view(rows, 48)
+        tokens = torch.arange(1, rows * 48 + 1).view(rows, 48)
         inputs = SamplerInputs((torch.zeros(rows, 3, 4, 4),), tokens, torch.ones(rows, 48, dtype=torch.bool), torch.zeros(rows, 5, 2))
-        cut = inputs.prompt_trimmed(16)
+        cut = inputs.prompt_fitted(16)
         assert cut.tokens.stride() == cut.masks.stride() == (16, 1)
         assert torch.equal(cut.tokens, tokens[:, :16])
+        grown = inputs.prompt_fitted(64)
+        assert grown.prompt_length == 64 and grown.tokens.stride() == grown.masks.stride() == (64, 1)
+        assert torch.equal(grown.tokens[:, :48], tokens) and torch.equal(grown.masks[:, :48], inputs.masks)
+        assert not grown.masks[:, 48:].any() and not grown.tokens[:, 48:].any()
+        assert inputs.prompt_fitted(48).prompt_length == 48
+    with pytest.raises(ValueError, match="at least one column"):
+        inputs.prompt_fitted(0)
 
 
 def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_dir):

@@ -161,3 +161,39 @@ def test_placeholder_cameras_are_not_on_the_wire_and_are_filled_as_lerobot_fills
         images, masks = (lerobot.policy.prepare_images if kind == "smolvla_dir" else lerobot.policy._preprocess_images)(processed)
     assert "observation.images.empty_camera_0" not in processed and len(images) == 2
     assert bool((images[1] == -1).all()) and not bool(masks[1].any())
+
+
+@pytest.mark.parametrize("kind", ["pi0_dir", "pi05_dir", "smolvla_dir"])
+def test_every_served_batch_has_a_prompt_length_a_graph_was_recorded_for(kind, request):
+    """A CUDA graph holds one prompt length, and a batch whose length has none is served eagerly
+    (on a GPU: several times slower). π0 and π0.5 pad every prompt to the tokenizer's max length;
+    SmolVLA pads a batch to its longest prompt (before: a new length nearly every batch, and graphs
+    recorded at the warm-up prompt's). Every batch, prompts from one word to past the max length,
+    is fitted to a length warm-up records (``_example_inputs``), the chunks stay LeRobot's, and
+    the profile times the longest."""
+    import torch
+
+    path = str(request.getfixturevalue(kind))
+    lerobot = PolicyEngine(PolicyOptions(path, "cpu"))
+    static = PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, graph_buckets="1,2,4"))
+    static.warmup(4, log_progress=False)
+    full = static.config.tokenizer_max_length
+    assert static.prompt_buckets == (16, 32, full)[: 3 if full > 32 else 2]  # auto: 16 and 32 for a short prompt
+    recorded = {inputs.prompt_length for inputs in static._example_inputs(2)}
+    assert recorded == set(static.prompt_buckets)
+    served = []
+    for words in (1, 3, 6, 12, 40):
+        obs, _, seeds, _ = batch(2, seed=words)
+        tasks = ["pick " * words, "up"]
+        with torch.inference_mode():
+            processed = static.preprocessor({**static.to_batch(obs), "task": tasks})
+            length = static._sampler_inputs(processed, {"noise": static._noise(seeds)}).prompt_length
+        assert length in recorded, (words, length, recorded)
+        served.append(length)
+        np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+    assert len(set(served)) > 1  # short prompts ran shorter
+    seen: list[int] = []
+    sample = static.sampler.sample
+    static.sampler.sample = lambda inputs: (seen.append(inputs.prompt_length), sample(inputs))[1]
+    static.profile(2, warmup=0, reps=1, log_progress=False)
+    assert seen and set(seen) == {full}
