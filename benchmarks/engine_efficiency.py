@@ -197,6 +197,8 @@ def main() -> None:
         )
         if offered < OVERSUBSCRIBE * bare:
             print(f"        (offered load below {OVERSUBSCRIBE}x bare: capped at {MAX_ROBOTS} robots; the ratio may read the load)")
+        if server.loop.stats.unrecorded_batches:
+            print(f"        WARNING: {server.loop.stats.unrecorded_batches} served batches ran without their CUDA graph (the log says why)")
         targets.check_min(f"served/bare b={b}", ratio, target)
     targets.finish()
 

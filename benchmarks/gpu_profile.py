@@ -305,8 +305,13 @@ def profile_config(
     warmup_s = time.perf_counter() - t0  # compilations and graph recordings included
     capture = dict(engine.sampler.capture_s) if engine.sampler is not None else {}
     print(f"[{config}] warmed up in {warmup_s:.0f} s: {engine.description}", flush=True)
+    unrecorded = engine.unrecorded_batches
     engine_ms, bare_ms = measure(engine, ARGS.max_batch_size, ARGS.reps)
     got = chunk_sets[config] = chunks(engine)
+    # A batch no recorded graph fits runs eagerly (logged once): a graphed figure must not hide one.
+    unrecorded = engine.unrecorded_batches - unrecorded
+    if unrecorded:
+        print(f"  WARNING [{config}]: {unrecorded} timed or compared batches ran without their CUDA graph", flush=True)
     if "-graphs" not in config and "-compiled" not in config:
         reference[reference_key(config, overrides)] = got
     params = sum(p.numel() for p in engine.policy.parameters())
@@ -323,6 +328,7 @@ def profile_config(
     }
     if capture:
         run["capture_s"] = {str(b): round(s, 2) for b, s in sorted(capture.items())}
+        run["unrecorded_batches"] = unrecorded
     ref = reference.get(reference_key(config, overrides))
     if ref is not None and ref is not got:
         # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.

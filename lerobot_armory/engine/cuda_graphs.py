@@ -122,7 +122,9 @@ class BucketedSampler:
     Before :meth:`set_buckets` every batch runs at its own size through ``uncompiled`` (the
     engine's dry run: a compiled ``sample`` would compile a size no bucket has). A batch
     larger than every bucket, or one whose tensors do not have the recorded shapes, runs eagerly
-    at its own size, logged once: correct, only slower.
+    at its own size, logged once: correct, only slower; :attr:`unrecorded` counts such batches
+    (the server's ``armory_batches_unrecorded`` metric), so a slow fleet can be told from a
+    slow GPU.
     """
 
     def __init__(
@@ -140,6 +142,7 @@ class BucketedSampler:
         self._pool: Any = None
         self._stream: Any = None
         self._warned: set[str] = set()
+        self.unrecorded = 0  # batches run eagerly although graphs were recorded
 
     @property
     def captured(self) -> bool:
@@ -157,16 +160,16 @@ class BucketedSampler:
             return self.uncompiled(inputs)  # the uncompiled sampler prepares its own constants
         bucket = bucket_for(rows, self.buckets)
         if bucket is None:
-            self._warn_once("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
+            self._missed("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
             bucket = rows
         graph = self.graphs.get((bucket, inputs.prompt_length))
         if graph is None:
             if self.graphs:
-                self._warn_once("prompt", f"no graph for prompts of {inputs.prompt_length} tokens in bucket {bucket}: run eagerly")
+                self._missed("prompt", f"no graph for prompts of {inputs.prompt_length} tokens in bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
         tensors = inputs.tensors()
         if not _fits(tensors, graph.inputs):
-            self._warn_once("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
+            self._missed("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
         for buf, src in zip(graph.inputs, tensors, strict=True):
             buf[:rows].copy_(src)
@@ -221,6 +224,14 @@ class BucketedSampler:
         seconds = time.perf_counter() - start
         self.capture_s[bucket] = self.capture_s.get(bucket, 0.0) + seconds
         return seconds
+
+    def _missed(self, key: str, message: str) -> None:
+        """A batch runs without its bucket's graph: each reason logged once, and the batch counted
+        once graphs exist (before capture every batch runs so)."""
+        if self.graphs:
+            self.unrecorded += 1
+            message += " (each such batch is counted in armory_batches_unrecorded)"
+        self._warn_once(key, message)
 
     def _warn_once(self, key: str, message: str) -> None:
         if key not in self._warned:

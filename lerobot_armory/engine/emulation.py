@@ -43,6 +43,11 @@ class EmulatedLatencyEngine:
         """The wrapped engine's observations per row."""
         return self.engine.history_steps
 
+    @property
+    def unrecorded_batches(self) -> int:
+        """The wrapped engine's."""
+        return self.engine.unrecorded_batches
+
     def infer(
         self,
         observations: Sequence[dict[str, np.ndarray]],

@@ -270,6 +270,11 @@ class PolicyEngine:
         return graphs, None
 
     @property
+    def unrecorded_batches(self) -> int:
+        """Batches served eagerly although CUDA graphs were recorded (no graph fitted them)."""
+        return self.sampler.unrecorded if self.sampler is not None else 0
+
+    @property
     def description(self) -> str:
         notes = [f"dtype={self.config.dtype}"] if isinstance(getattr(self.config, "dtype", None), str) else []
         if self.matmul_precision != "highest":

@@ -31,10 +31,14 @@ class Engine(Protocol):
             the engine does not guide chunks by what each robot executes meanwhile.
         history_steps: consecutive observations the policy needs per row (its ``n_obs_steps``);
             above 1 the loop passes each robot's last ones as ``history``.
+        unrecorded_batches: a running count of batches served without the CUDA graph meant for
+            them (correct chunks, but at eager speed); 0 for an engine without graphs. The loop
+            counts the batches during which it grew.
     """
 
     rtc: Any
     history_steps: int
+    unrecorded_batches: int
 
     def infer(
         self,
@@ -66,6 +70,7 @@ class UnguidedEngine:
 
     rtc: Any = None
     history_steps: int = 1
+    unrecorded_batches: int = 0
 
     def infer_guided(
         self,

@@ -111,6 +111,7 @@ class LoopStats:
     decision_cpu_ms: collections.deque = field(default_factory=lambda: collections.deque(maxlen=1000))
     failed_decisions: int = 0  # decisions the scheduler could not make (served in order instead)
     oom_batches: int = 0  # batches that ran out of device memory and lowered the cap (not failed)
+    unrecorded_batches: int = 0  # batches served without the CUDA graph meant for them (eager speed)
     batch_cap: int | None = None  # the cap after an out-of-memory batch lowered it (None: as configured)
     busy_s: float = 0.0
     idle_with_work_s: float = 0.0
@@ -326,6 +327,7 @@ class ServingLoop:
             tasks = [s.task for s in batch.sessions]
             model_actions = None
             seeds = [noise_seed(r.robot_id, r.chunk.chunk_id) for r in plan.requests]
+            unrecorded = engine.unrecorded_batches
             if batch.prefixes is not None:
                 actions, model_actions = engine.infer_guided(batch.observations, tasks, seeds, batch.prefixes)
             else:
@@ -337,6 +339,8 @@ class ServingLoop:
             return
         t_done = fleet.clock()
         self._failures_in_a_row = 0
+        if engine.unrecorded_batches > unrecorded:
+            self.stats.unrecorded_batches += 1
         with fleet.cond:
             batch.policy.dispatcher.complete(plan, t_done)
             for k, (request, session) in enumerate(zip(plan.requests, batch.sessions, strict=True)):

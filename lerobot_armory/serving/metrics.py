@@ -89,6 +89,11 @@ class FleetCollector(Collector):
         yield CounterMetricFamily(
             "armory_batches_out_of_memory", "Batches that ran out of device memory (each lowered the batch cap)", value=self.stats.oom_batches
         )
+        yield CounterMetricFamily(
+            "armory_batches_unrecorded",
+            "Batches served without the CUDA graph meant for them (correct chunks at eager speed; the log says why)",
+            value=self.stats.unrecorded_batches,
+        )
         if self.stats.batch_cap is not None:
             yield GaugeMetricFamily("armory_batch_cap", "The batch cap after out-of-memory batches lowered it", value=self.stats.batch_cap)
 
@@ -215,4 +220,5 @@ def status_line(fleet: Fleet, stats: LoopStats, learning: OnlineLatency | None) 
         f"starvation[{tier_txt}] decision_p99={p99:.2f}ms mirror_err={max(errors) if errors else '-'} "
         f"idle_with_work={stats.idle_with_work_s * 1000:.0f}ms failed={stats.failed_batches} {latency_txt}"
         + (f" batch_cap={stats.batch_cap} (lowered after {stats.oom_batches} out-of-memory batches)" if stats.batch_cap is not None else "")
+        + (f" unrecorded={stats.unrecorded_batches} (batches without their CUDA graph)" if stats.unrecorded_batches else "")
     )

@@ -258,6 +258,7 @@ class _Released:
     def __init__(self, engine: Engine) -> None:
         self.rtc = None
         self.history_steps = engine.history_steps
+        self.unrecorded_batches = 0
 
     def infer(self, *args: object, **kwargs: object):
         raise RuntimeError("no policy is loaded (a swap with drain is loading one)")

@@ -230,6 +230,7 @@ class _Recording:
     """The guided engine, recording every guided batch (the loop only sees ``rtc`` and the calls)."""
 
     history_steps = 1
+    unrecorded_batches = 0
 
     def __init__(self, engine: PolicyEngine) -> None:
         self.engine, self.rtc, self.batches = engine, engine.rtc, []

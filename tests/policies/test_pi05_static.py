@@ -162,8 +162,9 @@ def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(
         assert torch.equal(kept, static.sampler.sample(three.padded(4))[:3])
         # A prompt one token shorter than recorded (tokens and mask): served eagerly, not replayed.
         odd = three.with_tensors([t[:, :-1] if t.dim() == 2 else t for t in three.tensors()])
+        assert runner.unrecorded == 0
         assert torch.equal(runner(odd), static.sampler.sample(odd.padded(4))[:3])
-        assert fake.replays == 2
+        assert fake.replays == 2 and runner.unrecorded == 1  # counted: armory_batches_unrecorded
 
 
 def test_engine_options_are_checked_with_one_line_each(pi05_dir, demo_policy_dir):
