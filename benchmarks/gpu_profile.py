@@ -24,6 +24,11 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
   sizes, the state as a suffix token, a 48-token prompt, cut to 16 when graphed), LeRobot's eager sampler against our
   static π0 sampler (``policies/pi0_static.py``) recorded as graphs with TF32, the default.
+- ``smolvla-fp32`` / ``smolvla-fp32-graphs-tf32`` / ``smolvla-fp32-graphs-tf32-ordered``: SmolVLA at
+  SmolVLM2-500M's sizes (``--size`` full; 450 M parameters, float32 as LeRobot builds it from its
+  configuration, 16 VLM layers and a 0.75-wide expert, 512² images), LeRobot's eager sampler
+  against our static SmolVLA sampler (``policies/smolvla_static.py``) recorded as graphs with TF32,
+  with its fused kernels and in LeRobot's order.
 
 Configurations of one policy and dtype share one load (the full π0.5 takes minutes to load): the
 policy is measured with each sampler in turn, in the same call, so the figures compare.
@@ -82,6 +87,7 @@ CONFIGS = (
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
+    "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -151,21 +157,21 @@ def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, l
             )
         )
         print(f"  built in {time.perf_counter() - t0:.0f} s", flush=True)
-    overrides = [f"dtype={dtype}"]
+    overrides = [] if kind == "smolvla" else [f"dtype={dtype}"]  # SmolVLA's config has no dtype: float32 as built
     if config.endswith("compiled") and "-graphs" not in config:
         overrides += ["compile_model=true", f"compile_mode={compile_mode}"]
     return str(path), overrides
 
 
 def policy_kind(config: str) -> str:
-    """The LeRobot policy type a π configuration serves (``pi05-…`` or ``pi0-…``)."""
+    """The LeRobot policy type a configuration serves (``pi05-…``, ``pi0-…``, ``smolvla-…``)."""
     return config.split("-")[0]
 
 
 def reference_key(config: str, overrides: list[str]) -> str:
     """Which LeRobot eager run a configuration's chunks are compared with: the same policy type
     and dtype (one load)."""
-    return f"{policy_kind(config)}:{overrides[0] if overrides else config}"
+    return f"{policy_kind(config)}:{overrides[0] if overrides else ''}"
 
 
 def chunks(engine: Any, sizes: tuple[int, ...] = (1, 3, 8)) -> dict[int, Any]:

@@ -107,10 +107,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,8", help="batch sizes to count")
     p.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="--policy.dtype (bf16 keeps LeRobot's float32 islands)")
-    p.add_argument("--kind", default="pi05", choices=("pi05", "pi0"), help="the policy type")
+    p.add_argument("--kind", default="pi05", choices=("pi05", "pi0", "smolvla"), help="the policy type")
     args = p.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
-    overrides = [f"dtype={args.dtype}"]
+    if args.kind == "smolvla" and args.dtype != "float32":
+        sys.exit("SmolVLA is built in float32 only")
+    overrides = [] if args.kind == "smolvla" else [f"dtype={args.dtype}"]  # SmolVLA's config has no dtype
     torch.set_num_threads(1)
     work = Path(tempfile.mkdtemp(prefix="armory-pi05-ops-"))
     path = str(work / f"{args.kind}-narrow")
@@ -124,7 +126,7 @@ def main() -> None:
     ordered.warmup(max(sizes), log_progress=False)
     static.warmup(max(sizes), log_progress=False)
     params = sum(p.numel() for p in eager.policy.parameters()) / 1e6
-    name = {"pi05": "π0.5", "pi0": "π0"}[args.kind]
+    name = {"pi05": "π0.5", "pi0": "π0", "smolvla": "SmolVLA"}[args.kind]
     print(f"{name} narrow, {args.dtype} ({params:.1f} M parameters, built and loaded in {time.perf_counter() - t0:.0f} s); CPU, 1 thread")
     print(f"{'b':>2} | {'sampler':<8} | {'aten ops':>8} | {'launches':>8} | {'host syncs':>10} | {'CPU ms':>7} | most launched")
     targets = Targets()

@@ -26,10 +26,14 @@ or forked) in the order ``sample_actions`` runs them, with these changes:
   row, so guided and unguided batches share one graph).
 
 Row independence holds (no operation mixes batch rows), so bucket padding never changes a real
-row. The chunks equal LeRobot's (``tests/policies/test_smolvla_static.py``: 1e-5 at every bucket
-in float32, RTC too; bit for bit with a bf16 SmolVLM beside a float32 expert, as a real checkpoint
-loads, whose self-attention caches hold the promoted dtype LeRobot's concatenation gives). Not done yet: fused kernels, ``--engine.compile_sampler``, and an expert
-with fewer layers than the VLM (SmolVLA's default pairs them one to one).
+row. With ``fused=True`` (the default) each layer runs :mod:`.smolvla_kernels`' operations (≈ a third
+of the kernels: fused projections and norms, rotary tables made once a sample, grouped-query
+attention without per-head copies); with ``fused=False``, LeRobot's own in its order. The chunks
+equal LeRobot's (``tests/policies/test_smolvla_static.py``: 1e-5 at every bucket in float32, RTC
+too, fused or not; in LeRobot's order bit for bit with a bf16 SmolVLM beside a float32 expert, as
+a real checkpoint loads, whose self-attention caches hold the promoted dtype LeRobot's
+concatenation gives). Not done yet: ``--engine.compile_sampler``, and an expert with fewer layers
+than the VLM (SmolVLA's default pairs them one to one).
 """
 
 from __future__ import annotations
@@ -43,13 +47,14 @@ from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
 from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
+from lerobot_armory.policies.smolvla_kernels import SmolVLAFused
 
 
 class StaticSmolVLA:
     """``VLAFlowMatching.sample_actions`` without host synchronisation or per-step copies
     (arguments as :class:`~lerobot_armory.policies.pi05_static.StaticPi05`'s; ``attention`` must
-    be ``eager``, LeRobot's own, and ``vision_dtype`` None; ``fused`` is accepted and has no effect
-    yet, :attr:`unfused_reason` says so)."""
+    be ``eager``, LeRobot's own, and ``vision_dtype`` None; ``fused``: :mod:`.smolvla_kernels`
+    where the policy allows it, :attr:`unfused_reason` says why not)."""
 
     kind = "smolvla"
     takes_state = True  # SmolVLA's state is a prefix token
@@ -76,19 +81,25 @@ class StaticSmolVLA:
         vlm = self.vwe.get_vlm_model()
         self.text, self.expert, self.vision, self.connector = vlm.text_model, self.vwe.lm_expert, vlm.vision_model, vlm.connector
         self.guided = guided
-        self.fused = False
-        self.unfused_reason = "SmolVLA's static sampler runs LeRobot's own sequence of operations (no fused kernels yet)" if fused else None
+        every = self.vwe.self_attn_every_n_layers
+        cross = "cross" in self.vwe.attention_mode
+        # LeRobot's SmolVLMWithExpertModel.forward: a layer is self-attention unless the mode is
+        # cross-attention and the layer is not one of every n.
+        self.self_attention = [not cross or (every > 0 and i % every == 0) for i in range(self.vwe.num_vlm_layers)]
+        self.ops: SmolVLAFused | None = None
+        self.unfused_reason: str | None = None
+        if fused:
+            try:  # checks every layer before it touches a weight
+                self.ops = SmolVLAFused(self.vwe, self.self_attention)
+            except ValueError as exc:
+                self.unfused_reason = str(exc)
+        self.fused = self.ops is not None
         self.cameras = served_cameras(self.config)  # read once: a traced region cannot read config.type
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
         self.head_dim = self.vwe.vlm.config.text_config.head_dim
-        every = self.vwe.self_attn_every_n_layers
-        cross = "cross" in self.vwe.attention_mode
-        # LeRobot's SmolVLMWithExpertModel.forward: a layer is self-attention unless the mode is
-        # cross-attention and the layer is not one of every n.
-        self.self_attention = [not cross or (every > 0 and i % every == 0) for i in range(self.vwe.num_vlm_layers)]
         device = next(self.model.parameters()).device
         schedule = FlowSchedule.make(self.num_steps, guided, max_guidance_weight, device)
         self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
@@ -162,6 +173,8 @@ class StaticSmolVLA:
             raise ValueError("SmolVLA's static sampler needs the state (SamplerInputs.state)")
         times = self.prepare()
         embs, pad, att = self._embed_prefix(inputs)
+        if self.ops is not None:
+            return self._sample_fused(inputs, times, embs, pad, att)
         b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
         caches = self._prefix_cache(embs, pad, att)
         # A cross-attention layer's keys and values depend on the prefix alone: once a sample.
@@ -171,12 +184,84 @@ class StaticSmolVLA:
         x_t = inputs.noise
         for step, time in enumerate(self.times):
             v_t = self._velocity(x_t, times[step], caches, cross, valid, positions)
-            if self.guided:
-                assert self.guidance_table is not None and inputs.rtc_leftover is not None
-                err = (inputs.rtc_leftover - (x_t - time * v_t)) * inputs.rtc_weights
-                v_t = v_t - self.guidance_table[step] * err
-            x_t = x_t + self.dt * v_t
+            x_t = self._guided_step(step, time, x_t, v_t, inputs)
         return x_t
+
+    def _guided_step(self, step: int, time: Tensor, x_t: Tensor, v_t: Tensor, inputs: SamplerInputs) -> Tensor:
+        """The Euler step, with RTC's closed-form guidance per row when guided."""
+        if self.guided:
+            assert self.guidance_table is not None and inputs.rtc_leftover is not None
+            err = (inputs.rtc_leftover - (x_t - time * v_t)) * inputs.rtc_weights
+            v_t = v_t - self.guidance_table[step] * err
+        return x_t + self.dt * v_t
+
+    # -- the fused path (policies/smolvla_kernels.py) -------------------------------------------
+
+    def _sample_fused(self, inputs: SamplerInputs, times: tuple[Tensor, ...], embs: Tensor, pad: Tensor, att: Tensor) -> Tensor:
+        """:meth:`sample` after the prefix's embeddings, with :class:`SmolVLAFused`'s kernels: the
+        rotary tables and additive masks made once, the caches head-major."""
+        ops = self.ops
+        assert ops is not None
+        b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
+        caches = self._prefix_cache_fused(embs, pad, att)
+        cross = {i: ops.cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
+        valid = ops.additive(torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2))
+        positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
+        # A cross-attention layer's queries count from 0 (LeRobot's positions minus their minimum).
+        tables = ops.tables(positions), ops.tables(positions - torch.min(positions, dim=1, keepdim=True).values)
+        x_t = inputs.noise
+        for step, time in enumerate(self.times):
+            v_t = self._velocity_fused(x_t, times[step], caches, cross, valid, tables)
+            x_t = self._guided_step(step, time, x_t, v_t, inputs)
+        return x_t
+
+    def _prefix_cache_fused(self, embs: Tensor, pad: Tensor, att: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """:meth:`_prefix_cache` with fused kernels; the caches head-major ``(B, Hkv, P + H, d)``."""
+        ops = self.ops
+        assert ops is not None
+        b, p = pad.shape
+        mask = ops.additive(make_att_2d_masks(pad, att))
+        table = ops.tables(torch.cumsum(pad, dim=1) - 1)
+        dtypes = [self._cache_dtype(i) for i in range(len(self.text.layers))]
+        caches = ops.caches(b, p, self.chunk_size, dtypes, embs.device)
+        h = embs
+        last = len(self.text.layers) - 1
+        for i, layer in enumerate(self.text.layers):
+            x = ops.norm(layer.input_layernorm, h).to(dtype=layer.self_attn.q_proj.weight.dtype)
+            q = ops.self_attention_kv(layer, x, table, caches[i], 0)
+            if i == last:  # the last layer's output is never read: only its keys and values are
+                break
+            h = ops.rest_of_layer(layer, h, ops.attend(q, caches[i][0][:, :, :p], caches[i][1][:, :, :p], mask))
+        return caches
+
+    def _velocity_fused(
+        self, x_t: Tensor, time_emb: Tensor, caches: list[Any], cross: dict[int, tuple[Tensor, Tensor]], valid: Tensor,
+        tables: tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]],
+    ) -> Tensor:  # fmt: skip
+        """:meth:`_velocity` with fused kernels (``valid``: the additive mask of the suffix's queries)."""
+        ops = self.ops
+        assert ops is not None
+        m = self.model
+        actions = m.action_in_proj(x_t)
+        mixed = m.action_time_mlp_in(torch.cat([actions, time_emb.expand_as(actions)], dim=2))
+        h = m.action_time_mlp_out(torch.nn.functional.silu(mixed))
+        p = caches[0][0].shape[2] - h.shape[1]
+        for i, layer in enumerate(self.expert.layers):
+            x = ops.norm(layer.input_layernorm, h).to(dtype=layer.self_attn.q_proj.weight.dtype)
+            if self.self_attention[i]:
+                q = ops.self_attention_kv(layer, x, tables[0], caches[i], p)
+                att = ops.attend(q, caches[i][0], caches[i][1], valid)
+            else:
+                att = ops.attend(ops.cross_query(layer, x, tables[1]), *cross[i], valid[..., :p])
+            h = ops.rest_of_layer(layer, h, att)
+        out = ops.norm(self.expert.norm, h)[:, -self.chunk_size :].to(dtype=torch.float32)
+        return m.action_out_proj(out)
+
+    def _cache_dtype(self, i: int) -> torch.dtype:
+        """Layer i's K/V cache dtype: LeRobot concatenates the suffix's keys and values (the
+        expert's dtype) onto the prefix's in a self-attention layer, promoting them."""
+        k = self.text.layers[i].self_attn.k_proj.weight.dtype
+        return torch.promote_types(k, self.expert.layers[i].self_attn.k_proj.weight.dtype) if self.self_attention[i] else k
 
     def _embed_prefix(self, inputs: SamplerInputs) -> tuple[Tensor, Tensor, Tensor]:
         """LeRobot's ``embed_prefix``: (embeddings, pad mask, attention pattern ``att_masks``)."""
@@ -259,10 +344,7 @@ class StaticSmolVLA:
             q = apply_rope(layer.self_attn.q_proj(x).view(shape), positions)
             k = apply_rope(layer.self_attn.k_proj(x).view(shape), positions)
             v = layer.self_attn.v_proj(x).view(shape)
-            # LeRobot concatenates the suffix's keys and values (the expert's dtype) onto the
-            # prefix's: the result has the promoted dtype (float32 behind a bf16 VLM's keys).
-            suffix = self.expert.layers[i].self_attn.k_proj.weight.dtype
-            dtype = torch.promote_types(k.dtype, suffix) if self.self_attention[i] else k.dtype
+            dtype = self._cache_dtype(i)  # float32 behind a bf16 VLM's keys where the expert is float32
             cache = (k.new_empty(b, p + self.chunk_size, *k.shape[2:], dtype=dtype), v.new_empty(b, p + self.chunk_size, *v.shape[2:], dtype=dtype))
             cache[0][:, :p] = k
             cache[1][:, :p] = v

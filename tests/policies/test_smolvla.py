@@ -8,6 +8,7 @@ import json
 import shutil
 import socket
 
+import numpy as np
 import pytest
 
 from lerobot_armory.errors import ConfigError
@@ -126,11 +127,30 @@ def test_a_batch_of_eight_runs_in_well_under_a_second(smolvla):
     assert min(times) < 1.0
 
 
-def test_smolvla_has_one_size(tmp_path):
+def test_smolvla_builds_at_smolvlm2s_depths_and_refuses_what_it_cannot_build(tmp_path):
+    """``--size=narrow``: SmolVLM2-500M's depths, heads and image geometry (16 of its 32 text
+    layers kept, a 16-layer expert, 15 query heads on 5 K/V heads, 512² images in 16² patches →
+    64 tokens a camera) at tiny widths, loaded through ``--policy.path``; its static sampler (fused)
+    gives LeRobot's chunks. An unknown size and a bf16 build are refused in one line."""
+    from lerobot_armory.engine.options import EngineOptions
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 
-    with pytest.raises(ConfigError, match="size=tiny"):
-        make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "x"), kind="smolvla", size="full"))
+    path = make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "narrow"), kind="smolvla", size="narrow", chunk_size=10, cameras="base,wrist"))
+    lerobot = PolicyEngine(PolicyOptions(str(path), "cpu"))
+    static = PolicyEngine(PolicyOptions(str(path), "cpu"), engine=EngineOptions(static_sampler=True, graph_buckets="1,2"))
+    vwe = lerobot.policy.model.vlm_with_expert
+    text = vwe.get_vlm_model().text_model
+    assert (vwe.num_vlm_layers, vwe.num_expert_layers) == (16, 16)
+    assert (text.config.num_attention_heads, text.config.num_key_value_heads) == (15, 5)
+    assert vwe.processor.image_seq_len == 64 and lerobot.config.resize_imgs_with_padding == (512, 512)
+    assert static.fused_kernels
+    obs = [lerobot.example_observation(seed=k) for k in range(2)]
+    tasks, seeds = ["pick up the red block", "go"], [3, 4]
+    np.testing.assert_allclose(static.infer(obs, tasks, seeds), lerobot.infer(obs, tasks, seeds), atol=1e-5, rtol=0)
+    with pytest.raises(ConfigError, match="size tiny, narrow, full"):
+        make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "x"), kind="smolvla", size="huge"))
+    with pytest.raises(ConfigError, match="dtype.*float32 only"):
+        make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "y"), kind="smolvla", dtype="bfloat16"))
 
 
 def test_served_chunks_equal_each_robots_chunk_computed_alone(smolvla):

@@ -72,10 +72,10 @@ def _build_pi0_fast(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 def _build_smolvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     from lerobot_armory.policies.demo.smolvla import make_smolvla_policy
 
-    if cfg.size != "tiny" or cfg.dtype != "float32":
-        raise ConfigError("size", "SmolVLA is built at size=tiny, dtype=float32 only")
-    out = make_smolvla_policy(cfg.output, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed)
-    write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "smolvla", "size": "tiny", "random_weights": True, "seed": cfg.seed})
+    if cfg.dtype != "float32":
+        raise ConfigError("dtype", "SmolVLA is built in float32 only (as LeRobot builds it from its configuration)")
+    out = make_smolvla_policy(cfg.output, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.size)
+    write_sidecar(out, cfg.action_dim or cfg.state_dim, {"kind": "smolvla", "size": cfg.size, "random_weights": True, "seed": cfg.seed})
     return out
 
 

@@ -21,10 +21,10 @@ class DemoPolicyConfig:
             one camera, 2-D state). Every LeRobot kind but ``planner`` has random weights and is
             built offline; ``diffusion`` and ``multi_task_dit`` need LeRobot's ``diffusion`` /
             ``multi-task-dit`` extra (diffusers).
-        size: π0.5 and π0 only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a CPU),
-            ``narrow`` (the real depths at tiny widths: ``armory_narrow``) or
-            ``full`` (PaliGemma gemma_2b + expert gemma_300m, the real sizes).
-        dtype: π0.5 and π0 only: ``float32`` or ``bfloat16`` weights.
+        size: π0.5, π0 and SmolVLA only: ``tiny`` (registered ``armory_tiny`` Gemma size, runs on a
+            CPU), ``narrow`` (the real depths at tiny widths: ``armory_narrow``) or ``full``
+            (PaliGemma gemma_2b + expert gemma_300m, the real sizes; SmolVLA: SmolVLM2-500M's).
+        dtype: π0.5 and π0 only: ``float32`` or ``bfloat16`` weights (SmolVLA: ``float32``).
         chunk_size: H, actions per chunk.
         state_dim: length of ``observation.state``.
         action_dim: length of each action (default: state_dim).

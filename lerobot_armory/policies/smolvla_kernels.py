@@ -1,0 +1,188 @@
+"""SmolVLA's Llama layers with fewer kernels: the fused path of :class:`~.smolvla_static.StaticSmolVLA`.
+
+LeRobot's SmolVLA runs HF's Llama layers through its own helpers, and a CPU trace of the narrow
+SmolVLA (SmolVLM2-500M's depths) counts ≈ 57 kernels per action-expert layer and step, 16 layers
+at each of 10 steps: its ``apply_rope`` rebuilds the rotary frequencies (arange, pow, divide, sine,
+cosine) at every call, a Llama RMSNorm is six kernels, and ``eager_attention_forward`` copies the
+keys and values once per query head (the expand and reshape of grouped-query attention), casts
+them and masks with ``torch.where``. :class:`SmolVLAFused` computes the same values with ≈ 20:
+
+- **one projection for q, k and v, and one for the MLP's gate and up**: the layer's weights become
+  views of one concatenated tensor (``pi05_kernels.fuse_weights``: nothing copied, LeRobot's
+  modules keep working on them);
+- **RMSNorm as one kernel** (``torch.nn.functional.rms_norm``: ``_fused_rms_norm`` on CUDA);
+- **the rotary tables made once a sample** (prefix positions, the suffix's, the cross-attention
+  queries'), with the attention scale folded into q's rows, and **q and k rotated together**
+  (three kernels, LeRobot's formula: ``x1·cos − x2·sin``, ``x2·cos + x1·sin``);
+- **the K/V caches head-major** (``(B, K/V heads, length, d)``), so grouped-query attention folds
+  each K/V head's query heads into the query length and reads keys and values where they lie: one
+  product for the scores, the mask added in place (additive, ``finfo.min``: the same zeros after
+  softmax as LeRobot's ``where``, the same uniform row for a row that sees nothing), softmax, one
+  product for the output, one copy into the output projection's layout;
+- residuals without LeRobot's defensive ``clone``.
+
+Numerics: float32 scores and softmax as LeRobot's; every value is LeRobot's up to the rounding
+order (a fused norm reduces in its own order, ``addcmul`` rounds once where two kernels round
+twice; folding the scale into q is exact when it is a power of two — SmolVLM2's head size 64 gives
+1/8): ``tests/policies/test_smolvla_static.py`` holds the fused chunks to LeRobot's within 1e-5.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lerobot_armory.policies.pi05_kernels import fuse_weights, unfusable
+
+ROPE_WAVELENGTH = 10_000  # LeRobot's apply_rope default (SmolVLA calls it without the config's rope_theta)
+
+
+def fusable_reason(vwe: Any, self_attention: list[bool]) -> str | None:
+    """Why :class:`SmolVLAFused` cannot run this ``SmolVLMWithExpertModel`` (None: it can)."""
+    text, expert = vwe.get_vlm_model().text_model, vwe.lm_expert
+    if getattr(text.config, "hidden_act", "silu") != "silu" or getattr(expert.config, "hidden_act", "silu") != "silu":
+        return "an MLP's activation is not SiLU"
+    for model in (text, expert):
+        for i, layer in enumerate(model.layers):
+            attn, mlp = layer.self_attn, layer.mlp
+            groups = [(mlp.gate_proj, mlp.up_proj)]
+            if model is text or self_attention[i]:
+                groups.append((attn.q_proj, attn.k_proj, attn.v_proj))
+            elif attn.q_proj.bias is not None:
+                return "a projection has a bias"
+            for group in groups:
+                why = unfusable(group)
+                if why is not None:
+                    return why
+    return None
+
+
+class SmolVLAFused:
+    """The fused operations of every VLM and expert layer (see the module docstring).
+
+    Args:
+        vwe: LeRobot's ``SmolVLMWithExpertModel``.
+        self_attention: per layer, whether the expert's layer attends the prefix's cache
+            (self-attention) or its own projection of it (cross-attention).
+    """
+
+    def __init__(self, vwe: Any, self_attention: list[bool]) -> None:
+        why = fusable_reason(vwe, self_attention)
+        if why is not None:
+            raise ValueError(why)
+        self.text, self.expert = vwe.get_vlm_model().text_model, vwe.lm_expert
+        self.self_attention = self_attention
+        self.heads, self.kv_heads = vwe.num_attention_heads, vwe.num_key_value_heads
+        self.head_dim = self.text.config.head_dim
+        self.scale = self.head_dim**-0.5
+        # Fused weights, per layer: views of one tensor each, LeRobot's modules keep theirs as views.
+        self.qkv = {}
+        self.gate_up = {}
+        for model in (self.text, self.expert):
+            for i, layer in enumerate(model.layers):
+                attn, mlp = layer.self_attn, layer.mlp
+                if model is self.text or self_attention[i]:
+                    self.qkv[id(layer)] = fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj])
+                self.gate_up[id(layer)] = fuse_weights([mlp.gate_proj, mlp.up_proj])
+
+    # -- per sample -----------------------------------------------------------------------------
+
+    def tables(self, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """Rotary tables ``(cos, signed sin)`` for ``positions`` (B, L), float32 ``(B, L, Hq + Hkv, d)``:
+        q's heads scaled by the attention scale, k's not. ``x·cos + swap_halves(x)·signed_sin`` is
+        LeRobot's ``apply_rope``: ``[x1·cos − x2·sin, x2·cos + x1·sin]``."""
+        d_half = self.head_dim // 2
+        exponents = (2.0 / self.head_dim) * torch.arange(d_half, dtype=torch.float32, device=positions.device)
+        radians = positions[..., None].to(torch.float32) / (ROPE_WAVELENGTH**exponents)[None, None, :]
+        sin, cos = torch.sin(radians), torch.cos(radians)
+        cos = torch.cat([cos, cos], dim=-1)[:, :, None, :]
+        sin = torch.cat([-sin, sin], dim=-1)[:, :, None, :]
+        b, length = positions.shape
+
+        def per_head(t: Tensor) -> Tensor:  # q's heads scaled (a Python number times a tensor: no host copy)
+            return torch.cat([(t * self.scale).expand(b, length, self.heads, -1), t.expand(b, length, self.kv_heads, -1)], dim=2)
+
+        return per_head(cos), per_head(sin)
+
+    @staticmethod
+    def additive(valid: Tensor) -> Tensor:
+        """A boolean ``(B, Lq, Lk)`` pattern as float32 ``(B, 1, 1, Lq, Lk)`` to add to the scores:
+        0 where a query sees a key, ``finfo.min`` where not (softmax gives exactly LeRobot's zeros,
+        and a row that sees nothing the same uniform row)."""
+        zero = torch.zeros((), dtype=torch.float32, device=valid.device)
+        return torch.where(valid, zero, torch.finfo(torch.float32).min)[:, None, None]
+
+    def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
+        """Per layer, head-major keys and values ``(B, Hkv, P + H, d)`` in ``dtype[i]``."""
+        shape = (b, self.kv_heads, p + h, self.head_dim)
+        return [(torch.empty(shape, dtype=dt, device=device), torch.empty(shape, dtype=dt, device=device)) for dt in dtype]
+
+    # -- one layer ------------------------------------------------------------------------------
+
+    def norm(self, norm: Any, h: Tensor) -> Tensor:
+        """HF's Llama RMSNorm, one kernel; a stream in another dtype than the weight (a bf16 VLM's
+        first layer reads the float32 prefix) gets the weight's product after, in the promoted
+        dtype, as HF's does."""
+        if h.dtype == norm.weight.dtype:
+            return torch.nn.functional.rms_norm(h, (h.shape[-1],), norm.weight, norm.variance_epsilon)
+        return torch.nn.functional.rms_norm(h, (h.shape[-1],), eps=norm.variance_epsilon) * norm.weight
+
+    def rotate(self, x: Tensor, table: tuple[Tensor, Tensor], heads: int) -> Tensor:
+        """The first ``heads`` heads of ``x`` (B, L, ≥heads, d) rotated (and q's scaled), float32."""
+        x = x[:, :, :heads].to(torch.float32)
+        cos, sin = table[0][:, :, :heads], table[1][:, :, :heads]
+        half = self.head_dim // 2
+        swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)
+        return torch.addcmul(x * cos, swapped, sin)
+
+    def self_attention_kv(self, layer: Any, x: Tensor, table: tuple[Tensor, Tensor], cache: tuple[Tensor, Tensor], start: int) -> Tensor:
+        """q, k and v of ``x`` (one product), q and k rotated; k and v written into ``cache`` at
+        ``start``; returns q (float32, scaled) ``(B, L, Hq, d)``."""
+        heads, kv = self.heads, self.kv_heads
+        qkv = torch.nn.functional.linear(x, self.qkv[id(layer)]).view(*x.shape[:-1], heads + 2 * kv, self.head_dim)
+        qk = self.rotate(qkv, table, heads + kv)
+        end = start + x.shape[1]
+        cache[0][:, :, start:end] = qk[:, :, heads:].transpose(1, 2)
+        cache[1][:, :, start:end] = qkv[:, :, heads + kv :].transpose(1, 2)
+        return qk[:, :, :heads]
+
+    def cross_query(self, layer: Any, x: Tensor, table: tuple[Tensor, Tensor]) -> Tensor:
+        """A cross-attention layer's q (float32, rotated and scaled) ``(B, L, Hq, d)``."""
+        q = layer.self_attn.q_proj(x).view(*x.shape[:-1], self.heads, self.head_dim)
+        return self.rotate(q, table, self.heads)
+
+    def cross_kv(self, layer: Any, cache: tuple[Tensor, Tensor], p: int) -> tuple[Tensor, Tensor]:
+        """A cross-attention layer's keys and values, head-major: the expert's projections of the
+        VLM's prefix keys and values (once a sample)."""
+        attn = layer.self_attn
+        out = []
+        for proj, src in ((attn.k_proj, cache[0]), (attn.v_proj, cache[1])):
+            flat = src[:, :, :p].transpose(1, 2).reshape(src.shape[0], p, -1).to(proj.weight.dtype)
+            out.append(proj(flat).view(src.shape[0], p, -1, self.head_dim).transpose(1, 2).contiguous())
+        return out[0], out[1]
+
+    def attend(self, q: Tensor, keys: Tensor, values: Tensor, mask: Tensor) -> Tensor:
+        """Grouped-query attention: q (B, Lq, Hq, d) float32, keys/values head-major (B, Hkv, Lk, d),
+        ``mask`` from :meth:`additive`; returns (B, Lq, Hq·d) in the values' dtype."""
+        b, lq = q.shape[:2]
+        kv, groups, lk = self.kv_heads, self.heads // self.kv_heads, keys.shape[2]
+        # LeRobot's head h reads K/V head h // groups: fold each K/V head's queries into one row block.
+        qg = q.view(b, lq, kv, groups, self.head_dim).permute(0, 2, 3, 1, 4).reshape(b * kv, groups * lq, self.head_dim)
+        k = keys.reshape(b * kv, lk, self.head_dim).to(torch.float32)
+        scores = torch.bmm(qg, k.transpose(1, 2)).view(b, kv, groups, lq, lk)
+        probs = torch.softmax(scores.add_(mask), dim=-1).to(values.dtype)
+        out = torch.bmm(probs.view(b * kv, groups * lq, lk), values.reshape(b * kv, lk, self.head_dim))
+        return out.view(b, kv, groups, lq, self.head_dim).permute(0, 3, 1, 2, 4).reshape(b, lq, self.heads * self.head_dim)
+
+    def rest_of_layer(self, layer: Any, h: Tensor, att: Tensor) -> Tensor:
+        """Output projection, residual, norm, MLP (one gate/up product), residual; the residual
+        sums in place in the projections' dtype, as LeRobot's (``out += h``)."""
+        out = layer.self_attn.o_proj(att.to(layer.self_attn.o_proj.weight.dtype))
+        out += h
+        x = self.norm(layer.post_attention_layernorm, out)
+        gate, up = torch.nn.functional.linear(x, self.gate_up[id(layer)]).chunk(2, dim=-1)
+        mlp = layer.mlp.down_proj(torch.nn.functional.silu(gate) * up)
+        mlp += out
+        return mlp
