@@ -270,12 +270,12 @@ class StaticSmolVLA:
         images, img_masks = self.policy.prepare_images(dict(zip(self.cameras, inputs.images, strict=True)))
         embs, pads, att_ones = [], [], []
         start, end = self._constants.get("image_start"), self._constants.get("image_end")
-        for img, img_mask in zip(images, img_masks, strict=False):
+        for img, img_mask, image_emb in zip(images, img_masks, self._embed_images(images), strict=False):
             b = img.shape[0]
             if start is not None:
                 embs.append(start.unsqueeze(0).expand(b, -1, -1))
                 pads.append(torch.ones(b, start.shape[0], dtype=torch.bool, device=img.device))
-            emb = self._embed_image(img) * self._constants["image_scale"]
+            emb = image_emb * self._constants["image_scale"]
             embs.append(emb)
             pads.append(img_mask[:, None].expand(b, emb.shape[1]))
             if end is not None:
@@ -300,6 +300,14 @@ class StaticSmolVLA:
             pad_t = pad_tensor(pad_t, self.model.prefix_length, pad_value=0)
             att = pad_tensor(att, self.model.prefix_length, pad_value=0)
         return embs_t, pad_t, att.expand(pad_t.shape[0], -1)
+
+    def _embed_images(self, images: list[Tensor]) -> list[Tensor]:
+        """Each camera's image embeddings; cameras of one shape pass the vision tower as one batch
+        (LeRobot runs it once per camera: rows never mix, so the values are the same, with half
+        the vision kernels for two cameras)."""
+        if len(images) > 1 and len({img.shape for img in images}) == 1:
+            return list(self._embed_image(torch.cat(images, dim=0)).chunk(len(images), dim=0))
+        return [self._embed_image(img) for img in images]
 
     def _embed_image(self, pixels: Tensor) -> Tensor:
         """LeRobot's ``embed_image`` (HF's SmolVLM vision transformer and connector) for full patch
