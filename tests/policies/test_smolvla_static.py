@@ -12,7 +12,8 @@ from lerobot_armory.engine import rtc
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.errors import ConfigError
-from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
+from tests.support.vla import TASKS, assert_padding_never_changes_a_real_row, assert_shared_chunks_equal_alone, assert_static_equals_lerobot
+from tests.support.vla import assert_traces_as_one_graph_with_no_host_sync, serve_prompt_robots
 from tests.support.vla import rtc_batch as batch
 
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
@@ -138,3 +139,17 @@ def test_a_bf16_smolvlm_gives_lerobots_chunks_bit_for_bit(smolvla_dir, part):
     assert torch.equal(got, want), (got - want).abs().max()
     lerobot_error, fused_error = float((want - float32).abs().max()), float((near - float32).abs().max())
     assert 0 < fused_error <= 1.5 * lerobot_error, (fused_error, lerobot_error)
+
+
+def test_served_through_the_fused_sampler_each_robots_chunk_is_lerobots_chunk_alone(smolvla_dir):
+    """A real server on the static SmolVLA (fused kernels; buckets 1 and 3, so a batch of two is
+    padded) and three robots whose prompts differ in length share batches (each batch's prompts
+    fitted to a prompt bucket, where LeRobot pads to the batch's longest): every shared chunk
+    equals LeRobot's SmolVLA on that robot's observation, prompt and noise alone."""
+    lerobot = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"))
+    static = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"), engine=EngineOptions(static_sampler=True, graph_buckets="1,3"))
+    static.warmup(3, log_progress=False)
+    assert static.fused_kernels and static.sampler.buckets == (1, 3)
+    server, robots = serve_prompt_robots(static, list(TASKS), max_batch_size=3)
+    assert server.loop.stats.failed_batches == 0
+    assert assert_shared_chunks_equal_alone(lerobot, server, robots) >= 1
