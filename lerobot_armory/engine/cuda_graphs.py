@@ -161,7 +161,7 @@ class BucketedSampler:
         bucket = bucket_for(rows, self.buckets)
         if bucket is None:
             self._missed("big", f"a batch of {rows} is larger than every bucket {self.buckets}: run eagerly at its own size")
-            bucket = rows
+            return self._eager(inputs, rows)
         graph = self.graphs.get((bucket, inputs.prompt_length))
         if graph is None:
             if self.graphs:

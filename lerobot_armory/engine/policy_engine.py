@@ -237,7 +237,7 @@ class PolicyEngine:
             if note is not None:
                 log.info("CUDA graphs off, the policy's own sampler serves: %s", note)
             return False, note
-        full = getattr(self.config, "tokenizer_max_length", None)
+        full = self._tokenizer_max_length()
         if isinstance(full, int) and full > 0:  # checked before the sampler may cast the vision tower
             from lerobot_armory.engine.cuda_graphs import parse_prompt_buckets
 
@@ -268,6 +268,15 @@ class PolicyEngine:
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
         return graphs, None
+
+    def _tokenizer_max_length(self) -> int | None:
+        """The prompt length the pre-processor's tokenizer pads or truncates to: its step's own
+        ``max_length`` (saved with the processor, so ``--policy.tokenizer_max_length`` does not
+        reach it), else the config's."""
+        for step in getattr(self.preprocessor, "steps", []):
+            if type(step).__name__ == "TokenizerProcessorStep" and isinstance(getattr(step, "max_length", None), int):
+                return int(step.max_length)
+        return getattr(self.config, "tokenizer_max_length", None)
 
     @property
     def unrecorded_batches(self) -> int:

@@ -348,7 +348,11 @@ class Fused(LeRobotOrder):
 
 def fuse_weights(linears: list[Any]) -> Tensor:
     """One weight for ``linears`` stacked by output rows; each module's weight becomes a view of
-    it (same values, no second copy). The linears must pass :func:`unfusable`."""
+    it (same values, no second copy). The linears must pass :func:`unfusable`.
+
+    Side effects on the policy, which a server never meets: safetensors refuses to save a weight
+    that is a view of a larger tensor (``save_pretrained`` after fusing fails), and a ``.to()``
+    after fusing gives the modules new weights while a sampler keeps the fused tensor it made."""
     weights = [lin.weight for lin in linears]
     with torch.no_grad():
         fused = _fused_already(weights)

@@ -323,6 +323,7 @@ class ServingLoop:
         plan = batch.plan
         engine = batch.policy.engine
         t_start = fleet.clock()
+        unrecorded: int | None = None  # the engine's count of batches without their CUDA graph, before this one
         try:
             tasks = [s.task for s in batch.sessions]
             model_actions = None
@@ -335,12 +336,12 @@ class ServingLoop:
             if actions.shape[0] != plan.size:
                 raise RuntimeError(f"engine returned {actions.shape[0]} chunks for a batch of {plan.size}")
         except Exception as exc:
+            self._count_unrecorded(engine, unrecorded)
             self._fail(batch, exc, t_start)
             return
         t_done = fleet.clock()
         self._failures_in_a_row = 0
-        if engine.unrecorded_batches > unrecorded:
-            self.stats.unrecorded_batches += 1
+        self._count_unrecorded(engine, unrecorded)
         with fleet.cond:
             batch.policy.dispatcher.complete(plan, t_done)
             for k, (request, session) in enumerate(zip(plan.requests, batch.sessions, strict=True)):
@@ -364,6 +365,15 @@ class ServingLoop:
         if batch.policy.latency is not None:
             self._learn(batch.policy, plan.size, t_done - t_start)
         self._record(batch.policy.name, plan, t_start, t_done, ok=True, prefixes=batch.prefixes)
+
+    def _count_unrecorded(self, engine: Engine, before: int | None) -> None:
+        """Count the batch if the engine served it without its CUDA graph (its running count grew
+        since ``before``; None: the count could not be read, nothing to compare)."""
+        try:
+            if before is not None and engine.unrecorded_batches > before:
+                self.stats.unrecorded_batches += 1
+        except Exception:  # a broken engine fails its batch on its own: the count is an extra
+            pass
 
     def _learn(self, served: ServedPolicy, size: int, seconds: float) -> None:
         """Feed one served batch to the latency model; hand a changed table to the scheduler.

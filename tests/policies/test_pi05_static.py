@@ -165,6 +165,8 @@ def test_a_recorded_bucket_is_fed_through_its_buffers_and_its_output_copied_out(
         assert runner.unrecorded == 0
         assert torch.equal(runner(odd), static.sampler.sample(odd.padded(4))[:3])
         assert fake.replays == 2 and runner.unrecorded == 1  # counted: armory_batches_unrecorded
+        five = make(5, 3)  # larger than every bucket: eager at its own size, counted once
+        assert torch.equal(runner(five), static.sampler.sample(five)) and runner.unrecorded == 2
 
 
 def test_engine_options_are_checked_with_one_line_each(pi05_dir, demo_policy_dir):

@@ -181,6 +181,10 @@ def test_every_served_batch_has_a_prompt_length_a_graph_was_recorded_for(kind, r
     assert static.prompt_buckets == (16, 32, full)[: 3 if full > 32 else 2]  # auto: 16 and 32 for a short prompt
     recorded = {inputs.prompt_length for inputs in static._example_inputs(2)}
     assert recorded == set(static.prompt_buckets)
+    # The length the pre-processor's tokenizer pads to is the one that counts: the config's field
+    # does not reach the saved tokenizer step, so an override of it changes nothing here.
+    overridden = PolicyEngine(PolicyOptions(path, "cpu", overrides=[f"tokenizer_max_length={full // 2}"]), engine=EngineOptions(static_sampler=True))
+    assert overridden.prompt_buckets == static.prompt_buckets
     served = []
     for words in (1, 3, 6, 12, 40):
         obs, _, seeds, _ = batch(2, seed=words)

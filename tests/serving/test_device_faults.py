@@ -116,7 +116,8 @@ def test_a_lost_device_stops_the_loop_at_the_first_batch_with_one_clear_reason()
 
 class UnrecordedFrom(EchoEngine):
     """The echo engine whose batches of ``size`` or more find no recorded CUDA graph (as a batch
-    whose prompt length or shapes no graph holds): its ``unrecorded_batches`` count grows."""
+    whose prompt length or shapes no graph holds): its ``unrecorded_batches`` count grows; every
+    fifth such batch then fails (an eager batch allocates outside the graphs' memory pool)."""
 
     def __init__(self, size: int) -> None:
         super().__init__(0.01)
@@ -126,14 +127,16 @@ class UnrecordedFrom(EchoEngine):
         self.sizes.append(len(observations))
         if len(observations) >= self.size:
             self.unrecorded_batches += 1
+            if self.unrecorded_batches % 5 == 0:
+                raise RuntimeError("an eager batch failed")
         return super().infer(observations, tasks, noise_seeds)
 
 
 def test_batches_served_without_their_cuda_graph_are_counted_and_shown():
     """A batch the engine served eagerly although graphs were recorded (correct chunks, eager
     speed) is counted by the loop, exported as ``armory_batches_unrecorded_total`` and shown in
-    the status line: a slow fleet can be told from a slow GPU. Batches that replayed their graph
-    are not counted."""
+    the status line: a slow fleet can be told from a slow GPU; one that then failed is counted too.
+    Batches that replayed their graph are not counted."""
     engine = UnrecordedFrom(size=2)
     server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
     try:
@@ -143,9 +146,9 @@ def test_batches_served_without_their_cuda_graph_are_counted_and_shown():
         assert wait_for(lambda: stats.unrecorded_batches == sum(b >= 2 for b in engine.sizes), timeout=5)
         missed = stats.unrecorded_batches
         assert 0 < missed < len(engine.sizes), engine.sizes  # both kinds of batch ran
-        assert stats.failed_batches == 0
+        assert stats.failed_batches == missed // 5 >= 1, (stats.failed_batches, missed)
         assert server.metrics.registry.get_sample_value("armory_batches_unrecorded_total") == missed
         assert f"unrecorded={missed}" in server.status_line()
-        assert all(c.chunks_received > 5 for c in clients)
+        assert all(c.chunks_received > 3 for c in clients)
     finally:
         server.stop(0.5)
