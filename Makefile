@@ -45,6 +45,7 @@ bench: setup
 	$(PY) benchmarks/decision_time.py
 	$(PY) benchmarks/engine_efficiency.py
 	$(PY) benchmarks/pi05_ops.py
+	$(PY) benchmarks/pi05_ops.py --kind=smolvla
 	$(PY) benchmarks/bf16_accuracy.py
 	$(PY) benchmarks/serving_overhead.py
 	$(PY) benchmarks/load.py 64 30

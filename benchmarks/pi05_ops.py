@@ -22,9 +22,10 @@ LeRobot's kernels (a regression guard: 0.32–0.35× measured on 2026-11-27, in 
 what remains is the model's own arithmetic, about 20 kernels an expert layer and step, which
 only ``--engine.compile_sampler`` reduces further). Exits 1 on a miss. ``--kind=pi0`` counts
 LeRobot's π0 the same way (the same depths, a 48-token prompt, the state as a token of the
-action expert's suffix).
+action expert's suffix); ``--kind=smolvla`` LeRobot's SmolVLA (SmolVLM2-500M's depths and image
+geometry at tiny widths, float32 only; its fused kernels are ``policies/smolvla_kernels.py``).
 
-    .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8] [--dtype=bfloat16] [--kind=pi0]
+    .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8] [--dtype=bfloat16] [--kind=pi0|smolvla]
 """
 
 from __future__ import annotations
