@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import fuse_weights, unfusable
+from lerobot_armory.policies.pi05_kernels import _swap_halves, fuse_weights, unfusable
 
 ROPE_WAVELENGTH = 10_000  # LeRobot's apply_rope default (SmolVLA calls it without the config's rope_theta)
 
@@ -48,10 +48,8 @@ def fusable_reason(vwe: Any, self_attention: list[bool]) -> str | None:
         for i, layer in enumerate(model.layers):
             attn, mlp = layer.self_attn, layer.mlp
             groups = [(mlp.gate_proj, mlp.up_proj)]
-            if model is text or self_attention[i]:
+            if model is text or self_attention[i]:  # a cross-attention layer's q_proj runs as it is
                 groups.append((attn.q_proj, attn.k_proj, attn.v_proj))
-            elif attn.q_proj.bias is not None:
-                return "a projection has a bias"
             for group in groups:
                 why = unfusable(group)
                 if why is not None:
@@ -73,7 +71,6 @@ class SmolVLAFused:
         if why is not None:
             raise ValueError(why)
         self.text, self.expert = vwe.get_vlm_model().text_model, vwe.lm_expert
-        self.self_attention = self_attention
         self.heads, self.kv_heads = vwe.num_attention_heads, vwe.num_key_value_heads
         self.head_dim = self.text.config.head_dim
         self.scale = self.head_dim**-0.5
@@ -133,9 +130,7 @@ class SmolVLAFused:
         """The first ``heads`` heads of ``x`` (B, L, ≥heads, d) rotated (and q's scaled), float32."""
         x = x[:, :, :heads].to(torch.float32)
         cos, sin = table[0][:, :, :heads], table[1][:, :, :heads]
-        half = self.head_dim // 2
-        swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)
-        return torch.addcmul(x * cos, swapped, sin)
+        return torch.addcmul(x * cos, _swap_halves(x), sin)
 
     def self_attention_kv(self, layer: Any, x: Tensor, table: tuple[Tensor, Tensor], cache: tuple[Tensor, Tensor], start: int) -> Tensor:
         """q, k and v of ``x`` (one product), q and k rotated; k and v written into ``cache`` at
