@@ -195,8 +195,10 @@ def main() -> None:
             f"device busy {100 * busy:.0f} % of the server's life (bare windows included)\n"
             f"        offered {offered:.0f} observations/s by {robots} robots = {offered / bare:.1f}x the bare rate; served windows of {served_s:.1f} s"
         )
-        if offered < OVERSUBSCRIBE * bare:
+        if robots == MAX_ROBOTS and offered < OVERSUBSCRIBE * bare:
             print(f"        (offered load below {OVERSUBSCRIBE}x bare: capped at {MAX_ROBOTS} robots; the ratio may read the load)")
+        elif offered < 1.5 * bare:  # sized on the first bare window; later ones ran faster
+            print(f"        (offered load only {offered / bare:.1f}x bare: the ratio may read the load)")
         if server.loop.stats.unrecorded_batches:
             print(f"        WARNING: {server.loop.stats.unrecorded_batches} served batches ran without their CUDA graph (the log says why)")
         targets.check_min(f"served/bare b={b}", ratio, target)

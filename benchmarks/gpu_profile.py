@@ -18,7 +18,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   every prompt at LeRobot's padded 200 tokens (by default the measured prompts, "pick up the block
   number k", are cut to 64); a ``-visionbf16`` suffix: ``--engine.vision_dtype=bfloat16``, the
   SigLIP tower and projector in bf16 (LeRobot keeps them in float32; cast in place, so the
-  policy is loaded again for the configuration after it);
+  policy is loaded again for the configuration after it). Without it a graphed configuration
+  names ``float32`` (the default before 2026-11-27 #8); the served default on a GPU is now
+  ``pi05-bf16-graphs-tf32-visionbf16`` (``--engine.vision_dtype=auto``);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -45,7 +47,8 @@ eager sampler on the same weights in float32, loaded after the others), and (``-
 faulted CUDA in some versions) where a pass's device time goes: one
 pass at b = 1 and at the largest b traced with ``torch.profiler`` (the kernels inside a graph's
 replay one by one), its kernel time summed by kind — matrix products, attention, norms, copies,
-elementwise — with the ten longest kernels. Results merge into ``docs/results/gpu/<device>.json``;
+elementwise — with the ten longest kernels; ``--stages``: each step of a served batch timed alone,
+synchronised (what the engine adds to the bare pass). Results merge into ``docs/results/gpu/<device>.json``;
 its top-level ``latency_ms`` is the fastest π0.5 bf16 configuration through the engine, so the
 file loads as ``--latency_profile=FILE``. A figure is drawn beside the JAX reference's H100 table
 (openpi in JAX, the π0.5 latencies reported in the real-time chunking paper).
@@ -236,6 +239,49 @@ def bare_forward(engine: Any, obs: list, tasks: list[str], seeds: list[int], rep
     return times
 
 
+def stage_breakdown(engine: Any, b: int, reps: int) -> dict[str, float]:
+    """Median ms of each step of a served batch at size b, the device synchronised after each, so
+    each step's figure is its host time plus the device work it queued: what the engine adds to
+    the bare pass (stacking and upload, noise, the pre-processor with the tokenizer, the
+    post-processor, the copy back) against the pass itself (``forward``: the prompt bucket's
+    read-back, the copies into the graph's inputs, the replay). Runs on the device thread."""
+    import torch
+
+    cuda = str(engine.device).startswith("cuda")
+    obs = [engine.example_observation(seed=k) for k in range(b)]
+    tasks = [f"pick up the block number {k}" for k in range(b)]
+    times: dict[str, list[float]] = {}
+
+    def timed(name: str, fn: Any, *args: Any) -> Any:
+        t0 = time.perf_counter()
+        out = fn(*args)
+        if cuda:
+            torch.cuda.synchronize(engine.device)
+        times.setdefault(name, []).append((time.perf_counter() - t0) * 1000.0)
+        return out
+
+    def run() -> None:
+        with torch.inference_mode():
+            for _ in range(reps + 1):  # the first is a warm-up, dropped below
+                batch = timed("stack and upload", engine.to_batch, obs)
+                batch["task"] = list(tasks)
+                kwargs = timed("noise", lambda: {"noise": engine._noise(range(b))} if engine.noise_shape is not None else {})
+                ready = timed("pre-processor", engine.preprocessor, batch)
+                actions = timed("forward", engine.forward, ready, kwargs)
+                actions = timed("post-processor", engine.postprocessor, actions)
+                timed("copy back", lambda: actions.detach().to("cpu", torch.float32).numpy())
+
+    engine.on_device(run)
+    return {name: round(statistics.median(ms[1:]), 3) for name, ms in times.items()}
+
+
+def add_stages(engine: Any, run: dict[str, Any]) -> None:
+    """``run["stages_ms"]``: :func:`stage_breakdown` at b = 1 and the largest b (printed too)."""
+    run["stages_ms"] = {str(b): stage_breakdown(engine, b, ARGS.reps) for b in sorted({1, ARGS.max_batch_size})}
+    for b, stages in run["stages_ms"].items():
+        print(f"  b={b} stages (ms): " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()), flush=True)
+
+
 # Kernel names by what they do (first match wins): where a graphed batch's device time goes.
 KERNEL_KINDS = (
     ("attention and softmax", r"flash|fmha|attention|sdpa|softmax"),  # first: flash kernels name cutlass types
@@ -407,8 +453,9 @@ def write(out: Path, device: str, runs: dict[str, dict[str, Any]]) -> dict[str, 
     if not data["runs"]:
         return data  # nothing measured yet: nothing to write
     bf16 = [run for name, run in data["runs"].items() if name.startswith("pi05-bf16")]
-    # The fastest π0.5 bf16 configuration is what a server would use (any run if none yet).
-    served = min(bf16, key=lambda r: sum(r["engine_ms"])) if bf16 else next(iter(data["runs"].values()))
+    # The fastest π0.5 bf16 configuration is what a server would use; a file without one (π0,
+    # SmolVLA) gets its own fastest configuration.
+    served = min(bf16 or list(data["runs"].values()), key=lambda r: sum(r["engine_ms"]))
     data["name"] = f"{device} {served['policy']} (engine)"
     data["latency_ms"] = _non_decreasing(served["engine_ms"])
     data.pop("seed_h100_pi05_ms", None)
@@ -499,6 +546,8 @@ def main() -> None:
             print(f"[{config}] FAILED: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}", flush=True)
             traceback.print_exc()
             continue
+        if ARGS.stages:
+            add_stages(engine, runs[config])
         write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
         if ARGS.kernels and engine.sampler is not None:  # after the write: a profiler crash loses nothing
             add_kernels(engine, runs[config])
@@ -538,6 +587,11 @@ def parse() -> argparse.Namespace:
         "--kernels", action=argparse.BooleanOptionalAction, default=False,
         help="for the static sampler's configurations, trace one pass at b = 1 and the largest b with torch.profiler: "
         "kernel time by kind (matrix products, attention, norms, copies, elementwise) and the longest kernels",
+    )  # fmt: skip
+    p.add_argument(
+        "--stages", action=argparse.BooleanOptionalAction, default=False,
+        help="time each step of a served batch at b = 1 and the largest b, synchronised after each: stacking and upload, "
+        "noise, pre-processor, forward, post-processor, copy back (where the engine's time over the bare pass goes)",
     )  # fmt: skip
     p.add_argument(
         "--float32_reference", action=argparse.BooleanOptionalAction, default=False,

@@ -22,8 +22,10 @@ export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 step() {  # step NAME SECONDS COMMAND... (COMMAND may be one of the functions below)
   local name=$1 limit=$2
   shift 2
+  # --line-buffered: a step the device tool kills must leave its lines in log.txt (grep into a
+  # pipe buffers 4 KiB otherwise; a π0 step's whole output was lost that way on 2026-11-27).
   echo "=== [$name] $(date +%T) (limit ${limit} s): $*" | tee -a "$LOG"
-  timeout "$limit" bash -c "$*" 2>&1 | grep -v -E "Vision embedding key|port of the OpenPI|OpenPI structure|Original implementation" | tee -a "$LOG"
+  timeout "$limit" bash -c "$*" 2>&1 | grep --line-buffered -v -E "Vision embedding key|port of the OpenPI|OpenPI structure|Original implementation" | tee -a "$LOG"
   echo "=== [$name] $(date +%T) rc=${PIPESTATUS[0]}" | tee -a "$LOG"
 }
 
@@ -65,10 +67,11 @@ for s in "$@"; do
     env) step env 40 env_report ;;
     smoke) step smoke 300 python3 benchmarks/gpu_profile.py --size=tiny --configs=pi05-bf16,pi05-bf16-graphs --reps=3 --out="$OUT/smoke_tiny.json" ;;
     graphs) step graphs 510 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs,pi05-bf16-graphs-sdpa,pi05-bf16-graphs-tf32 --work_dir=/tmp/gp ;;
-    compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-compiled --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/compiled.json" --work_dir=/tmp/gp ;;
+    compiled) step compiled 560 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16,pi05-bf16-graphs-tf32-visionbf16-compiled --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/compiled.json" --work_dir=/tmp/gp ;;
     fused) step fused 520 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32-fullprompt,pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/fused.json" --work_dir=/tmp/gp ;;
     pi0) step pi0 400 python3 benchmarks/gpu_profile.py --configs=pi0-bf16,pi0-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/pi0.json" --work_dir=/tmp/gp ;;
     smolvla) step smolvla 420 python3 benchmarks/gpu_profile.py --configs=smolvla-fp32,smolvla-fp32-graphs-tf32-ordered,smolvla-fp32-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/smolvla.json" --work_dir=/tmp/gp ;;
+    stages) step stages 150 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,8 --stages --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
     kernels) step kernels 200 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
     buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
     efficiency) step efficiency 170 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
@@ -79,7 +82,7 @@ for s in "$@"; do
     vs_async8) step vs_async8 560 vs_async 8 ;;
     faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
     swap) step swap 400 swap_gpu ;;
-    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla kernels buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
+    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).
