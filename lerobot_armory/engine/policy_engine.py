@@ -220,12 +220,14 @@ class PolicyEngine:
         if static and why is not None:
             option = "cuda_graphs" if o.static_sampler is None else "static_sampler"
             raise ConfigError(f"engine.{option}", why)
-        if self.vision_cast is not None and (not static or o.vision_dtype != self.vision_cast):
+        dtype = getattr(self.config, "dtype", None)
+        vision = o.resolved_vision_dtype(str(self.device), dtype if isinstance(dtype, str) else None, static)
+        if self.vision_cast is not None and (not static or vision != self.vision_cast):
             raise ConfigError(
                 "engine.vision_dtype", f"the vision tower was cast to {self.vision_cast} for the static sampler; "
                 "serving it otherwise needs the policy loaded again"
             )
-        if not static and o.vision_dtype != "float32":
+        if not static and vision != "float32":
             raise ConfigError("engine.vision_dtype", "runs the static sampler's vision tower, which is off here; --engine.static_sampler=true turns it on")
         if not static and o.compile_sampler:
             raise ConfigError(
@@ -251,7 +253,7 @@ class PolicyEngine:
                 max_guidance_weight=rtc.max_guidance_weight if rtc else 10.0,
                 attention=o.attention,
                 fused=o.fused_kernels,
-                vision_dtype=None if o.vision_dtype == "float32" else getattr(torch, o.vision_dtype),
+                vision_dtype=None if vision == "float32" else getattr(torch, vision),
             )
         except ValueError as exc:  # e.g. --policy.num_inference_steps=0
             raise ConfigError("policy", f"{self.path}: the static sampler cannot run it: {exc}") from None

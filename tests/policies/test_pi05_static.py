@@ -110,6 +110,18 @@ def test_tf32_is_the_default_only_for_a_bf16_policy_on_a_cuda_device():
         EngineOptions(matmul_precision="tf32").validate()
 
 
+def test_the_vision_tower_is_bf16_by_default_only_for_a_bf16_policy_graphed_on_a_cuda_device():
+    auto = EngineOptions()
+    assert auto.resolved_vision_dtype("cuda", "bfloat16", static=True) == "bfloat16"
+    assert auto.resolved_vision_dtype("cuda:1", "bfloat16", static=True) == "bfloat16"
+    assert auto.resolved_vision_dtype("cuda", "bfloat16", static=False) == "float32"  # LeRobot's sampler: never cast
+    assert auto.resolved_vision_dtype("cuda", "float32", static=True) == "float32"
+    assert auto.resolved_vision_dtype("cpu", "bfloat16", static=True) == "float32"
+    assert auto.resolved_vision_dtype("cuda", None, static=True) == "float32"  # SmolVLA: no dtype option
+    assert EngineOptions(vision_dtype="float32").resolved_vision_dtype("cuda", "bfloat16", static=True) == "float32"
+    assert EngineOptions(vision_dtype="bfloat16").resolved_vision_dtype("cpu", "float32", static=True) == "bfloat16"
+
+
 def test_profile_gives_every_batch_size_the_time_of_its_bucket(engines):
     _, static = engines
     profile = static.profile(8, warmup=0, reps=1, log_progress=False)
