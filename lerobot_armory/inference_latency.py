@@ -28,11 +28,18 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 
-# docs/spec.md §5: π0.5 / GR00T N1.7 inference latency measured by the reference system, ms by batch size.
+# docs/spec.md §5: π0.5 / GR00T N1.7 inference latency measured by the reference system, ms by batch size;
+# then our engine's own, measured on a GPU.
 BUILTIN_PROFILES: dict[str, dict[str, Any]] = {
     "l40s-pi05": {"device": "NVIDIA L40S", "policy": "pi0.5", "latency_ms": [73.0, 109.8, 142.4, 177.5, 211.1]},
     "h100-pi05": {"device": "NVIDIA H100", "policy": "pi0.5", "latency_ms": [42.3, 56.0, 66.1, 79.3, 87.2]},
     "l40s-groot": {"device": "NVIDIA L40S", "policy": "GR00T N1.7", "latency_ms": [71.8, 76.5, 83.5, 91.8, 100.9]},
+    # Our own engine (static sampler, CUDA graphs, the defaults of 2026-11-27), LIBERO inputs, random
+    # weights, measured through the engine by benchmarks/gpu_profile.py (docs/results/gpu/h200_*.json);
+    # π0's with its vision tower still float32 (bf16 became the default after that run).
+    "h200-pi05-graphs": {"device": "NVIDIA H200", "policy": "pi0.5 (armory graphs)", "latency_ms": [27.16, 32.95, 39.93, 45.5, 53.02, 62.89, 67.54, 74.33]},
+    "h200-pi0-graphs": {"device": "NVIDIA H200", "policy": "pi0 (armory graphs)", "latency_ms": [28.0, 37.38, 45.78, 55.01, 65.03, 70.4, 77.95, 86.56]},
+    "h200-smolvla-graphs": {"device": "NVIDIA H200", "policy": "SmolVLA (armory graphs)", "latency_ms": [20.2, 26.48, 31.61, 35.84, 40.42, 46.39, 50.98, 56.64]},
 }
 
 

@@ -41,9 +41,27 @@ def test_builtin_profiles_match_spec(name):
         assert not p.is_extrapolated(b)
 
 
+# Our engine's own profiles: the latency_ms of the GPU results they were measured in.
+MEASURED = {
+    "h200-pi05-graphs": "h200_fused.json",
+    "h200-pi0-graphs": "h200_pi0.json",
+    "h200-smolvla-graphs": "h200_smolvla.json",
+}
+
+
 def test_builtin_names():
-    assert set(BUILTIN_PROFILES) == set(SPEC_TABLES)
+    assert set(BUILTIN_PROFILES) == set(SPEC_TABLES) | set(MEASURED)
     assert "H100" in load_profile("h100-pi05").device
+
+
+@pytest.mark.parametrize("name", sorted(MEASURED))
+def test_measured_profiles_are_the_committed_gpu_results(name):
+    from pathlib import Path
+
+    result = json.loads((Path(__file__).parents[2] / "docs/results/gpu" / MEASURED[name]).read_text())
+    p = load_profile(name)
+    assert list(p.latency_ms) == result["latency_ms"] and p.measured_sizes == 8
+    assert result["device"] in p.device
 
 
 def test_linear_extrapolation_beyond_the_table():
