@@ -1,4 +1,6 @@
-"""SmolVLA's Llama layers with fewer kernels: the fused path of :class:`~.smolvla_static.StaticSmolVLA`.
+"""SmolVLA's Llama layers as :class:`~.smolvla_static.StaticSmolVLA` runs them: with fewer kernels
+(:class:`SmolVLAFused`, the default) or in LeRobot's own order (:class:`SmolVLAOrdered`), one
+interface, so the sampler has one loop.
 
 LeRobot's SmolVLA runs HF's Llama layers through its own helpers, and a CPU trace of the narrow
 SmolVLA (SmolVLM2-500M's depths) counts ≈ 57 kernels per action-expert layer and step, 16 layers
@@ -143,6 +145,12 @@ class SmolVLAFused:
         cache[1][:, :, start:end] = qkv[:, :, heads + kv :].transpose(1, 2)
         return qk[:, :, :heads]
 
+    @staticmethod
+    def prefix_kv(cache: tuple[Tensor, Tensor], p: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """The prefix's keys and values in ``cache``, as the prefix pass attends them (read in
+        place, in the cache's dtype; ``dtype`` is for :class:`SmolVLAOrdered`)."""
+        return cache[0][:, :, :p], cache[1][:, :, :p]
+
     def cross_query(self, layer: Any, x: Tensor, table: tuple[Tensor, Tensor]) -> Tensor:
         """A cross-attention layer's q (float32, rotated and scaled) ``(B, L, Hq, d)``."""
         q = layer.self_attn.q_proj(x).view(*x.shape[:-1], self.heads, self.head_dim)
@@ -181,3 +189,93 @@ class SmolVLAFused:
         mlp = layer.mlp.down_proj(torch.nn.functional.silu(gate) * up)
         mlp += out
         return mlp
+
+
+class SmolVLAOrdered:
+    """LeRobot's own operations in its order, behind :class:`SmolVLAFused`'s interface, so that
+    :class:`~.smolvla_static.StaticSmolVLA` runs one loop whichever it is given: HF's modules and
+    LeRobot's ``apply_rope`` / ``eager_attention_forward``, the caches ``(B, P + H, Hkv, d)`` as
+    LeRobot's concatenation lays them out, a rotary "table" that is the positions themselves and a
+    boolean mask. Its chunks are LeRobot's bit for bit where LeRobot's own are reproducible.
+
+    Args:
+        vwe: LeRobot's ``SmolVLMWithExpertModel``.
+        text: its VLM's text model (the layers whose keys and values the caches hold).
+    """
+
+    def __init__(self, vwe: Any, text: Any) -> None:
+        self.vwe, self.text = vwe, text
+        self.head_dim = vwe.vlm.config.text_config.head_dim
+
+    @staticmethod
+    def tables(positions: Tensor) -> Tensor:
+        return positions  # LeRobot's apply_rope takes the positions
+
+    @staticmethod
+    def additive(valid: Tensor) -> Tensor:
+        return valid  # LeRobot's eager_attention_forward takes the boolean pattern
+
+    def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
+        """Per layer, keys and values ``(B, P + H, Hkv, d)`` in ``dtype[i]``."""
+        out = []
+        for layer, dt in zip(self.text.layers, dtype, strict=True):
+            attn = layer.self_attn
+            shape = (b, p + h, attn.k_proj.out_features // attn.head_dim, attn.head_dim)
+            out.append((torch.empty(shape, dtype=dt, device=device), torch.empty(shape, dtype=dt, device=device)))
+        return out
+
+    @staticmethod
+    def norm(norm: Any, h: Tensor) -> Tensor:
+        return norm(h)
+
+    def self_attention_kv(self, layer: Any, x: Tensor, positions: Tensor, cache: tuple[Tensor, Tensor], start: int) -> Tensor:
+        """q, k and v of ``x`` (three products), q and k rotated; k and v written into ``cache``
+        at ``start``; returns q ``(B, L, Hq, d)``."""
+        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
+
+        attn = layer.self_attn
+        shape = (*x.shape[:-1], -1, attn.head_dim)
+        q = apply_rope(attn.q_proj(x).view(shape), positions)
+        end = start + x.shape[1]
+        cache[0][:, start:end] = apply_rope(attn.k_proj(x).view(shape), positions)
+        cache[1][:, start:end] = attn.v_proj(x).view(shape)
+        return q
+
+    @staticmethod
+    def prefix_kv(cache: tuple[Tensor, Tensor], p: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """The prefix's keys and values in the VLM's ``dtype``, as LeRobot's prefix pass attends
+        them (a cache promoted for a float32 expert behind a bf16 VLM casts back exactly)."""
+        return cache[0][:, :p].to(dtype), cache[1][:, :p].to(dtype)
+
+    @staticmethod
+    def cross_query(layer: Any, x: Tensor, positions: Tensor) -> Tensor:
+        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
+
+        attn = layer.self_attn
+        return apply_rope(attn.q_proj(x).view(*x.shape[:-1], -1, attn.head_dim), positions)
+
+    @staticmethod
+    def cross_kv(layer: Any, cache: tuple[Tensor, Tensor], p: int) -> tuple[Tensor, Tensor]:
+        """A cross-attention layer's keys and values: the expert's projections of the VLM's prefix
+        keys and values (LeRobot recomputes them at every step; they depend on the prefix alone)."""
+        attn = layer.self_attn
+        k, v = cache[0][:, :p], cache[1][:, :p]
+        keys = attn.k_proj(k.to(dtype=attn.k_proj.weight.dtype).reshape(*k.shape[:2], -1)).view(*k.shape[:2], -1, attn.head_dim)
+        values = attn.v_proj(v.to(dtype=attn.v_proj.weight.dtype).reshape(*v.shape[:2], -1)).view(*v.shape[:2], -1, attn.head_dim)
+        return keys, values
+
+    def attend(self, q: Tensor, keys: Tensor, values: Tensor, mask: Tensor) -> Tensor:
+        return self.vwe.eager_attention_forward(mask, q.shape[0], self.head_dim, q, keys, values)
+
+    @staticmethod
+    def rest_of_layer(layer: Any, h: Tensor, att: Tensor) -> Tensor:
+        """The output projection, residuals, norm and MLP, as ``SmolVLMWithExpertModel.forward``
+        runs them after attention."""
+        if att.dtype != layer.self_attn.o_proj.weight.dtype:
+            att = att.to(layer.self_attn.o_proj.weight.dtype)
+        out = layer.self_attn.o_proj(att)
+        out += h
+        after = out.clone()
+        out = layer.mlp(layer.post_attention_layernorm(out))
+        out += after
+        return out

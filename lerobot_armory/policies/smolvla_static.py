@@ -47,7 +47,7 @@ from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
 from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
-from lerobot_armory.policies.smolvla_kernels import SmolVLAFused
+from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
 
 class StaticSmolVLA:
@@ -86,20 +86,19 @@ class StaticSmolVLA:
         # LeRobot's SmolVLMWithExpertModel.forward: a layer is self-attention unless the mode is
         # cross-attention and the layer is not one of every n.
         self.self_attention = [not cross or (every > 0 and i % every == 0) for i in range(self.vwe.num_vlm_layers)]
-        self.ops: SmolVLAFused | None = None
+        self.ops: SmolVLAFused | SmolVLAOrdered = SmolVLAOrdered(self.vwe, self.text)
         self.unfused_reason: str | None = None
         if fused:
             try:  # checks every layer before it touches a weight
                 self.ops = SmolVLAFused(self.vwe, self.self_attention)
             except ValueError as exc:
                 self.unfused_reason = str(exc)
-        self.fused = self.ops is not None
+        self.fused = isinstance(self.ops, SmolVLAFused)
         self.cameras = served_cameras(self.config)  # read once: a traced region cannot read config.type
         self.chunk_size = int(self.config.chunk_size)
         self.num_steps = int(self.config.num_steps)
         if self.num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {self.num_steps}")
-        self.head_dim = self.vwe.vlm.config.text_config.head_dim
         device = next(self.model.parameters()).device
         schedule = FlowSchedule.make(self.num_steps, guided, max_guidance_weight, device)
         self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
@@ -173,17 +172,18 @@ class StaticSmolVLA:
             raise ValueError("SmolVLA's static sampler needs the state (SamplerInputs.state)")
         times = self.prepare()
         embs, pad, att = self._embed_prefix(inputs)
-        if self.ops is not None:
-            return self._sample_fused(inputs, times, embs, pad, att)
+        ops = self.ops
         b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
         caches = self._prefix_cache(embs, pad, att)
         # A cross-attention layer's keys and values depend on the prefix alone: once a sample.
-        cross = {i: self._cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
-        valid = torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2)
+        cross = {i: ops.cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
+        valid = ops.additive(torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2))
         positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
+        # A cross-attention layer's queries count from 0 (LeRobot's positions minus their minimum).
+        tables = ops.tables(positions), ops.tables(positions - torch.min(positions, dim=1, keepdim=True).values)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, times[step], caches, cross, valid, positions)
+            v_t = self._velocity(x_t, times[step], caches, cross, valid, tables)
             x_t = self._guided_step(step, time, x_t, v_t, inputs)
         return x_t
 
@@ -195,35 +195,15 @@ class StaticSmolVLA:
             v_t = v_t - self.guidance_table[step] * err
         return x_t + self.dt * v_t
 
-    # -- the fused path (policies/smolvla_kernels.py) -------------------------------------------
-
-    def _sample_fused(self, inputs: SamplerInputs, times: tuple[Tensor, ...], embs: Tensor, pad: Tensor, att: Tensor) -> Tensor:
-        """:meth:`sample` after the prefix's embeddings, with :class:`SmolVLAFused`'s kernels: the
-        rotary tables and additive masks made once, the caches head-major."""
+    def _prefix_cache(self, embs: Tensor, pad: Tensor, att: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Run the VLM over the prefix; return per layer its keys and values (in :attr:`ops`'
+        layout) with the prefix's post-rotary keys and values in the first ``P`` positions and
+        room for the suffix's behind them."""
         ops = self.ops
-        assert ops is not None
-        b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
-        caches = self._prefix_cache_fused(embs, pad, att)
-        cross = {i: ops.cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
-        valid = ops.additive(torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2))
-        positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
-        # A cross-attention layer's queries count from 0 (LeRobot's positions minus their minimum).
-        tables = ops.tables(positions), ops.tables(positions - torch.min(positions, dim=1, keepdim=True).values)
-        x_t = inputs.noise
-        for step, time in enumerate(self.times):
-            v_t = self._velocity_fused(x_t, times[step], caches, cross, valid, tables)
-            x_t = self._guided_step(step, time, x_t, v_t, inputs)
-        return x_t
-
-    def _prefix_cache_fused(self, embs: Tensor, pad: Tensor, att: Tensor) -> list[tuple[Tensor, Tensor]]:
-        """:meth:`_prefix_cache` with fused kernels; the caches head-major ``(B, Hkv, P + H, d)``."""
-        ops = self.ops
-        assert ops is not None
         b, p = pad.shape
         mask = ops.additive(make_att_2d_masks(pad, att))
         table = ops.tables(torch.cumsum(pad, dim=1) - 1)
-        dtypes = [self._cache_dtype(i) for i in range(len(self.text.layers))]
-        caches = ops.caches(b, p, self.chunk_size, dtypes, embs.device)
+        caches = ops.caches(b, p, self.chunk_size, [self._cache_dtype(i) for i in range(len(self.text.layers))], embs.device)
         h = embs
         last = len(self.text.layers) - 1
         for i, layer in enumerate(self.text.layers):
@@ -231,21 +211,22 @@ class StaticSmolVLA:
             q = ops.self_attention_kv(layer, x, table, caches[i], 0)
             if i == last:  # the last layer's output is never read: only its keys and values are
                 break
-            h = ops.rest_of_layer(layer, h, ops.attend(q, caches[i][0][:, :, :p], caches[i][1][:, :, :p], mask))
+            h = ops.rest_of_layer(layer, h, ops.attend(q, *ops.prefix_kv(caches[i], p, x.dtype), mask))
         return caches
 
-    def _velocity_fused(
+    def _velocity(
         self, x_t: Tensor, time_emb: Tensor, caches: list[Any], cross: dict[int, tuple[Tensor, Tensor]], valid: Tensor,
-        tables: tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]],
+        tables: tuple[Any, Any],
     ) -> Tensor:  # fmt: skip
-        """:meth:`_velocity` with fused kernels (``valid``: the additive mask of the suffix's queries)."""
+        """One denoising step (LeRobot's ``denoise_step``) through every expert layer (``valid``:
+        the suffix queries' mask in :attr:`ops`' form; ``tables``: the rotary positions of the
+        self-attention and the cross-attention queries)."""
         ops = self.ops
-        assert ops is not None
         m = self.model
         actions = m.action_in_proj(x_t)
         mixed = m.action_time_mlp_in(torch.cat([actions, time_emb.expand_as(actions)], dim=2))
         h = m.action_time_mlp_out(torch.nn.functional.silu(mixed))
-        p = caches[0][0].shape[2] - h.shape[1]
+        p = valid.shape[-1] - h.shape[1]
         for i, layer in enumerate(self.expert.layers):
             x = ops.norm(layer.input_layernorm, h).to(dtype=layer.self_attn.q_proj.weight.dtype)
             if self.self_attention[i]:
@@ -334,84 +315,6 @@ class StaticSmolVLA:
             coords.append(torch.bucketize(torch.clamp(frac, max=(1.0 - 1e-6)).to(pixels.dtype), boundaries, right=True))
         ids = coords[0][:, None] * side + coords[1][None, :]
         return ids.reshape(1, -1).expand(b, -1)
-
-    def _prefix_cache(self, embs: Tensor, pad: Tensor, att: Tensor) -> list[tuple[Tensor, Tensor]]:
-        """Run the VLM over the prefix; return per layer (keys, values) ``(B, P + H, Hkv, D)`` with
-        the prefix's post-rotary keys and values in the first ``P`` positions."""
-        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
-
-        mask = make_att_2d_masks(pad, att)
-        positions = torch.cumsum(pad, dim=1) - 1
-        b, p = pad.shape
-        h = embs
-        caches = []
-        last = len(self.text.layers) - 1
-        for i, layer in enumerate(self.text.layers):
-            x = layer.input_layernorm(h).to(dtype=layer.self_attn.q_proj.weight.dtype)
-            shape = (*x.shape[:-1], -1, layer.self_attn.head_dim)
-            q = apply_rope(layer.self_attn.q_proj(x).view(shape), positions)
-            k = apply_rope(layer.self_attn.k_proj(x).view(shape), positions)
-            v = layer.self_attn.v_proj(x).view(shape)
-            dtype = self._cache_dtype(i)  # float32 behind a bf16 VLM's keys where the expert is float32
-            cache = (k.new_empty(b, p + self.chunk_size, *k.shape[2:], dtype=dtype), v.new_empty(b, p + self.chunk_size, *v.shape[2:], dtype=dtype))
-            cache[0][:, :p] = k
-            cache[1][:, :p] = v
-            caches.append(cache)
-            if i == last:  # the last layer's output is never read: only its keys and values are
-                break
-            h = self._rest_of_layer(layer, h, self.vwe.eager_attention_forward(mask, b, self.head_dim, q, k, v))
-        return caches
-
-    @staticmethod
-    def _rest_of_layer(layer: Any, h: Tensor, att: Tensor) -> Tensor:
-        """The output projection, residuals, norm and MLP, as ``SmolVLMWithExpertModel.forward``
-        runs them after attention."""
-        if att.dtype != layer.self_attn.o_proj.weight.dtype:
-            att = att.to(layer.self_attn.o_proj.weight.dtype)
-        out = layer.self_attn.o_proj(att)
-        out += h
-        after = out.clone()
-        out = layer.mlp(layer.post_attention_layernorm(out))
-        out += after
-        return out
-
-    def _cross_kv(self, layer: Any, cache: tuple[Tensor, Tensor], p: int) -> tuple[Tensor, Tensor]:
-        """A cross-attention layer's keys and values: the expert's projections of the VLM's prefix
-        keys and values (LeRobot recomputes them at every step; they depend on the prefix alone)."""
-        attn = layer.self_attn
-        k, v = cache[0][:, :p], cache[1][:, :p]
-        keys = attn.k_proj(k.to(dtype=attn.k_proj.weight.dtype).reshape(*k.shape[:2], -1)).view(*k.shape[:2], -1, attn.head_dim)
-        values = attn.v_proj(v.to(dtype=attn.v_proj.weight.dtype).reshape(*v.shape[:2], -1)).view(*v.shape[:2], -1, attn.head_dim)
-        return keys, values
-
-    def _velocity(
-        self, x_t: Tensor, time_emb: Tensor, caches: list[Any], cross: dict[int, tuple[Tensor, Tensor]], valid: Tensor, positions: Tensor
-    ) -> Tensor:
-        """One denoising step (LeRobot's ``denoise_step``) through every expert layer."""
-        from lerobot.policies.smolvla.smolvlm_with_expert import apply_rope
-
-        m = self.model
-        actions = m.action_in_proj(x_t)
-        mixed = m.action_time_mlp_in(torch.cat([actions, time_emb.expand_as(actions)], dim=2))
-        h = m.action_time_mlp_out(torch.nn.functional.silu(mixed))
-        b, n = h.shape[:2]
-        p = valid.shape[2] - n
-        for i, layer in enumerate(self.expert.layers):
-            attn = layer.self_attn
-            x = layer.input_layernorm(h).to(dtype=attn.q_proj.weight.dtype)
-            shape = (*x.shape[:-1], -1, attn.head_dim)
-            if self.self_attention[i]:
-                q = apply_rope(attn.q_proj(x).view(shape), positions)
-                keys, values = caches[i]
-                keys[:, p:] = apply_rope(attn.k_proj(x).view(shape), positions)
-                values[:, p:] = attn.v_proj(x).view(shape)
-                att = self.vwe.eager_attention_forward(valid, b, self.head_dim, q, keys, values)
-            else:  # cross-attention: the queries' positions start at 0 (LeRobot's)
-                q = apply_rope(attn.q_proj(x).view(shape), positions - torch.min(positions, dim=1, keepdim=True).values)
-                att = self.vwe.eager_attention_forward(valid[:, :, :p], b, self.head_dim, q, *cross[i])
-            h = self._rest_of_layer(layer, h, att)
-        out = self.expert.norm(h)[:, -self.chunk_size :].to(dtype=torch.float32)
-        return m.action_out_proj(out)
 
     def _vision_out_dtype(self) -> torch.dtype:
         """The dtype of the image embeddings LeRobot scales (the connector's output)."""
