@@ -20,7 +20,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   SigLIP tower and projector in bf16 (LeRobot keeps them in float32; cast in place, so the
   policy is loaded again for the configuration after it). Without it a graphed configuration
   names ``float32`` (the default before 2026-11-27 #8); the served default on a GPU is now
-  ``pi05-bf16-graphs-tf32-visionbf16`` (``--engine.vision_dtype=auto``);
+  ``pi05-bf16-graphs-tf32-visionbf16`` (``--engine.vision_dtype=auto``); a ``-latevision`` suffix:
+  ``--engine.early_vision=false`` (one graph a bucket and prompt length, replayed after the
+  pre-processor, where by default the vision tower's own graph starts before it);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -89,6 +91,7 @@ CONFIGS = (
     "pi05-bf16-graphs", "pi05-bf16-graphs-sdpa", "pi05-bf16-graphs-tf32", "pi05-bf16-graphs-compiled", "pi05-fp32-graphs",
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
+    "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32",
 )  # fmt: skip
@@ -122,6 +125,7 @@ def engine_options(config: str) -> Any:
         graph_buckets=ARGS.graph_buckets,
         matmul_precision=precision,
         vision_dtype="bfloat16" if "visionbf16" in flags else "float32",
+        early_vision="latevision" not in flags,
     )
 
 

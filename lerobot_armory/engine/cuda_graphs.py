@@ -18,6 +18,12 @@ prompt (``--engine.prompt_buckets``), so one graph is recorded per (batch bucket
 Fitting also pads: SmolVLA's tokenizer pads a batch to its longest prompt, a new length nearly
 every batch, which no recorded graph would fit.
 
+The vision tower apart: a bucket records its vision graph (the images' preprocessing, SigLIP,
+the projector) and, per prompt length, the rest, which reads the vision graph's output in place.
+The engine replays the vision graph as soon as a batch's images are on the device
+(:meth:`BucketedSampler.start`), before its pre-processor tokenizes the prompts on the host: the
+GPU no longer waits for that host work before every pass.
+
 Capture rules followed here (PyTorch's ``torch.cuda.graphs`` notes): every bucket is warmed up on
 a side stream before it is recorded, and recorded on that same stream (lazy initialisations and
 per-stream cuBLAS workspaces happen there, not in the recording); all buckets share one memory
@@ -30,7 +36,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,7 +118,7 @@ def bucket_for(rows: int, buckets: tuple[int, ...]) -> int | None:
 class _Graph:
     graph: Any  # torch.cuda.CUDAGraph
     inputs: list[Tensor]  # the recorded input buffers, in SamplerInputs.tensors() order
-    output: Tensor
+    output: Any  # a Tensor; a vision graph's: a tuple of them
 
 
 class BucketedSampler:
@@ -125,6 +131,14 @@ class BucketedSampler:
     at its own size, logged once: correct, only slower; :attr:`unrecorded` counts such batches
     (the server's ``armory_batches_unrecorded`` metric), so a slow fleet can be told from a
     slow GPU.
+
+    Given ``vision`` and ``rest`` (``sample`` split in two: ``vision(images)`` → the image part of
+    the prefix, ``rest(inputs, vision_output)`` → the actions), each bucket records two graphs: its
+    vision graph, and per prompt length the rest, which reads the vision graph's output where it
+    lies. :meth:`start` replays a batch's vision graph as soon as its images are on the device, so
+    the GPU runs the vision tower while the host tokenizes the prompt; a batch not started (or
+    started on other image tensors) replays it at :meth:`__call__`, so the chunks never depend on
+    whether it was.
     """
 
     def __init__(
@@ -132,12 +146,18 @@ class BucketedSampler:
         sample: Callable[[SamplerInputs], Tensor],
         prepare: Callable[[], object] | None = None,
         uncompiled: Callable[[SamplerInputs], Tensor] | None = None,
+        vision: Callable[[tuple[Tensor, ...]], tuple[Tensor, ...]] | None = None,
+        rest: Callable[[SamplerInputs, tuple[Tensor, ...]], Tensor] | None = None,
     ) -> None:
         self.sample = sample
         self.uncompiled = uncompiled or sample
         self.prepare = prepare  # the sampler's constants, made before a shape is traced or recorded
+        self.vision, self.rest = (vision, rest) if vision is not None and rest is not None else (None, None)
         self.buckets: tuple[int, ...] = ()
         self.graphs: dict[tuple[int, int], _Graph] = {}  # by (batch bucket, prompt length)
+        self.vision_graphs: dict[int, _Graph] = {}  # by batch bucket (split: vision and rest)
+        self._started: tuple[int, tuple[Tensor, ...]] | None = None  # the bucket and images start() ran
+        self.early_starts = 0  # batches whose vision graph ran before their prompt was tokenized
         self.capture_s: dict[int, float] = {}  # by batch bucket, all its prompt lengths together
         self._pool: Any = None
         self._stream: Any = None
@@ -147,6 +167,12 @@ class BucketedSampler:
     @property
     def captured(self) -> bool:
         return bool(self.graphs)
+
+    def drop_graphs(self) -> None:
+        """Forget every recorded graph (a recording failed: the batches run unrecorded)."""
+        self.graphs.clear()
+        self.vision_graphs.clear()
+        self._started = None
 
     def set_buckets(self, buckets: tuple[int, ...]) -> None:
         if self.graphs and tuple(buckets) != self.buckets:
@@ -168,15 +194,39 @@ class BucketedSampler:
                 self._missed("prompt", f"no graph for prompts of {inputs.prompt_length} tokens in bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
         tensors = inputs.tensors()
-        if not _fits(tensors, graph.inputs):
+        vision = self.vision_graphs.get(bucket)
+        images = len(inputs.images) if vision is not None else 0
+        if not _fits(tensors[images:], graph.inputs) or (vision is not None and not _fits(tensors[:images], vision.inputs)):
             self._missed("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
-        for buf, src in zip(graph.inputs, tensors, strict=True):
-            buf[:rows].copy_(src)
-            if rows < bucket:  # padding repeats the last real row: rows never mix, so it cannot touch a real one
-                buf[rows:].copy_(src[-1:].expand(bucket - rows, *src.shape[1:]))
+        if vision is not None:
+            started, self._started = self._started, None
+            if started is not None and started[0] == bucket and _same(started[1], inputs.images):
+                self.early_starts += 1
+            else:
+                _feed(vision.inputs, tensors[:images], rows, bucket)
+                vision.graph.replay()
+        _feed(graph.inputs, tensors[images:], rows, bucket)
         graph.graph.replay()
         return graph.output[:rows].clone()
+
+    def start(self, images: Sequence[Tensor]) -> bool:
+        """Replay the vision graph of the batch's bucket on ``images`` (the tensors its inputs
+        will hold, on the device) now, before the host tokenizes its prompt; the batch's
+        :meth:`__call__` with the same tensors then skips it. True if started. A no-op without
+        vision graphs or for images that fit none."""
+        self._started = None
+        if not self.vision_graphs or not images or not self.buckets:
+            return False
+        rows = int(images[0].shape[0])
+        bucket = bucket_for(rows, self.buckets)
+        vision = self.vision_graphs.get(bucket) if bucket is not None else None
+        if vision is None or not _fits(list(images), vision.inputs) or any(int(i.shape[0]) != rows for i in images):
+            return False
+        _feed(vision.inputs, list(images), rows, bucket)
+        vision.graph.replay()
+        self._started = (bucket, tuple(images))
+        return True
 
     def compile_shape(self, inputs: SamplerInputs) -> None:
         """Run ``sample`` once on ``inputs`` (a bucket's rows at one prompt length), so that a
@@ -203,6 +253,29 @@ class BucketedSampler:
         device = example.noise.device
         inputs = [t.clone() for t in example.tensors()]
         static = example.with_tensors(inputs)
+        if self.vision is not None and self.rest is not None:
+            vision, rest = self.vision, self.rest
+            images = len(example.images)
+            seen = self.vision_graphs.get(bucket)
+            if seen is None:  # once per bucket; every prompt length's rest reads its output
+                graph, output = self._record(lambda: vision(static.images), warmup, device)
+                seen = self.vision_graphs[bucket] = _Graph(graph, inputs[:images], output)
+            else:
+                static = static.with_tensors([*seen.inputs, *inputs[images:]])
+            vision_output = seen.output
+            graph, output = self._record(lambda: rest(static, vision_output), warmup, device)
+            self.graphs[(bucket, example.prompt_length)] = _Graph(graph, inputs[images:], output)
+        else:
+            graph, output = self._record(lambda: self.sample(static), warmup, device)
+            self.graphs[(bucket, example.prompt_length)] = _Graph(graph, inputs, output)
+        torch.cuda.synchronize(device)
+        seconds = time.perf_counter() - start
+        self.capture_s[bucket] = self.capture_s.get(bucket, 0.0) + seconds
+        return seconds
+
+    def _record(self, fn: Callable[[], Any], warmup: int, device: Any) -> tuple[Any, Any]:
+        """Warm ``fn`` up on the side stream, record it as a CUDA graph in the shared pool, replay
+        it once (its output then holds real values); returns (graph, output)."""
         if self._pool is None:
             self._pool = torch.cuda.graph_pool_handle()
             # One side stream for every warm-up and every recording: handles and workspaces that
@@ -213,17 +286,13 @@ class BucketedSampler:
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
             for _ in range(warmup):
-                self.sample(static)
+                fn()
         torch.cuda.current_stream(device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph, pool=self._pool, stream=side):
-            output = self.sample(static)
+            output = fn()
         graph.replay()
-        torch.cuda.synchronize(device)
-        self.graphs[(bucket, example.prompt_length)] = _Graph(graph, inputs, output)
-        seconds = time.perf_counter() - start
-        self.capture_s[bucket] = self.capture_s.get(bucket, 0.0) + seconds
-        return seconds
+        return graph, output
 
     def _missed(self, key: str, message: str) -> None:
         """A batch runs without its bucket's graph: each reason logged once, and the batch counted
@@ -237,6 +306,20 @@ class BucketedSampler:
         if key not in self._warned:
             self._warned.add(key)
             log.warning("%s", message)
+
+
+def _feed(buffers: Sequence[Tensor], tensors: Sequence[Tensor], rows: int, bucket: int) -> None:
+    """Copy a batch's rows into a graph's input buffers; the rows behind them repeat its last
+    row (rows never mix, so padding cannot touch a real one)."""
+    for buf, src in zip(buffers, tensors, strict=True):
+        buf[:rows].copy_(src)
+        if rows < bucket:
+            buf[rows:].copy_(src[-1:].expand(bucket - rows, *src.shape[1:]))
+
+
+def _same(a: Sequence[Tensor], b: Sequence[Tensor]) -> bool:
+    """The same tensor objects, in order (what :meth:`BucketedSampler.start` ran on)."""
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b, strict=True))
 
 
 def _fits(tensors: list[Tensor], recorded: list[Tensor]) -> bool:

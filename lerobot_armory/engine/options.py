@@ -92,6 +92,12 @@ class EngineOptions:
             served by the static sampler on a CUDA device, else ``float32``). The full π0.5 on
             an H200: 1.05× faster at b = 1, 1.16× at b = 8, chunks 8.2e-4 from a float32
             π0.5's against 7.0e-4 with the tower in float32 (LeRobot's own bf16: 1.6e-2).
+        early_vision: with CUDA graphs, record each bucket's vision tower (image preprocessing,
+            SigLIP, projector) as a graph of its own and replay it as soon as the batch's images
+            are on the device, so that the GPU runs it while the host runs the pre-processor (the
+            tokenizer, π0.5's state prompt, the noise): the same chunks, the host's work before
+            the pass hidden behind the tower's. ``false``: one graph a bucket and prompt length,
+            replayed after the pre-processor (the GPU waits for it).
     """
 
     emulate_profile: str | None = None
@@ -104,6 +110,7 @@ class EngineOptions:
     compile_sampler: bool = False
     matmul_precision: str = "auto"
     vision_dtype: str = "auto"
+    early_vision: bool = True
 
     def __post_init__(self) -> None:
         # The command-line parser reads YAML, where on/off are booleans: take them back.

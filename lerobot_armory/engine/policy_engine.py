@@ -124,6 +124,8 @@ class PolicyEngine:
                 self.config.type,
             )
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
+        # Images go to the device before the pre-processor where its steps allow (to_batch).
+        self.early_upload = _early_upload_ok(self.preprocessor)
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
@@ -147,7 +149,6 @@ class PolicyEngine:
         # because every batch ends with a synchronisation (its actions come back to the host).
         self._pinned = torch.device(self.device).type == "cuda"
         self._staging: dict[tuple[str, int], Any] = {}
-        self.early_upload = _early_upload_ok(self.preprocessor)
         self.compiled_kept: bool | None = None  # after warmup(): compiled model kept (None: not compiled)
         # The chunk size is whatever predict_action_chunk really returns (checked by a dry run).
         self.chunk_size = self._dry_run()
@@ -268,7 +269,11 @@ class PolicyEngine:
         if o.compile_sampler:
             sampler.compile_layers()  # compiled at warm-up, on the first batch through them
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
-        self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample)
+        rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
+        # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
+        # reach the device before the pre-processor (early_upload) and the options want it.
+        split = o.early_vision and self.early_upload
+        self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample, vision=sampler.vision if split else None, rest=rest if split else None)
         return graphs, None
 
     def _tokenizer_max_length(self) -> int | None:
@@ -305,6 +310,8 @@ class PolicyEngine:
             if self.sampler.captured:
                 total = sum(self.sampler.capture_s.values())
                 notes.append(f"static sampler, CUDA graphs for buckets {buckets} ({total:.1f} s to record)")
+                if self.sampler.vision_graphs:
+                    notes.append("the vision tower's graph started before the pre-processor")
             else:
                 why = self.sampler_note or self.device
                 notes.append(f"static sampler, buckets {buckets}, not recorded" + ("" if self.graphs_wanted else f" ({why})"))
@@ -436,6 +443,7 @@ class PolicyEngine:
                 # tensors from others, and one made outside would be a new shape to compile.
                 batch = self.to_batch([obs for row in rows for obs in row])
                 batch["task"] = [task for task in tasks for _ in range(steps)]
+                self._start_vision(batch)
                 kwargs = self._forward_kwargs(len(observations), noise_seeds, prefixes)
                 processed = self.preprocessor(batch)
                 if self.kind.inputs == "current":
@@ -451,6 +459,18 @@ class PolicyEngine:
                 with contextlib.suppress(Exception):  # (a CUDA error would raise again here)
                     torch.cuda.synchronize(self.device)
             raise
+
+    def _start_vision(self, batch: dict[str, Any]) -> None:
+        """Start the batch's vision graph on its images, already on the device, so that the GPU
+        runs the vision tower while the host runs the pre-processor (tokenizer, state, noise). It
+        counts only if the pre-processor hands the sampler these very tensors (its steps here
+        leave images as they are: ``early_upload``); the sampler checks that, and otherwise runs
+        it again on what it is given."""
+        if self.sampler is None or self.sampler.vision is None:
+            return
+        images = [batch.get(name) for name in self._sampler_cameras]
+        if all(image is not None for image in images):
+            self.sampler.start(images)
 
     def _forward_kwargs(
         self, rows: int, noise_seeds: Sequence[int] | None, prefixes: Sequence[rtc_mod.Prefix | None] | None
@@ -664,7 +684,7 @@ class PolicyEngine:
             why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
             if self.engine_options.cuda_graphs == "on":
                 raise ConfigError("engine.cuda_graphs", why) from exc
-            self.sampler.graphs.clear()
+            self.sampler.drop_graphs()
             self.graphs_wanted, self.sampler_note = False, why
             log.warning("%s; serving with the static sampler unrecorded (--engine.cuda_graphs=on refuses instead)", why)
 

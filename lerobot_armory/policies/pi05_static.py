@@ -391,9 +391,13 @@ class StaticPi05:
 
     def sample_compiled(self, inputs: SamplerInputs) -> Tensor:
         """:meth:`sample` through the compiled layers (:meth:`compile_layers` first)."""
+        return self.sample_embedded_compiled(inputs, self.vision(inputs.images))
+
+    def sample_embedded_compiled(self, inputs: SamplerInputs, vision: tuple[Tensor, ...]) -> Tensor:
+        """:meth:`sample_embedded` through the compiled layers (:meth:`compile_layers` first)."""
         if self._compiled is None:
             raise RuntimeError("compile_layers() first")
-        return self.sample(inputs, layers=self._compiled)
+        return self.sample_embedded(inputs, vision, layers=self._compiled)
 
     @torch.no_grad()
     def sample(self, inputs: SamplerInputs, layers: tuple[Any, Any] | None = None) -> Tensor:
@@ -401,11 +405,25 @@ class StaticPi05:
         ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``).
         ``layers``: the VLM and expert layer functions (default: :meth:`_vlm_layer`,
         :meth:`_expert_layer`)."""
+        return self.sample_embedded(inputs, self.vision(inputs.images), layers)
+
+    @torch.no_grad()
+    def vision(self, images: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+        """What of the prefix depends on the images alone: each camera's embeddings (LeRobot's
+        ``_preprocess_images`` and ``embed_image``, its missing cameras included), then each
+        camera's mask. A CUDA graph of its own, so that the engine can start it before the
+        batch's prompt is tokenized (``BucketedSampler.start``)."""
+        images, img_masks = self.policy._preprocess_images(dict(zip(self.cameras, images, strict=True)))
+        return (*self._embed_images(images), *img_masks)
+
+    @torch.no_grad()
+    def sample_embedded(self, inputs: SamplerInputs, vision: tuple[Tensor, ...], layers: tuple[Any, Any] | None = None) -> Tensor:
+        """:meth:`sample` given :meth:`vision`'s output for ``inputs.images`` (not read here)."""
         vlm_layer, expert_layer = layers or (self._vlm_layer, self._expert_layer)
         if self.guided != (inputs.rtc_weights is not None):
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
-        images, img_masks = self.policy._preprocess_images(dict(zip(self.cameras, inputs.images, strict=True)))
-        prefix_embs, prefix_pad = self._embed_prefix(images, img_masks, inputs.tokens, inputs.masks)
+        cameras = len(vision) // 2
+        prefix_embs, prefix_pad = self._embed_prefix(vision[:cameras], vision[cameras:], inputs.tokens, inputs.masks)
         caches = self._prefix_cache(prefix_embs, prefix_pad, vlm_layer)
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # suffix as its pattern says; its positions follow the prefix's valid tokens.
@@ -427,18 +445,22 @@ class StaticPi05:
             x_t = self.ops.euler(x_t, v_t, self.dt)
         return x_t
 
-    def _embed_prefix(self, images: Sequence[Tensor], img_masks: Sequence[Tensor], tokens: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
-        """LeRobot's ``embed_prefix`` without its host-built attention pattern (all zeros for π0.5:
-        the prefix attends itself fully, so only the pad mask matters). All cameras go through the
-        vision tower as one batch (LeRobot runs it once per camera): rows never mix, and one pass
-        of 2B images launches half the kernels of two passes of B."""
+    def _embed_images(self, images: Sequence[Tensor]) -> tuple[Tensor, ...]:
+        """Each camera's image embeddings. All cameras go through the vision tower as one batch
+        (LeRobot runs it once per camera): rows never mix, and one pass of 2B images launches half
+        the kernels of two passes of B."""
         pwe = self.model.paligemma_with_expert
         # Shapes compared pairwise, not hashed into a set: a compiler with a dynamic batch size
         # would have to make the batch size a constant to hash it (one compilation per size).
         if len(images) > 1 and all(i.shape == images[0].shape for i in images[1:]):
-            per_camera = pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0])
-        else:
-            per_camera = tuple(pwe.embed_image(img) for img in images)
+            return tuple(pwe.embed_image(torch.cat(list(images))).split(images[0].shape[0]))
+        return tuple(pwe.embed_image(img) for img in images)
+
+    def _embed_prefix(self, per_camera: Sequence[Tensor], img_masks: Sequence[Tensor], tokens: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
+        """LeRobot's ``embed_prefix`` from the images' embeddings, without its host-built
+        attention pattern (all zeros for π0.5: the prefix attends itself fully, so only the pad
+        mask matters)."""
+        pwe = self.model.paligemma_with_expert
         embs, pads = [], []
         for emb, img_mask in zip(per_camera, img_masks, strict=True):
             embs.append(emb)

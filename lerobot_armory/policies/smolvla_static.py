@@ -79,7 +79,7 @@ class StaticSmolVLA:
         self.policy, self.model, self.config = policy, policy.model, policy.config
         self.vwe = self.model.vlm_with_expert
         vlm = self.vwe.get_vlm_model()
-        self.text, self.expert, self.vision, self.connector = vlm.text_model, self.vwe.lm_expert, vlm.vision_model, vlm.connector
+        self.text, self.expert, self.vision_model, self.connector = vlm.text_model, self.vwe.lm_expert, vlm.vision_model, vlm.connector
         self.guided = guided
         every = self.vwe.self_attn_every_n_layers
         cross = "cross" in self.vwe.attention_mode
@@ -166,12 +166,25 @@ class StaticSmolVLA:
     def sample(self, inputs: SamplerInputs) -> Tensor:
         """Actions ``(B, chunk_size, max_action_dim)`` float32 for one batch (LeRobot's
         ``sample_actions`` given the same noise; the RTC guidance per row when ``guided``)."""
+        return self.sample_embedded(inputs, self.vision(inputs.images))
+
+    @torch.no_grad()
+    def vision(self, images: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+        """What of the prefix depends on the images alone: each camera's embeddings (LeRobot's
+        ``prepare_images`` and ``embed_image``, its empty cameras included), then each camera's
+        mask (a graph of its own: ``BucketedSampler.start``)."""
+        images, img_masks = self.policy.prepare_images(dict(zip(self.cameras, images, strict=True)))
+        return (*self._embed_images(images), *img_masks)
+
+    @torch.no_grad()
+    def sample_embedded(self, inputs: SamplerInputs, vision: tuple[Tensor, ...]) -> Tensor:
+        """:meth:`sample` given :meth:`vision`'s output for ``inputs.images`` (not read here)."""
         if self.guided != (inputs.rtc_weights is not None):
             raise ValueError("RTC inputs must be given exactly when the sampler is guided")
         if inputs.state is None:
             raise ValueError("SmolVLA's static sampler needs the state (SamplerInputs.state)")
         times = self.prepare()
-        embs, pad, att = self._embed_prefix(inputs)
+        embs, pad, att = self._embed_prefix(inputs, vision)
         ops = self.ops
         b, p, h = pad.shape[0], pad.shape[1], self.chunk_size
         caches = self._prefix_cache(embs, pad, att)
@@ -244,24 +257,25 @@ class StaticSmolVLA:
         k = self.text.layers[i].self_attn.k_proj.weight.dtype
         return torch.promote_types(k, self.expert.layers[i].self_attn.k_proj.weight.dtype) if self.self_attention[i] else k
 
-    def _embed_prefix(self, inputs: SamplerInputs) -> tuple[Tensor, Tensor, Tensor]:
-        """LeRobot's ``embed_prefix``: (embeddings, pad mask, attention pattern ``att_masks``)."""
+    def _embed_prefix(self, inputs: SamplerInputs, vision: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
+        """LeRobot's ``embed_prefix`` from :meth:`vision`'s output: (embeddings, pad mask,
+        attention pattern ``att_masks``)."""
         from lerobot.policies.smolvla.modeling_smolvla import pad_tensor
 
-        images, img_masks = self.policy.prepare_images(dict(zip(self.cameras, inputs.images, strict=True)))
+        cameras = len(vision) // 2
         embs, pads, att_ones = [], [], []
         start, end = self._constants.get("image_start"), self._constants.get("image_end")
-        for img, img_mask, image_emb in zip(images, img_masks, self._embed_images(images), strict=False):
-            b = img.shape[0]
+        for image_emb, img_mask in zip(vision[:cameras], vision[cameras:], strict=True):
+            b, device = image_emb.shape[0], image_emb.device
             if start is not None:
                 embs.append(start.unsqueeze(0).expand(b, -1, -1))
-                pads.append(torch.ones(b, start.shape[0], dtype=torch.bool, device=img.device))
+                pads.append(torch.ones(b, start.shape[0], dtype=torch.bool, device=device))
             emb = image_emb * self._constants["image_scale"]
             embs.append(emb)
             pads.append(img_mask[:, None].expand(b, emb.shape[1]))
             if end is not None:
                 embs.append(end.unsqueeze(0).expand(b, -1, -1))
-                pads.append(torch.ones(b, end.shape[0], dtype=torch.bool, device=img.device))
+                pads.append(torch.ones(b, end.shape[0], dtype=torch.bool, device=device))
         lang = self.vwe.embed_language_tokens(inputs.tokens)
         embs.append(lang * math.sqrt(lang.shape[-1]))
         pads.append(inputs.masks)
@@ -293,7 +307,7 @@ class StaticSmolVLA:
     def _embed_image(self, pixels: Tensor) -> Tensor:
         """LeRobot's ``embed_image`` (HF's SmolVLM vision transformer and connector) for full patch
         masks, with the position ids computed from the shape alone."""
-        vision = self.vision
+        vision = self.vision_model
         pixels = pixels.to(dtype=vision.dtype)
         emb = vision.embeddings
         x = emb.patch_embedding(pixels).flatten(2).transpose(1, 2)
@@ -304,7 +318,7 @@ class StaticSmolVLA:
     def _position_ids(self, pixels: Tensor) -> Tensor:
         """HF's ``SmolVLMVisionEmbeddings`` position ids for a full patch mask (every patch
         valid), by its own formula: the boolean-mask write that follows it is then the identity."""
-        emb = self.vision.embeddings
+        emb = self.vision_model.embeddings
         b, _, height, width = pixels.shape
         rows, cols = height // emb.patch_size, width // emb.patch_size
         side = emb.num_patches_per_side

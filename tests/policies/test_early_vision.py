@@ -1,0 +1,130 @@
+"""The vision tower recorded as a graph of its own and started before the pre-processor
+(``--engine.early_vision``, ``BucketedSampler.start``): the same chunks whether a batch's vision
+graph ran early, at its call, or was started on another batch's images.
+
+There is no GPU here, so a recording is stood in for by :class:`_CPUGraph`: its replay recomputes
+the recorded function from the same input buffers into the same output tensors, as a CUDA graph's
+replay does — so the rest of a bucket reads the vision graph's output where it lies, and a stale
+one would show in the chunks.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lerobot_armory.engine.cuda_graphs import BucketedSampler
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from tests.support.vla import rtc_batch as batch
+
+
+class _CPUGraph:
+    def __init__(self, fn: Any) -> None:
+        self.fn, self.replays = fn, 0
+        self.output = fn()
+
+    def replay(self) -> None:
+        import torch
+
+        self.replays += 1
+        new = self.fn()
+        pairs = zip(self.output, new, strict=True) if isinstance(new, tuple) else [(self.output, new)]
+        for dst, src in pairs:
+            assert isinstance(src, torch.Tensor)
+            dst.copy_(src)
+
+
+def _record_on_cpu(self: BucketedSampler, fn: Any, warmup: int, device: Any) -> tuple[Any, Any]:
+    graph = _CPUGraph(fn)
+    return graph, graph.output
+
+
+@pytest.fixture
+def recorded_on_cpu(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(BucketedSampler, "_record", _record_on_cpu)
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda *args, **kwargs: None)
+
+
+def _engine(path: str, **options: Any) -> PolicyEngine:
+    engine = PolicyEngine(PolicyOptions(path, "cpu"), engine=EngineOptions(static_sampler=True, graph_buckets="1,2,4", **options))
+    engine.sampler.set_buckets((1, 2, 4))
+    return engine
+
+
+@pytest.mark.parametrize("policy", ["pi05_dir", "smolvla_dir"])
+def test_a_vision_graph_started_before_the_pre_processor_gives_the_same_chunks(policy, request, recorded_on_cpu):
+    """Every bucket records a vision graph and, per prompt length, the rest; a served batch starts
+    its vision graph before the pre-processor and the rest skips it; the chunks equal the same
+    engine's with one graph per bucket (``early_vision=false``), for every batch size."""
+    path = str(request.getfixturevalue(policy))
+    early, late = _engine(path), _engine(path, early_vision=False)
+    for engine in (early, late):
+        for bucket in (4, 2, 1):
+            engine.on_device(engine._capture, bucket)
+    assert set(early.sampler.vision_graphs) == {1, 2, 4} and not late.sampler.vision_graphs
+    assert "vision tower's graph started before the pre-processor" in early.description
+    vision = early.sampler.vision_graphs[4].graph
+    for b in (1, 3, 4):
+        obs, tasks, seeds, _ = batch(b, seed=b)
+        before, replays = early.sampler.early_starts, vision.replays
+        np.testing.assert_allclose(early.infer(obs, tasks, seeds), late.infer(obs, tasks, seeds), atol=1e-6, rtol=0)
+        assert early.sampler.early_starts == before + 1  # started early, not replayed again at the call
+        assert vision.replays == replays + (b > 2)
+    assert early.sampler.unrecorded == 0 and late.sampler.unrecorded == 0
+
+
+def test_a_batch_started_on_other_images_runs_its_vision_graph_again(pi05_dir, recorded_on_cpu):
+    """``start`` on one batch's images, then the call with another batch (a pre-processor that
+    made new image tensors, or a start left over from a failed batch): the vision graph runs again
+    on the batch's own images, and the chunks are its own."""
+    import torch
+
+    engine = _engine(str(pi05_dir))
+    for bucket in (4, 2, 1):
+        engine.on_device(engine._capture, bucket)
+
+    def inputs(seed: int) -> Any:
+        obs, tasks, seeds, _ = batch(2, seed=seed)
+        with torch.inference_mode():
+            processed = engine.preprocessor({**engine.to_batch(obs), "task": tasks})
+            return engine._sampler_inputs(processed, {"noise": engine._noise(seeds)})
+
+    a, b = inputs(1), inputs(2)
+    with torch.inference_mode():
+        want = engine.sampler(b).clone()
+        assert engine.sampler.start(list(a.images))
+        got = engine.sampler(b)
+        assert engine.sampler.early_starts == 0
+        torch.testing.assert_close(got, want, atol=0, rtol=0)
+        # A start on the batch's own images counts; a start with no vision graph to run does not.
+        assert engine.sampler.start(list(b.images))
+        torch.testing.assert_close(engine.sampler(b), want, atol=0, rtol=0)
+        assert engine.sampler.early_starts == 1
+        assert not engine.sampler.start([torch.cat([b.images[0]] * 3)])  # 6 rows: larger than every bucket
+
+
+def test_a_failed_recording_drops_the_vision_graphs_too(pi05_dir, recorded_on_cpu, monkeypatch):
+    """A recording that fails halfway (after bucket 4's vision graph and some of its rest) leaves no
+    graph of either kind behind: the batches run unrecorded, with the same chunks, and no batch
+    starts a vision graph whose rest is gone."""
+    engine = _engine(str(pi05_dir))
+    calls = []
+
+    def fail_on_the_fourth(self: BucketedSampler, fn: Any, warmup: int, device: Any) -> tuple[Any, Any]:
+        calls.append(1)
+        if len(calls) == 4:  # bucket 4's recordings: its vision graph, then its rest at each prompt length
+            raise RuntimeError("CUDA error: out of memory (simulated)")
+        return _record_on_cpu(self, fn, warmup, device)
+
+    monkeypatch.setattr(BucketedSampler, "_record", fail_on_the_fourth)
+    engine._record_graphs(log_progress=False)
+    assert not engine.sampler.graphs and not engine.sampler.vision_graphs and "failed" in engine.sampler_note
+    obs, tasks, seeds, _ = batch(3)
+    want = _engine(str(pi05_dir), early_vision=False).infer(obs, tasks, seeds)
+    np.testing.assert_allclose(engine.infer(obs, tasks, seeds), want, atol=1e-6, rtol=0)
+    assert engine.sampler.early_starts == 0
