@@ -681,6 +681,11 @@ class PolicyEngine:
                 if log_progress:
                     log.info("CUDA graphs of bucket %d recorded in %.1f s (%d prompt lengths)", bucket, seconds, max(1, len(self.prompt_buckets)))
         except Exception as exc:
+            if self.sampler.vision is not None:  # the split is an extra: record one graph a bucket instead
+                log.warning("recording bucket %s's vision tower apart failed (%s); recording each bucket as one graph", bucket, _first_line(exc))
+                self.sampler.drop_graphs()
+                self.sampler.vision = self.sampler.rest = None
+                return self._record_graphs(log_progress)
             why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
             if self.engine_options.cuda_graphs == "on":
                 raise ConfigError("engine.cuda_graphs", why) from exc

@@ -108,23 +108,31 @@ def test_a_batch_started_on_other_images_runs_its_vision_graph_again(pi05_dir, r
         assert not engine.sampler.start([torch.cat([b.images[0]] * 3)])  # 6 rows: larger than every bucket
 
 
-def test_a_failed_recording_drops_the_vision_graphs_too(pi05_dir, recorded_on_cpu, monkeypatch):
+@pytest.mark.parametrize("failures", [1, 2])
+def test_a_failed_split_recording_records_one_graph_a_bucket_instead(pi05_dir, recorded_on_cpu, monkeypatch, failures):
     """A recording that fails halfway (after bucket 4's vision graph and some of its rest) leaves no
-    graph of either kind behind: the batches run unrecorded, with the same chunks, and no batch
-    starts a vision graph whose rest is gone."""
+    vision graph behind: the buckets are recorded again as one graph each (the split is an extra),
+    and if that fails too, none is left and the batches run unrecorded. The chunks are the same
+    either way and no batch starts a vision graph whose rest is gone."""
     engine = _engine(str(pi05_dir))
     calls = []
 
-    def fail_on_the_fourth(self: BucketedSampler, fn: Any, warmup: int, device: Any) -> tuple[Any, Any]:
+    def fail(self: BucketedSampler, fn: Any, warmup: int, device: Any) -> tuple[Any, Any]:
         calls.append(1)
-        if len(calls) == 4:  # bucket 4's recordings: its vision graph, then its rest at each prompt length
+        # the 4th: bucket 4's recordings are its vision graph, then its rest at each prompt length;
+        # the 5th: the first one-graph recording after the split was given up
+        if len(calls) == 4 or (failures == 2 and len(calls) == 5):
             raise RuntimeError("CUDA error: out of memory (simulated)")
         return _record_on_cpu(self, fn, warmup, device)
 
-    monkeypatch.setattr(BucketedSampler, "_record", fail_on_the_fourth)
+    monkeypatch.setattr(BucketedSampler, "_record", fail)
     engine._record_graphs(log_progress=False)
-    assert not engine.sampler.graphs and not engine.sampler.vision_graphs and "failed" in engine.sampler_note
+    assert not engine.sampler.vision_graphs and engine.sampler.vision is None
+    if failures == 1:
+        assert set(engine.sampler.graphs) == {(b, n) for b in (1, 2, 4) for n in (*engine.prompt_buckets,)}
+    else:
+        assert not engine.sampler.graphs and "failed" in engine.sampler_note
     obs, tasks, seeds, _ = batch(3)
     want = _engine(str(pi05_dir), early_vision=False).infer(obs, tasks, seeds)
     np.testing.assert_allclose(engine.infer(obs, tasks, seeds), want, atol=1e-6, rtol=0)
-    assert engine.sampler.early_starts == 0
+    assert engine.sampler.early_starts == 0 and engine.sampler.unrecorded == 0
