@@ -157,6 +157,7 @@ class BucketedSampler:
         self.graphs: dict[tuple[int, int], _Graph] = {}  # by (batch bucket, prompt length)
         self.vision_graphs: dict[int, _Graph] = {}  # by batch bucket (split: vision and rest)
         self._started: tuple[int, tuple[Tensor, ...]] | None = None  # the bucket and images start() ran
+        self._vision_out: tuple[Tensor, ...] | None = None  # the vision graphs' shared output buffers
         self.early_starts = 0  # batches whose vision graph ran before their prompt was tokenized
         self.capture_s: dict[int, float] = {}  # by batch bucket, all its prompt lengths together
         self._pool: Any = None
@@ -173,6 +174,7 @@ class BucketedSampler:
         self.graphs.clear()
         self.vision_graphs.clear()
         self._started = None
+        self._vision_out = None
 
     def set_buckets(self, buckets: tuple[int, ...]) -> None:
         if self.graphs and tuple(buckets) != self.buckets:
@@ -258,8 +260,15 @@ class BucketedSampler:
             images = len(example.images)
             seen = self.vision_graphs.get(bucket)
             if seen is None:  # once per bucket; every prompt length's rest reads its output
-                graph, output = self._record(lambda: vision(static.images), warmup, device)
-                seen = self.vision_graphs[bucket] = _Graph(graph, inputs[:images], output)
+                views = self._vision_views(bucket, static.images)
+
+                def run_vision() -> tuple[Tensor, ...]:
+                    for out, new in zip(views, vision(static.images), strict=True):
+                        out.copy_(new)
+                    return views
+
+                graph, _ = self._record(run_vision, warmup, device)
+                seen = self.vision_graphs[bucket] = _Graph(graph, inputs[:images], views)
             else:
                 static = static.with_tensors([*seen.inputs, *inputs[images:]])
             vision_output = seen.output
@@ -272,6 +281,18 @@ class BucketedSampler:
         seconds = time.perf_counter() - start
         self.capture_s[bucket] = self.capture_s.get(bucket, 0.0) + seconds
         return seconds
+
+    def _vision_views(self, bucket: int, images: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+        """The first ``bucket`` rows of the buffers every bucket's vision graph writes its output
+        into and every rest reads it from: one set, sized for the largest bucket, allocated
+        outside the graphs' pool (each bucket's own outputs would stay allocated for good, ≈ 2 MiB
+        a camera and row). Safe to share: graphs replay one at a time on one thread and stream,
+        and a bucket's rest reads them right after its own vision graph wrote them."""
+        if self._vision_out is None:
+            example = self.vision(images)  # type: ignore[misc]  # shapes and dtypes, eagerly, before any recording
+            rows = max(self.buckets)
+            self._vision_out = tuple(torch.empty((rows, *t.shape[1:]), dtype=t.dtype, device=t.device) for t in example)
+        return tuple(buf[:bucket] for buf in self._vision_out)
 
     def _record(self, fn: Callable[[], Any], warmup: int, device: Any) -> tuple[Any, Any]:
         """Warm ``fn`` up on the side stream, record it as a CUDA graph in the shared pool, replay

@@ -271,8 +271,8 @@ class PolicyEngine:
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
         rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
         # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
-        # reach the device before the pre-processor (early_upload) and the options want it.
-        split = o.early_vision and self.early_upload
+        # reach the device before the pre-processor and no step of it can touch them.
+        split = o.early_vision and self.early_upload and _leaves_images_alone(self.preprocessor)
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample, vision=sampler.vision if split else None, rest=rest if split else None)
         return graphs, None
 
@@ -548,7 +548,9 @@ class PolicyEngine:
         LeRobot pads on the right; a mask that is not a run of ones then zeros keeps its length."""
         if not self.prompt_buckets:
             return None
-        used = masks.any(dim=0).cpu()  # one small read back before the pass (no graph is running)
+        # One small read-back before the pass; it waits for the vision graph started early, and
+        # the GPU then idles only while the host fits the prompt and copies the inputs in.
+        used = masks.any(dim=0).cpu()
         n = int(used.sum())
         if not bool(used[:n].all()):
             return None
@@ -674,7 +676,7 @@ class PolicyEngine:
         with ``auto`` the static sampler serves unrecorded (the same chunks, launched eagerly) and
         the log and the description say why."""
         assert self.sampler is not None
-        bucket = None
+        bucket, split_failed = None, False
         try:
             for bucket in reversed(self.sampler.buckets):
                 seconds = self.on_device(self._capture, bucket)
@@ -683,15 +685,29 @@ class PolicyEngine:
         except Exception as exc:
             if self.sampler.vision is not None:  # the split is an extra: record one graph a bucket instead
                 log.warning("recording bucket %s's vision tower apart failed (%s); recording each bucket as one graph", bucket, _first_line(exc))
+                split_failed = True
+            else:
+                why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
+                if self.engine_options.cuda_graphs == "on":
+                    raise ConfigError("engine.cuda_graphs", why) from exc
                 self.sampler.drop_graphs()
-                self.sampler.vision = self.sampler.rest = None
-                return self._record_graphs(log_progress)
-            why = f"recording the CUDA graph of bucket {bucket} failed: {_first_line(exc)}"
-            if self.engine_options.cuda_graphs == "on":
-                raise ConfigError("engine.cuda_graphs", why) from exc
+                self.graphs_wanted, self.sampler_note = False, why
+                log.warning("%s; serving with the static sampler unrecorded (--engine.cuda_graphs=on refuses instead)", why)
+        if split_failed:  # out of the except block: its traceback no longer holds the failed recording's memory
             self.sampler.drop_graphs()
-            self.graphs_wanted, self.sampler_note = False, why
-            log.warning("%s; serving with the static sampler unrecorded (--engine.cuda_graphs=on refuses instead)", why)
+            self.sampler.vision = self.sampler.rest = None
+            self._free_device_memory()
+            self._record_graphs(log_progress)
+
+    def _free_device_memory(self) -> None:
+        """Return what dropped graphs and tensors held to the device (a retry needs it)."""
+        import gc
+
+        import torch
+
+        gc.collect()
+        if torch.device(self.device).type == "cuda":
+            torch.cuda.empty_cache()
 
     def _compile_bucket(self, bucket: int) -> None:
         """Compile one bucket's shapes (on the device thread), under the mode batches run in."""
@@ -898,6 +914,17 @@ def _early_upload_ok(preprocessor: Any) -> bool:
         if name not in DEVICE_AGNOSTIC_STEPS:
             return False
     return False
+
+
+def _leaves_images_alone(preprocessor: Any) -> bool:
+    """True if every step of the pre-processor is one of LeRobot's own that never changes an image
+    tensor in place (it returns the same object, untouched, or a new one): what lets
+    ``BucketedSampler.start`` tell, by identity, that the images it ran on are the batch's."""
+    allowed = DEVICE_AGNOSTIC_STEPS | {"device_processor"}
+    steps = getattr(preprocessor, "steps", None)
+    return bool(steps) and all(
+        getattr(type(step), "_registry_name", None) in allowed and type(step).__module__.startswith("lerobot.") for step in steps
+    )
 
 
 def _first_line(exc: BaseException) -> str:

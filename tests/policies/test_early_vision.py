@@ -68,14 +68,26 @@ def test_a_vision_graph_started_before_the_pre_processor_gives_the_same_chunks(p
             engine.on_device(engine._capture, bucket)
     assert set(early.sampler.vision_graphs) == {1, 2, 4} and not late.sampler.vision_graphs
     assert "vision tower's graph started before the pre-processor" in early.description
+    cameras = len(early._sampler_cameras)
+    for (bucket, _), rest in early.sampler.graphs.items():  # the rest takes no image: the tower is not in it
+        assert len(rest.inputs) == len(late.sampler.graphs[(bucket, _)].inputs) - cameras
+    # The tower runs once a batch, in the vision graph's replay (a rest that ran it again would be
+    # right on the CPU and twice the tower's time on a GPU).
+    static = early.sampler.vision.__self__
+    towers = []
+    real = static._embed_images
+    static._embed_images = lambda images: towers.append(1) or real(images)
     vision = early.sampler.vision_graphs[4].graph
     for b in (1, 3, 4):
         obs, tasks, seeds, _ = batch(b, seed=b)
-        before, replays = early.sampler.early_starts, vision.replays
-        np.testing.assert_allclose(early.infer(obs, tasks, seeds), late.infer(obs, tasks, seeds), atol=1e-6, rtol=0)
+        before, replays, ran = early.sampler.early_starts, vision.replays, len(towers)
+        np.testing.assert_array_equal(early.infer(obs, tasks, seeds), late.infer(obs, tasks, seeds))
         assert early.sampler.early_starts == before + 1  # started early, not replayed again at the call
-        assert vision.replays == replays + (b > 2)
+        assert vision.replays == replays + (b > 2) and len(towers) == ran + 1
     assert early.sampler.unrecorded == 0 and late.sampler.unrecorded == 0
+    # Every bucket's vision graph writes into one set of buffers sized for the largest bucket.
+    outputs = [g.output for g in early.sampler.vision_graphs.values()]
+    assert all(o.untyped_storage().data_ptr() == w.untyped_storage().data_ptr() for out in outputs for o, w in zip(out, outputs[0], strict=True))
 
 
 def test_a_batch_started_on_other_images_runs_its_vision_graph_again(pi05_dir, recorded_on_cpu):
@@ -136,3 +148,24 @@ def test_a_failed_split_recording_records_one_graph_a_bucket_instead(pi05_dir, r
     want = _engine(str(pi05_dir), early_vision=False).infer(obs, tasks, seeds)
     np.testing.assert_allclose(engine.infer(obs, tasks, seeds), want, atol=1e-6, rtol=0)
     assert engine.sampler.early_starts == 0 and engine.sampler.unrecorded == 0
+
+
+def test_early_vision_needs_every_pre_processor_step_to_be_one_of_lerobots_that_leave_images_alone(pi05_dir, smolvla_dir):
+    """The identity check of ``start`` is sound only if no step can change an image tensor in
+    place: a step of a checkpoint's own (after the device step too), or a subclass of one of
+    LeRobot's defined elsewhere, turns the split off; LeRobot's π0.5 and SmolVLA pipelines keep it."""
+    from lerobot_armory.engine.policy_engine import _leaves_images_alone
+
+    engines = [_engine(str(pi05_dir)), _engine(str(smolvla_dir))]
+    assert all(_leaves_images_alone(e.preprocessor) and e.sampler.vision is not None for e in engines)
+    steps = list(engines[0].preprocessor.steps)
+
+    class ClampImages:  # a checkpoint's own step
+        _registry_name = "clamp_images"
+
+    class OwnDevice(type(steps[-1])):  # inherits LeRobot's registry name, not its code
+        pass
+
+    for extra in (ClampImages(), object.__new__(OwnDevice)):
+        assert not _leaves_images_alone(type("Pipeline", (), {"steps": [*steps, extra]})())
+    assert not _leaves_images_alone(type("Pipeline", (), {"steps": []})())
