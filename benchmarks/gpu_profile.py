@@ -390,6 +390,12 @@ def profile_config(
         # The same inputs through LeRobot's eager sampler on the same load, b = 1, 3, 8.
         run["vs_lerobot_eager"] = agreement(ref, got)
         print(f"  chunks vs LeRobot's eager sampler (b = 1, 3, 8): {run['vs_lerobot_eager']}", flush=True)
+    if engine.sampler is not None and engine.sampler.vision_graphs:
+        run["early_vision_batches"] = engine.sampler.early_starts  # batches whose tower started before the pre-processor
+    late = chunk_sets.get(f"{config}-latevision")
+    if late is not None:  # the vision tower started early must change no chunk: 0 expected
+        run["vs_latevision"] = agreement(late, got)
+        print(f"  chunks vs {config}-latevision (b = 1, 3, 8; 0 expected): {run['vs_latevision']}", flush=True)
     if device == "cuda":
         run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     return run
