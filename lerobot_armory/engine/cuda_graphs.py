@@ -184,6 +184,7 @@ class BucketedSampler:
     def __call__(self, inputs: SamplerInputs) -> Tensor:
         """Actions for the batch's real rows (a new tensor, safe to keep across calls)."""
         rows = inputs.rows
+        started, self._started = self._started, None  # a start counts for the call right after it only
         if not self.buckets:
             return self.uncompiled(inputs)  # the uncompiled sampler prepares its own constants
         bucket = bucket_for(rows, self.buckets)
@@ -202,7 +203,6 @@ class BucketedSampler:
             self._missed("shape", f"inputs {[tuple(t.shape) for t in tensors]} do not fit the graph of bucket {bucket}: run eagerly")
             return self._eager(inputs, bucket)
         if vision is not None:
-            started, self._started = self._started, None
             if started is not None and started[0] == bucket and _same(started[1], inputs.images):
                 self.early_starts += 1
             else:

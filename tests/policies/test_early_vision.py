@@ -118,6 +118,14 @@ def test_a_batch_started_on_other_images_runs_its_vision_graph_again(pi05_dir, r
         torch.testing.assert_close(engine.sampler(b), want, atol=0, rtol=0)
         assert engine.sampler.early_starts == 1
         assert not engine.sampler.start([torch.cat([b.images[0]] * 3)])  # 6 rows: larger than every bucket
+        # A start counts for the call right after it only: one that ran eagerly (a prompt length
+        # no graph was recorded for) uses it up, and the next call runs its vision graph itself.
+        vision = engine.sampler.vision_graphs[2].graph
+        assert engine.sampler.start(list(b.images))
+        engine.sampler(b.prompt_fitted(b.prompt_length + 1))
+        replays = vision.replays
+        torch.testing.assert_close(engine.sampler(b), want, atol=0, rtol=0)
+        assert engine.sampler.early_starts == 1 and vision.replays == replays + 1
 
 
 @pytest.mark.parametrize("failures", [1, 2])
