@@ -126,6 +126,10 @@ class PolicyEngine:
         self.rtc = rtc_mod.enable(self.policy, self.rtc_options) if self.rtc_options is not None else None
         # Images go to the device before the pre-processor where its steps allow (to_batch).
         self.early_upload = _early_upload_ok(self.preprocessor)
+        # The prompt columns a batch uses, read on the host (no read-back to choose its bucket).
+        from lerobot_armory.engine.prompt_columns import HostPromptColumns
+
+        self._prompt_columns = HostPromptColumns(self.preprocessor) if _known_steps_only(self.preprocessor) else None
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
@@ -272,7 +276,7 @@ class PolicyEngine:
         rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
         # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
         # reach the device before the pre-processor and no step of it can touch them.
-        split = o.early_vision and self.early_upload and _leaves_images_alone(self.preprocessor)
+        split = o.early_vision and self.early_upload and _known_steps_only(self.preprocessor)
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample, vision=sampler.vision if split else None, rest=rest if split else None)
         return graphs, None
 
@@ -548,9 +552,9 @@ class PolicyEngine:
         LeRobot pads on the right; a mask that is not a run of ones then zeros keeps its length."""
         if not self.prompt_buckets:
             return None
-        # One small read-back before the pass; it waits for the vision graph started early, and
-        # the GPU then idles only while the host fits the prompt and copies the inputs in.
-        used = masks.any(dim=0).cpu()
+        used = self._prompt_columns.used(masks) if self._prompt_columns is not None else None
+        if used is None:  # a mask the pipeline did not just make on the host: read back (waits for the GPU)
+            used = masks.any(dim=0).cpu()
         n = int(used.sum())
         if not bool(used[:n].all()):
             return None
@@ -916,10 +920,11 @@ def _early_upload_ok(preprocessor: Any) -> bool:
     return False
 
 
-def _leaves_images_alone(preprocessor: Any) -> bool:
-    """True if every step of the pre-processor is one of LeRobot's own that never changes an image
-    tensor in place (it returns the same object, untouched, or a new one): what lets
-    ``BucketedSampler.start`` tell, by identity, that the images it ran on are the batch's."""
+def _known_steps_only(preprocessor: Any) -> bool:
+    """True if every step of the pre-processor is one of LeRobot's own known steps: none changes an
+    image tensor in place (it returns the same object, untouched, or a new one), which lets
+    ``BucketedSampler.start`` tell by identity that the images it ran on are the batch's, and none
+    touches the prompt's mask after the device step (``prompt_columns``)."""
     allowed = DEVICE_AGNOSTIC_STEPS | {"device_processor"}
     steps = getattr(preprocessor, "steps", None)
     return bool(steps) and all(

@@ -162,10 +162,10 @@ def test_early_vision_needs_every_pre_processor_step_to_be_one_of_lerobots_that_
     """The identity check of ``start`` is sound only if no step can change an image tensor in
     place: a step of a checkpoint's own (after the device step too), or a subclass of one of
     LeRobot's defined elsewhere, turns the split off; LeRobot's π0.5 and SmolVLA pipelines keep it."""
-    from lerobot_armory.engine.policy_engine import _leaves_images_alone
+    from lerobot_armory.engine.policy_engine import _known_steps_only
 
     engines = [_engine(str(pi05_dir)), _engine(str(smolvla_dir))]
-    assert all(_leaves_images_alone(e.preprocessor) and e.sampler.vision is not None for e in engines)
+    assert all(_known_steps_only(e.preprocessor) and e.sampler.vision is not None for e in engines)
     steps = list(engines[0].preprocessor.steps)
 
     class ClampImages:  # a checkpoint's own step
@@ -175,5 +175,35 @@ def test_early_vision_needs_every_pre_processor_step_to_be_one_of_lerobots_that_
         pass
 
     for extra in (ClampImages(), object.__new__(OwnDevice)):
-        assert not _leaves_images_alone(type("Pipeline", (), {"steps": [*steps, extra]})())
-    assert not _leaves_images_alone(type("Pipeline", (), {"steps": []})())
+        assert not _known_steps_only(type("Pipeline", (), {"steps": [*steps, extra]})())
+    assert not _known_steps_only(type("Pipeline", (), {"steps": []})())
+
+
+def test_the_prompt_bucket_comes_from_the_batchs_own_mask_read_on_the_host(pi05_dir):
+    """Choosing a batch's prompt bucket reads no mask back from the device (the read-back would
+    wait for the vision graph started early): the tokenizer's mask is read on the host before the
+    device step and bound to the tensor the step makes. Another batch's mask is never used for it:
+    a mask the pipeline did not return last is read back, as before. The chunks are the same."""
+    import torch
+    from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK as MASK
+
+    engine = _engine(str(pi05_dir))
+    columns = engine._prompt_columns
+    assert columns is not None and columns.attached
+    short, long = ["pick"] * 2, ["pick up the red block and put it in the green bowl " * 3] * 2
+    obs = [engine.example_observation(seed=k) for k in range(2)]
+    with torch.inference_mode():
+        a = engine.preprocessor({**engine.to_batch(obs), "task": short})[MASK]
+        b = engine.preprocessor({**engine.to_batch(obs), "task": long})[MASK]
+    assert columns.used(a) is None and torch.equal(columns.used(b), b.any(dim=0))  # only the last batch's
+    from lerobot_armory.engine.cuda_graphs import bucket_for
+
+    own = [bucket_for(int(m.any(dim=0).sum()), engine.prompt_buckets) for m in (a, b)]
+    assert [engine._prompt_bucket(a), engine._prompt_bucket(b)] == own and own[0] < own[1]
+    read_back = _engine(str(pi05_dir))
+    read_back._prompt_columns = None
+    served, real = [], columns.used
+    columns.used = lambda masks: served.append(real(masks)) or served[-1]
+    for tasks in (short, long):
+        np.testing.assert_array_equal(engine.infer(obs, tasks, [0, 1]), read_back.infer(obs, tasks, [0, 1]))
+    assert len(served) == 2 and all(u is not None for u in served)
