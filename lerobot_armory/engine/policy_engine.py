@@ -129,7 +129,8 @@ class PolicyEngine:
         # The prompt columns a batch uses, read on the host (no read-back to choose its bucket).
         from lerobot_armory.engine.prompt_columns import HostPromptColumns
 
-        self._prompt_columns = HostPromptColumns(self.preprocessor) if _known_steps_only(self.preprocessor) else None
+        self._known_steps = _known_steps_only(self.preprocessor)
+        self._prompt_columns = HostPromptColumns(self.preprocessor) if self._known_steps else None
         # The static sampler (and its CUDA graphs) in place of the policy's own, where it applies.
         self.sampler: Any = None  # cuda_graphs.BucketedSampler
         self.graphs_wanted, self.sampler_note = self._choose_sampler()
@@ -276,7 +277,7 @@ class PolicyEngine:
         rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
         # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
         # reach the device before the pre-processor and no step of it can touch them.
-        split = o.early_vision and self.early_upload and _known_steps_only(self.preprocessor)
+        split = o.early_vision and self.early_upload and self._known_steps
         self.sampler = BucketedSampler(sample, sampler.prepare, uncompiled=sampler.sample, vision=sampler.vision if split else None, rest=rest if split else None)
         return graphs, None
 
@@ -467,9 +468,9 @@ class PolicyEngine:
     def _start_vision(self, batch: dict[str, Any]) -> None:
         """Start the batch's vision graph on its images, already on the device, so that the GPU
         runs the vision tower while the host runs the pre-processor (tokenizer, state, noise). It
-        counts only if the pre-processor hands the sampler these very tensors (its steps here
-        leave images as they are: ``early_upload``); the sampler checks that, and otherwise runs
-        it again on what it is given."""
+        counts only if the pre-processor hands the sampler these very tensors (its steps, LeRobot's
+        own known ones, leave images as they are: ``_known_steps_only``); the sampler checks that,
+        and otherwise runs it again on what it is given."""
         if self.sampler is None or self.sampler.vision is None:
             return
         images = [batch.get(name) for name in self._sampler_cameras]
