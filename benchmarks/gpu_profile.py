@@ -22,7 +22,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   names ``float32`` (the default before 2026-11-27 #8); the served default on a GPU is now
   ``pi05-bf16-graphs-tf32-visionbf16`` (``--engine.vision_dtype=auto``); a ``-latevision`` suffix:
   ``--engine.early_vision=false`` (one graph a bucket and prompt length, replayed after the
-  pre-processor, where by default the vision tower's own graph starts before it);
+  pre-processor, where by default the vision tower's own graph starts before it); an ``-unaligned``
+  suffix: the fused K/V caches prefix + suffix positions end to end (before 2026-11-28; by default
+  rounded up to a multiple of 8 so that attention's rows suit cuBLAS's Hopper kernels);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -70,6 +72,7 @@ unrecorded).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -81,7 +84,7 @@ import traceback
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Targets  # noqa: E402
@@ -92,6 +95,7 @@ CONFIGS = (
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32",
 )  # fmt: skip
@@ -108,7 +112,7 @@ def engine_options(config: str) -> Any:
 
     # Precision named in every configuration: "auto" would turn TF32 on for bf16 on a GPU, and
     # LeRobot's eager sampler is measured as LeRobot runs it.
-    flags = set(config.split("-graphs")[1].split("-")[1:]) if "-graphs" in config else set()
+    flags = _flags(config)
     precision = "high" if "tf32" in flags else "highest"
     if "-graphs" not in config:
         return EngineOptions(cuda_graphs="off", matmul_precision=precision)
@@ -127,6 +131,29 @@ def engine_options(config: str) -> Any:
         vision_dtype="bfloat16" if "visionbf16" in flags else "float32",
         early_vision="latevision" not in flags,
     )
+
+
+def _flags(config: str) -> set[str]:
+    """The suffixes after ``-graphs`` (none for an eager configuration)."""
+    return set(config.split("-graphs")[1].split("-")[1:]) if "-graphs" in config else set()
+
+
+@contextlib.contextmanager
+def cache_alignment(config: str) -> Iterator[None]:
+    """``-unaligned``: the fused K/V caches hold prefix + suffix end to end, as before 2026-11-28,
+    where by default they are rounded up to ``KEY_ALIGN`` positions (``Fused.cache_length``): the
+    same engine otherwise, so the pair says what the alignment gives."""
+    if "unaligned" not in _flags(config):
+        yield
+        return
+    from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
+
+    saved = Fused.__dict__["cache_length"]
+    Fused.cache_length = LeRobotOrder.__dict__["cache_length"]
+    try:
+        yield
+    finally:
+        Fused.cache_length = saved
 
 
 def _cuda() -> bool:
@@ -396,6 +423,10 @@ def profile_config(
     if late is not None:  # the vision tower started early must change no chunk: 0 expected
         run["vs_latevision"] = agreement(late, got)
         print(f"  chunks vs {config}-latevision (b = 1, 3, 8; 0 expected): {run['vs_latevision']}", flush=True)
+    unaligned = chunk_sets.get(f"{config}-unaligned")
+    if unaligned is not None:  # zero keys, masked: only the sums' order may differ (bf16 rounding)
+        run["vs_unaligned"] = agreement(unaligned, got)
+        print(f"  chunks vs {config}-unaligned (b = 1, 3, 8): {run['vs_unaligned']}", flush=True)
     if device == "cuda":
         run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     return run
@@ -549,19 +580,20 @@ def main() -> None:
             loaded = (path, overrides)
             print(f"  loaded in {time.perf_counter() - t0:.0f} s", flush=True)
         assert engine is not None
-        try:
-            runs[config] = profile_config(engine, config, overrides, device, reference, chunk_sets)
-        except Exception as exc:  # one configuration failing (a capture, say) must not lose the others
-            failed.append(config)
-            print(f"[{config}] FAILED: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}", flush=True)
-            traceback.print_exc()
-            continue
-        if ARGS.stages:
-            add_stages(engine, runs[config])
-        write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
-        if ARGS.kernels and engine.sampler is not None:  # after the write: a profiler crash loses nothing
-            add_kernels(engine, runs[config])
-            write(out, name, {config: runs[config]})
+        with cache_alignment(config):
+            try:
+                runs[config] = profile_config(engine, config, overrides, device, reference, chunk_sets)
+            except Exception as exc:  # one configuration failing (a capture, say) must not lose the others
+                failed.append(config)
+                print(f"[{config}] FAILED: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}", flush=True)
+                traceback.print_exc()
+                continue
+            if ARGS.stages:
+                add_stages(engine, runs[config])
+            write(out, name, {config: runs[config]})  # after each configuration: a time-out keeps what ran
+            if ARGS.kernels and engine.sampler is not None:  # after the write: a profiler crash loses nothing
+                add_kernels(engine, runs[config])
+                write(out, name, {config: runs[config]})
     engine = None
     if ARGS.float32_reference:
         float32_reference(runs, chunk_sets, work, device, out, name)

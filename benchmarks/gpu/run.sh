@@ -71,8 +71,8 @@ for s in "$@"; do
     fused) step fused 520 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32-fullprompt,pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/fused.json" --work_dir=/tmp/gp ;;
     pi0) step pi0 400 python3 benchmarks/gpu_profile.py --configs=pi0-bf16,pi0-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/pi0.json" --work_dir=/tmp/gp ;;
     smolvla) step smolvla 420 python3 benchmarks/gpu_profile.py --configs=smolvla-fp32,smolvla-fp32-graphs-tf32-ordered,smolvla-fp32-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/smolvla.json" --work_dir=/tmp/gp ;;
-    stages) step stages 300 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-visionbf16-latevision,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --stages --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
-    kernels) step kernels 200 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
+    stages) step stages 360 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-visionbf16-latevision,pi05-bf16-graphs-tf32-visionbf16-unaligned,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --stages --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
+    kernels) step kernels 200 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16-unaligned,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
     buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
     efficiency) step efficiency 170 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
     live4) step live4 170 live 4 ;;

@@ -4,7 +4,7 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,136 kernels in LeRobot's sequence and 3,978 fused in float32; 10,170 and 4,381 in bfloat16
+9,135 kernels in LeRobot's sequence and 3,996 fused in float32; 10,169 and 4,399 in bfloat16
 (``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
@@ -30,6 +30,10 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   the output is the ``(B, L, heads·d)`` the output projection takes (HF transposes q and the
   output and copies K/V per query head);
 - **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``);
+- **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
+  as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
+  50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
+  and suffix are zeroed once a sample (one small kernel a layer) and masked;
 - **bfloat16 where it is cheap, float32 where it is free**: the residual stream stays float32
   (:meth:`Fused.stream`): the norms read it as it is and round once, as they hand the projections
   their bf16 input (LeRobot casts the bf16 stream to float32 before every norm, and rounds every
@@ -58,6 +62,9 @@ import torch
 from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
 
+
+# Fused K/V caches hold a multiple of this many positions (Fused.cache_length): 16 bytes of bf16.
+KEY_ALIGN = 8
 
 # Buffers Fused registers on LeRobot's modules (non-persistent: never in a state dict).
 _QKV, _GATE_UP, _NORM = "armory_qkv_weight", "armory_gate_up_weight", "armory_weight"
@@ -124,8 +131,15 @@ class LeRobotOrder:
         return (norm._norm(h) * mod.scale1 + mod.shift).to(h.dtype)
 
     @staticmethod
-    def new_cache(attn: Any, x: Tensor, length: int) -> Any:
-        """An empty K/V cache of ``length`` positions for the rows of ``x`` (the layer's input)."""
+    def cache_length(prefix: int, suffix: int) -> int:
+        """Positions a K/V cache holds for a prefix and a suffix: LeRobot's, the two end to end."""
+        return prefix + suffix
+
+    @staticmethod
+    def new_cache(attn: Any, x: Tensor, length: int, gap: tuple[int, int] = (0, 0)) -> Any:
+        """An empty K/V cache of ``length`` positions for the rows of ``x`` (the layer's input);
+        positions ``gap[0]:gap[1]`` (never written, masked) zero (LeRobot's order has none)."""
+        assert gap[0] == gap[1]
         shape = (x.shape[0], attn.config.num_key_value_heads, length, attn.head_dim)
         return x.new_empty(shape), x.new_empty(shape)
 
@@ -285,8 +299,25 @@ class Fused(LeRobotOrder):
         return torch.addcmul(mod.shift, torch.nn.functional.rms_norm(h, (h.shape[-1],), None, norm.eps), mod.scale1)
 
     @staticmethod
-    def new_cache(attn: Any, x: Tensor, length: int) -> Tensor:
-        return x.new_empty(x.shape[0], length, 2 * attn.config.num_key_value_heads, attn.head_dim)
+    def cache_length(prefix: int, suffix: int) -> int:
+        """The two end to end, rounded up to a multiple of :data:`KEY_ALIGN` positions: a row of
+        attention scores (and of probabilities, the left operand of the product with the values)
+        is as long as the cache, and a matrix whose rows are not 16 bytes apart keeps cuBLAS off
+        Hopper's fast kernels (TMA needs 16-byte strides). π0.5's suffix is 50 positions and its
+        prefix a multiple of 8 (256 per camera, prompt buckets 64/128/200), so every expert
+        attention had rows 2 mod 8 long: on an H200 its 360 products a sample ran in Ampere's
+        ``align2`` kernels, 2.6 ms at b = 1 and 5.0 ms at b = 8. The positions between prefix and
+        suffix are zero and masked: they add nothing to any row."""
+        return -(-(prefix + suffix) // KEY_ALIGN) * KEY_ALIGN
+
+    @staticmethod
+    def new_cache(attn: Any, x: Tensor, length: int, gap: tuple[int, int] = (0, 0)) -> Tensor:
+        """An empty K/V cache; positions ``gap[0]:gap[1]`` zeroed (never written, masked: an
+        unset key could be NaN, and a NaN score stays NaN however masked)."""
+        cache = x.new_empty(x.shape[0], length, 2 * attn.config.num_key_value_heads, attn.head_dim)
+        if gap[1] > gap[0]:
+            cache[:, gap[0] : gap[1]].zero_()
+        return cache
 
     @staticmethod
     def cached(cache: Tensor, length: int) -> Tensor:

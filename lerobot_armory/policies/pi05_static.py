@@ -428,7 +428,11 @@ class StaticPi05:
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # suffix as its pattern says; its positions follow the prefix's valid tokens.
         b, p, s = prefix_pad.shape[0], prefix_pad.shape[1], self.suffix_length
-        valid = torch.cat([prefix_pad[:, None, :].expand(b, s, p), self.suffix_pattern.expand(b, s, s)], dim=2)
+        gap = self.ops.length(caches[0]) - p - s  # positions the ops' cache adds between prefix and suffix (masked)
+        parts = [prefix_pad[:, None, :].expand(b, s, p), self.suffix_pattern.expand(b, s, s)]
+        if gap:
+            parts.insert(1, prefix_pad.new_zeros(b, s, gap))
+        valid = torch.cat(parts, dim=2)
         mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(s, device=prefix_pad.device)[None, :]
         rope = self.ops.rope(self.expert, self._like(self.expert, inputs.noise), positions)
@@ -471,8 +475,10 @@ class StaticPi05:
 
     def _prefix_cache(self, embs: Tensor, pad: Tensor, vlm_layer: Any) -> list[Any]:
         """Run the VLM over the prefix; return per layer a K/V cache (the ops' layout) of
-        ``P + S`` positions (S: the suffix's) with the prefix's (post-rotary) keys and values in the first ``P``."""
+        ``P + S`` positions (S: the suffix's; the ops may round that up, the positions between zero)
+        with the prefix's (post-rotary) keys and values in the first ``P``."""
         p = pad.shape[1]
+        length = self.ops.cache_length(p, self.suffix_length)
         mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
         h = self.ops.stream(embs, self._dtype(self.vlm))
@@ -481,7 +487,7 @@ class StaticPi05:
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
             x = self.ops.norm(layer.input_layernorm, h)
-            cache = self.ops.new_cache(layer.self_attn, x, p + self.suffix_length)
+            cache = self.ops.new_cache(layer.self_attn, x, length, (p, length - self.suffix_length))
             caches.append(cache)
             if i == last:  # the last layer's output is never read: only its keys and values are
                 self.ops.qkv(layer.self_attn, x, rope, cache, 0)

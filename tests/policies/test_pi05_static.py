@@ -771,3 +771,42 @@ def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_
     with pytest.raises(ConfigError, match="engine.prompt_buckets"):  # refused before any weight is cast
         plain.use_sampler(EngineOptions(static_sampler=True, vision_dtype="bfloat16", prompt_buckets="9999"))
     assert plain.vision_cast is None and tower(plain)[0] == {torch.float32}
+
+
+def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_positions_never_reach_a_chunk(engines, monkeypatch):
+    """The fused K/V cache rounds prefix + suffix up to a multiple of ``KEY_ALIGN`` positions (rows
+    of scores 16 bytes apart: cuBLAS's fast Hopper kernels need it). The positions between prefix
+    and suffix are never written: with every fresh allocation of the sampler filled with NaN (what
+    a GPU's reused memory may hold), the chunks are the same, and the same as LeRobot's order,
+    whose cache has no such positions."""
+    import torch
+
+    from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    _, static = engines
+    fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
+    obs, tasks, seeds, prefixes = batch(3, seed=6)
+    kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
+    inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+    cameras = len(inputs.images)
+    p = inputs.tokens.shape[1] + sum(emb.shape[1] for emb in fused.vision(inputs.images)[:cameras])
+    length = fused.ops.cache_length(p, fused.suffix_length)
+    assert length % KEY_ALIGN == 0 and length > p + fused.suffix_length, (p, fused.suffix_length)  # a gap to test
+    assert plain.ops.cache_length(p, plain.suffix_length) == p + plain.suffix_length
+    with torch.no_grad():
+        fused.sample(inputs)  # the per-policy constants, made before memory turns to NaN
+        expected = fused.sample(inputs)
+        new_empty = torch.Tensor.new_empty
+
+        def nan_empty(self, *size, **kw):
+            t = new_empty(self, *size, **kw)
+            return t.fill_(float("nan")) if t.is_floating_point() else t
+
+        monkeypatch.setattr(torch.Tensor, "new_empty", nan_empty)
+        chunks = fused.sample(inputs)
+        monkeypatch.undo()
+        reference = plain.sample(inputs)
+    assert torch.isfinite(chunks).all()
+    torch.testing.assert_close(chunks, expected, atol=0, rtol=0)
+    torch.testing.assert_close(chunks, reference, atol=1e-5, rtol=0)
