@@ -34,7 +34,8 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   SmolVLM2-500M's sizes (``--size`` full; 450 M parameters, float32 as LeRobot builds it from its
   configuration, 16 VLM layers and a 0.75-wide expert, 512² images), LeRobot's eager sampler
   against our static SmolVLA sampler (``policies/smolvla_static.py``) recorded as graphs with TF32,
-  with its fused kernels and in LeRobot's order.
+  with its fused kernels and in LeRobot's order (``smolvla-fp32-graphs-tf32-unaligned``: fused, with
+  LeRobot's prefix and cache lengths, as before 2026-11-28).
 
 Configurations of one policy and dtype share one load (the full π0.5 takes minutes to load): the
 policy is measured with each sampler in turn, in the same call, so the figures compare.
@@ -97,7 +98,7 @@ CONFIGS = (
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
-    "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32",
+    "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
 # π0.5 in JAX (openpi) on an H100, ms at b = 1..5: the real-time chunking paper's latency table.
 JAX_H100 = (42.3, 56.0, 66.1, 79.3, 87.2)
@@ -140,20 +141,25 @@ def _flags(config: str) -> set[str]:
 
 @contextlib.contextmanager
 def cache_alignment(config: str) -> Iterator[None]:
-    """``-unaligned``: the fused K/V caches hold prefix + suffix end to end, as before 2026-11-28,
-    where by default they are rounded up to ``KEY_ALIGN`` positions (``Fused.cache_length``): the
-    same engine otherwise, so the pair says what the alignment gives."""
+    """``-unaligned``: the fused K/V caches (and SmolVLA's prefix) as long as LeRobot's, as before
+    2026-11-28, where by default they are rounded up to ``KEY_ALIGN`` positions
+    (``Fused.cache_length``, ``SmolVLAFused.prefix_length``): the same engine otherwise, so the pair
+    says what the alignment gives."""
     if "unaligned" not in _flags(config):
         yield
         return
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
+    from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
-    saved = Fused.__dict__["cache_length"]
-    Fused.cache_length = LeRobotOrder.__dict__["cache_length"]
+    patched = [(Fused, LeRobotOrder, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "prefix_length")]
+    saved = [cls.__dict__[name] for cls, _, name in patched]
+    for cls, lerobots, name in patched:
+        setattr(cls, name, lerobots.__dict__[name])
     try:
         yield
     finally:
-        Fused.cache_length = saved
+        for (cls, _, name), method in zip(patched, saved, strict=True):
+            setattr(cls, name, method)
 
 
 def _cuda() -> bool:

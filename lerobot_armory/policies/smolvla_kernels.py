@@ -21,7 +21,10 @@ them and masks with ``torch.where``. :class:`SmolVLAFused` computes the same val
   product for the scores, the mask added in place (additive, ``finfo.min``: the same zeros after
   softmax as LeRobot's ``where``, the same uniform row for a row that sees nothing), softmax, one
   product for the output, one copy into the output projection's layout;
-- residuals without LeRobot's defensive ``clone``.
+- residuals without LeRobot's defensive ``clone``;
+- **keys a multiple of 8 positions long**: the prefix padded as LeRobot pads it to a configured
+  ``prefix_length`` (zeros, masked) and the caches rounded up (masked zeros after the suffix), so
+  that attention's rows suit cuBLAS's Hopper kernels (as ``pi05_kernels.Fused.cache_length``).
 
 Numerics: float32 scores and softmax as LeRobot's; every value is LeRobot's up to the rounding
 order (a fused norm reduces in its own order, ``addcmul`` rounds once where two kernels round
@@ -36,7 +39,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import _swap_halves, fuse_weights, unfusable
+from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, _swap_halves, fuse_weights, unfusable
 
 ROPE_WAVELENGTH = 10_000  # LeRobot's apply_rope default (SmolVLA calls it without the config's rope_theta)
 
@@ -113,10 +116,32 @@ class SmolVLAFused:
         zero = torch.zeros((), dtype=torch.float32, device=valid.device)
         return torch.where(valid, zero, torch.finfo(torch.float32).min)[:, None, None]
 
+    @staticmethod
+    def prefix_length(length: int, lerobot_length: int) -> int:
+        """The prefix's length: LeRobot's (``lerobot_length`` where its config pads to one), rounded
+        up to a multiple of ``KEY_ALIGN`` with LeRobot's own padding (zero embeddings, masked), so
+        that the prefix's and the cross-attention's rows of scores are 16 bytes apart, which
+        cuBLAS's Hopper kernels need (SmolVLA's prefix is 64 tokens a camera, 48 of prompt and 1
+        of state: 177 for two cameras, odd)."""
+        return _aligned(max(length, lerobot_length))
+
+    @staticmethod
+    def cache_length(p: int, h: int) -> int:
+        """Positions a K/V cache holds for a prefix of ``p`` and a suffix of ``h``: rounded up."""
+        return _aligned(p + h)
+
     def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
-        """Per layer, head-major keys and values ``(B, Hkv, P + H, d)`` in ``dtype[i]``."""
-        shape = (b, self.kv_heads, p + h, self.head_dim)
-        return [(torch.empty(shape, dtype=dt, device=device), torch.empty(shape, dtype=dt, device=device)) for dt in dtype]
+        """Per layer, head-major keys and values ``(B, Hkv, L, d)`` in ``dtype[i]``: the prefix's
+        ``P`` positions, the suffix's ``H``, then zeros (masked) up to ``L``, the next multiple of
+        ``KEY_ALIGN`` (the self-attention layers' rows of scores; :meth:`prefix_length`)."""
+        length = self.cache_length(p, h)
+        out = []
+        for dt in dtype:
+            kv = torch.empty((2, b, self.kv_heads, length, self.head_dim), dtype=dt, device=device)
+            if length > p + h:  # never written; a NaN there would stay NaN however masked
+                kv[:, :, :, p + h :].zero_()
+            out.append((kv[0], kv[1]))
+        return out
 
     # -- one layer ------------------------------------------------------------------------------
 
@@ -215,6 +240,16 @@ class SmolVLAOrdered:
     def additive(valid: Tensor) -> Tensor:
         return valid  # LeRobot's eager_attention_forward takes the boolean pattern
 
+    @staticmethod
+    def prefix_length(length: int, lerobot_length: int) -> int:
+        """LeRobot's: padded to its config's ``prefix_length`` where that is longer."""
+        return max(length, lerobot_length)
+
+    @staticmethod
+    def cache_length(p: int, h: int) -> int:
+        """LeRobot's: the prefix's positions, then the suffix's."""
+        return p + h
+
     def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
         """Per layer, keys and values ``(B, P + H, Hkv, d)`` in ``dtype[i]``."""
         out = []
@@ -279,3 +314,8 @@ class SmolVLAOrdered:
         out = layer.mlp(layer.post_attention_layernorm(out))
         out += after
         return out
+
+
+def _aligned(length: int) -> int:
+    """``length`` rounded up to a multiple of ``KEY_ALIGN``."""
+    return -(-length // KEY_ALIGN) * KEY_ALIGN

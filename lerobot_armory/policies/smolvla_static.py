@@ -190,13 +190,17 @@ class StaticSmolVLA:
         caches = self._prefix_cache(embs, pad, att)
         # A cross-attention layer's keys and values depend on the prefix alone: once a sample.
         cross = {i: ops.cross_kv(layer, caches[i], p) for i, layer in enumerate(self.expert.layers) if not self.self_attention[i]}
-        valid = ops.additive(torch.cat([pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)], dim=2))
+        parts = [pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)]
+        gap = ops.cache_length(p, h) - p - h  # positions the ops' caches add after the suffix (masked)
+        if gap:
+            parts.append(pad.new_zeros(b, h, gap))
+        valid = ops.additive(torch.cat(parts, dim=2))
         positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
         # A cross-attention layer's queries count from 0 (LeRobot's positions minus their minimum).
         tables = ops.tables(positions), ops.tables(positions - torch.min(positions, dim=1, keepdim=True).values)
         x_t = inputs.noise
         for step, time in enumerate(self.times):
-            v_t = self._velocity(x_t, times[step], caches, cross, valid, tables)
+            v_t = self._velocity(x_t, times[step], caches, cross, valid, tables, p)
             x_t = self._guided_step(step, time, x_t, v_t, inputs)
         return x_t
 
@@ -229,17 +233,17 @@ class StaticSmolVLA:
 
     def _velocity(
         self, x_t: Tensor, time_emb: Tensor, caches: list[Any], cross: dict[int, tuple[Tensor, Tensor]], valid: Tensor,
-        tables: tuple[Any, Any],
+        tables: tuple[Any, Any], p: int,
     ) -> Tensor:  # fmt: skip
         """One denoising step (LeRobot's ``denoise_step``) through every expert layer (``valid``:
-        the suffix queries' mask in :attr:`ops`' form; ``tables``: the rotary positions of the
-        self-attention and the cross-attention queries)."""
+        the suffix queries' mask in :attr:`ops`' form, over the caches' positions; ``tables``: the
+        rotary positions of the self-attention and the cross-attention queries; ``p``: the
+        prefix's length, where the suffix's keys go)."""
         ops = self.ops
         m = self.model
         actions = m.action_in_proj(x_t)
         mixed = m.action_time_mlp_in(torch.cat([actions, time_emb.expand_as(actions)], dim=2))
         h = m.action_time_mlp_out(torch.nn.functional.silu(mixed))
-        p = valid.shape[-1] - h.shape[1]
         for i, layer in enumerate(self.expert.layers):
             x = ops.norm(layer.input_layernorm, h).to(dtype=layer.self_attn.q_proj.weight.dtype)
             if self.self_attention[i]:
@@ -290,10 +294,11 @@ class StaticSmolVLA:
         # before them, nothing before attends them); LeRobot's padding to prefix_length: 0.
         # (Compared, not assigned: ``att[i:] = True`` makes a tensor of the Python bool, a host copy.)
         att = (torch.arange(length, device=pad_t.device) >= length - att_ones[0])[None, :]
-        if length < self.model.prefix_length:
-            embs_t = pad_tensor(embs_t, self.model.prefix_length, pad_value=0)
-            pad_t = pad_tensor(pad_t, self.model.prefix_length, pad_value=0)
-            att = pad_tensor(att, self.model.prefix_length, pad_value=0)
+        target = self.ops.prefix_length(length, self.model.prefix_length)
+        if length < target:
+            embs_t = pad_tensor(embs_t, target, pad_value=0)
+            pad_t = pad_tensor(pad_t, target, pad_value=0)
+            att = pad_tensor(att, target, pad_value=0)
         return embs_t, pad_t, att.expand(pad_t.shape[0], -1)
 
     def _embed_images(self, images: list[Tensor]) -> list[Tensor]:

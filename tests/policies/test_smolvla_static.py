@@ -153,3 +153,45 @@ def test_served_through_the_fused_sampler_each_robots_chunk_is_lerobots_chunk_al
     server, robots = serve_prompt_robots(static, list(TASKS), max_batch_size=3)
     assert server.loop.stats.failed_batches == 0
     assert assert_shared_chunks_equal_alone(lerobot, server, robots) >= 1
+
+
+def test_the_fused_prefix_and_caches_are_multiples_of_8_and_unwritten_memory_never_reaches_a_chunk(engines):
+    """The fused SmolVLA pads its prefix (LeRobot's own padding: zeros, masked) and its caches (masked
+    zeros after the suffix) to multiples of ``KEY_ALIGN`` positions, for cuBLAS's Hopper kernels.
+    With every fresh allocation of the sample filled with NaN (what a GPU's reused memory may hold),
+    the chunks are the same; LeRobot's order keeps LeRobot's lengths."""
+    import torch
+
+    from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
+    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+
+    _, static = engines
+    fused = static.sampler.sample.__self__
+    ordered = StaticSmolVLA(fused.policy, guided=True, fused=False)
+    assert fused.fused and not ordered.fused
+    obs, tasks, seeds, prefixes = batch(3, seed=7)
+    kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
+    inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+    with torch.no_grad():
+        fused.prepare(), ordered.prepare()  # the per-policy constants, made before memory turns to NaN
+        vision = fused.vision(inputs.images)
+        p = fused._embed_prefix(inputs, vision)[1].shape[1]
+        lerobot_p = ordered._embed_prefix(inputs, ordered.vision(inputs.images))[1].shape[1]
+        assert p % KEY_ALIGN == 0 and p > lerobot_p, (p, lerobot_p)  # padding to test
+        assert fused.ops.cache_length(p, fused.chunk_size) % KEY_ALIGN == 0 < fused.ops.cache_length(p, fused.chunk_size) - p - fused.chunk_size
+        expected = fused.sample(inputs)
+        empty, new_empty = torch.empty, torch.Tensor.new_empty
+
+        def nan(t):
+            return t.fill_(float("nan")) if t.is_floating_point() else t
+
+        try:
+            torch.empty = lambda *a, **kw: nan(empty(*a, **kw))
+            torch.Tensor.new_empty = lambda self, *a, **kw: nan(new_empty(self, *a, **kw))
+            chunks = fused.sample(inputs)
+        finally:
+            torch.empty, torch.Tensor.new_empty = empty, new_empty
+        reference = ordered.sample(inputs)
+    assert torch.isfinite(chunks).all()
+    torch.testing.assert_close(chunks, expected, atol=0, rtol=0)
+    torch.testing.assert_close(chunks, reference, atol=1e-5, rtol=0)
