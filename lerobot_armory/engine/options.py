@@ -54,7 +54,8 @@ class EngineOptions:
             prompt; SmolVLA pads a batch to its longest prompt, so its batches are padded (masked)
             to a length too, one a graph was recorded for. ``auto`` (64 and 128 for π0.5's 200
             tokens, 16 and 32 for π0's and SmolVLA's 48; and the full length), ``off`` (the full
-            length only), or token counts like ``64,128``. Each length is one more CUDA graph per
+            length only), or token counts like ``64,128`` (multiples of 8 keep π0's and π0.5's
+            prefix attention on a GPU's fastest products). Each length is one more CUDA graph per
             batch bucket; ``d_infer(b)`` is profiled at the full length (the scheduler plans for
             the longest prompt).
         static_sampler: run the static sampler without graphs (on a CPU, say: the same chunks,

@@ -4,7 +4,7 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,135 kernels in LeRobot's sequence and 3,996 fused in float32; 10,169 and 4,399 in bfloat16
+9,135 kernels in LeRobot's sequence and 3,995 fused in float32; 10,169 and 4,398 in bfloat16
 (``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
@@ -135,12 +135,10 @@ class LeRobotOrder:
         """Positions a K/V cache holds for a prefix and a suffix: LeRobot's, the two end to end."""
         return prefix + suffix
 
-    @staticmethod
-    def new_cache(attn: Any, x: Tensor, length: int, gap: tuple[int, int] = (0, 0)) -> Any:
-        """An empty K/V cache of ``length`` positions for the rows of ``x`` (the layer's input);
-        positions ``gap[0]:gap[1]`` (never written, masked) zero (LeRobot's order has none)."""
-        assert gap[0] == gap[1]
-        shape = (x.shape[0], attn.config.num_key_value_heads, length, attn.head_dim)
+    def new_cache(self, attn: Any, x: Tensor, prefix: int, suffix: int) -> Any:
+        """An empty K/V cache for the rows of ``x`` (the layer's input): :meth:`cache_length`
+        positions, the prefix's first, the suffix's last."""
+        shape = (x.shape[0], attn.config.num_key_value_heads, self.cache_length(prefix, suffix), attn.head_dim)
         return x.new_empty(shape), x.new_empty(shape)
 
     @staticmethod
@@ -310,13 +308,13 @@ class Fused(LeRobotOrder):
         suffix are zero and masked: they add nothing to any row."""
         return -(-(prefix + suffix) // KEY_ALIGN) * KEY_ALIGN
 
-    @staticmethod
-    def new_cache(attn: Any, x: Tensor, length: int, gap: tuple[int, int] = (0, 0)) -> Tensor:
-        """An empty K/V cache; positions ``gap[0]:gap[1]`` zeroed (never written, masked: an
-        unset key could be NaN, and a NaN score stays NaN however masked)."""
+    def new_cache(self, attn: Any, x: Tensor, prefix: int, suffix: int) -> Tensor:
+        """An empty K/V cache, the positions between prefix and suffix zeroed (never written,
+        masked: an unset key could be NaN, and a NaN score stays NaN however masked)."""
+        length = self.cache_length(prefix, suffix)
         cache = x.new_empty(x.shape[0], length, 2 * attn.config.num_key_value_heads, attn.head_dim)
-        if gap[1] > gap[0]:
-            cache[:, gap[0] : gap[1]].zero_()
+        if length > prefix + suffix:
+            cache[:, prefix : length - suffix].zero_()
         return cache
 
     @staticmethod

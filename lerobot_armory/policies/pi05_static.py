@@ -63,7 +63,7 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
-from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder, Modulation
+from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, Fused, LeRobotOrder, Modulation
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
@@ -284,6 +284,7 @@ class StaticPi05:
         # Which suffix token attends which (LeRobot's ``make_att_2d_masks`` of its suffix's
         # attention pattern): π0.5's actions attend each other fully; made here, once.
         self.suffix_pattern = self._suffix_pattern().to(device)
+        self.no_keys = torch.zeros(1, self.suffix_length, KEY_ALIGN, dtype=torch.bool, device=device)  # the caches' gap, masked
         # LeRobot's Euler schedule: t = 1 + k·dt, dt = -1/steps, each t a float32 tensor.
         schedule = FlowSchedule.make(self.num_steps, guided, max_guidance_weight, device)
         self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
@@ -428,10 +429,10 @@ class StaticPi05:
         # What every denoising step shares: the suffix attends every valid prefix token and the
         # suffix as its pattern says; its positions follow the prefix's valid tokens.
         b, p, s = prefix_pad.shape[0], prefix_pad.shape[1], self.suffix_length
-        gap = self.ops.length(caches[0]) - p - s  # positions the ops' cache adds between prefix and suffix (masked)
+        gap = self.ops.cache_length(p, s) - p - s  # positions the ops' caches add between prefix and suffix (masked)
         parts = [prefix_pad[:, None, :].expand(b, s, p), self.suffix_pattern.expand(b, s, s)]
         if gap:
-            parts.insert(1, prefix_pad.new_zeros(b, s, gap))
+            parts.insert(1, self.no_keys[:, :, :gap].expand(b, s, gap))  # a view: no kernel
         valid = torch.cat(parts, dim=2)
         mask = self.ops.mask(self._additive(valid), self._dtype(self.expert))
         positions = prefix_pad.sum(dim=-1)[:, None] + torch.arange(s, device=prefix_pad.device)[None, :]
@@ -478,7 +479,6 @@ class StaticPi05:
         ``P + S`` positions (S: the suffix's; the ops may round that up, the positions between zero)
         with the prefix's (post-rotary) keys and values in the first ``P``."""
         p = pad.shape[1]
-        length = self.ops.cache_length(p, self.suffix_length)
         mask = self.ops.mask(self._additive(pad[:, None, :] & pad[:, :, None]), self._dtype(self.vlm))
         positions = torch.cumsum(pad, dim=1) - 1
         h = self.ops.stream(embs, self._dtype(self.vlm))
@@ -487,7 +487,7 @@ class StaticPi05:
         last = len(self.vlm.layers) - 1
         for i, layer in enumerate(self.vlm.layers):
             x = self.ops.norm(layer.input_layernorm, h)
-            cache = self.ops.new_cache(layer.self_attn, x, length, (p, length - self.suffix_length))
+            cache = self.ops.new_cache(layer.self_attn, x, p, self.suffix_length)
             caches.append(cache)
             if i == last:  # the last layer's output is never read: only its keys and values are
                 self.ops.qkv(layer.self_attn, x, rope, cache, 0)

@@ -77,6 +77,7 @@ class SmolVLAFused:
             raise ValueError(why)
         self.text, self.expert = vwe.get_vlm_model().text_model, vwe.lm_expert
         self.heads, self.kv_heads = vwe.num_attention_heads, vwe.num_key_value_heads
+        self.self_attention = list(self_attention)
         self.head_dim = self.text.config.head_dim
         self.scale = self.head_dim**-0.5
         # Fused weights, per layer: views of one tensor each, LeRobot's modules keep theirs as views.
@@ -131,14 +132,16 @@ class SmolVLAFused:
         return _aligned(p + h)
 
     def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
-        """Per layer, head-major keys and values ``(B, Hkv, L, d)`` in ``dtype[i]``: the prefix's
-        ``P`` positions, the suffix's ``H``, then zeros (masked) up to ``L``, the next multiple of
-        ``KEY_ALIGN`` (the self-attention layers' rows of scores; :meth:`prefix_length`)."""
+        """Per layer, head-major keys and values ``(B, Hkv, L, d)`` in ``dtype[i]``. A layer whose
+        expert attends the cache (self-attention): the prefix's ``P`` positions, the suffix's
+        ``H``, then zeros (masked) up to ``L``, the next multiple of ``KEY_ALIGN``; a
+        cross-attention layer's expert reads the prefix's alone: ``L = P`` (a multiple already,
+        :meth:`prefix_length`)."""
         length = self.cache_length(p, h)
         out = []
-        for dt in dtype:
-            kv = torch.empty((2, b, self.kv_heads, length, self.head_dim), dtype=dt, device=device)
-            if length > p + h:  # never written; a NaN there would stay NaN however masked
+        for self_attention, dt in zip(self.self_attention, dtype, strict=True):
+            kv = torch.empty((2, b, self.kv_heads, length if self_attention else p, self.head_dim), dtype=dt, device=device)
+            if self_attention and length > p + h:  # never written; a NaN there would stay NaN however masked
                 kv[:, :, :, p + h :].zero_()
             out.append((kv[0], kv[1]))
         return out

@@ -46,6 +46,7 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding, m
 from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
+from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
 from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
 from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
@@ -104,6 +105,7 @@ class StaticSmolVLA:
         self.dt, self.times, self.time_table, self.guidance_table = schedule.dt, schedule.times, schedule.time_table, schedule.guidance_table
         # The suffix's actions attend causally (LeRobot's att_masks of ones).
         self.suffix_pattern = torch.ones(self.chunk_size, self.chunk_size, dtype=torch.bool, device=device).tril()
+        self.no_keys = torch.zeros(1, self.chunk_size, KEY_ALIGN, dtype=torch.bool, device=device)  # the caches' padding, masked
         self.conditioning: tuple[Tensor, ...] | None = None  # prepare(): each step's time embedding
         self._constants: dict[str, Tensor] = {}
 
@@ -193,7 +195,7 @@ class StaticSmolVLA:
         parts = [pad[:, None, :].expand(b, h, p), self.suffix_pattern.expand(b, h, h)]
         gap = ops.cache_length(p, h) - p - h  # positions the ops' caches add after the suffix (masked)
         if gap:
-            parts.append(pad.new_zeros(b, h, gap))
+            parts.append(self.no_keys[:, :, :gap].expand(b, h, gap))  # a view: no kernel
         valid = ops.additive(torch.cat(parts, dim=2))
         positions = pad.sum(dim=-1)[:, None] + torch.arange(h, device=pad.device)[None, :]
         # A cross-attention layer's queries count from 0 (LeRobot's positions minus their minimum).
