@@ -66,6 +66,11 @@ from torch import Tensor
 # Fused K/V caches hold a multiple of this many positions (Fused.cache_length): 16 bytes of bf16.
 KEY_ALIGN = 8
 
+
+def key_aligned(length: int) -> int:
+    """``length`` positions rounded up to a multiple of :data:`KEY_ALIGN`."""
+    return -(-length // KEY_ALIGN) * KEY_ALIGN
+
 # Buffers Fused registers on LeRobot's modules (non-persistent: never in a state dict).
 _QKV, _GATE_UP, _NORM = "armory_qkv_weight", "armory_gate_up_weight", "armory_weight"
 
@@ -306,7 +311,7 @@ class Fused(LeRobotOrder):
         attention had rows 2 mod 8 long: on an H200 its 360 products a sample ran in Ampere's
         ``align2`` kernels, 2.6 ms at b = 1 and 5.0 ms at b = 8. The positions between prefix and
         suffix are zero and masked: they add nothing to any row."""
-        return -(-(prefix + suffix) // KEY_ALIGN) * KEY_ALIGN
+        return key_aligned(prefix + suffix)
 
     def new_cache(self, attn: Any, x: Tensor, prefix: int, suffix: int) -> Tensor:
         """An empty K/V cache, the positions between prefix and suffix zeroed (never written,

@@ -39,7 +39,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, _swap_halves, fuse_weights, unfusable
+from lerobot_armory.policies.pi05_kernels import _swap_halves, fuse_weights, key_aligned, unfusable
 
 ROPE_WAVELENGTH = 10_000  # LeRobot's apply_rope default (SmolVLA calls it without the config's rope_theta)
 
@@ -124,12 +124,12 @@ class SmolVLAFused:
         that the prefix's and the cross-attention's rows of scores are 16 bytes apart, which
         cuBLAS's Hopper kernels need (SmolVLA's prefix is 64 tokens a camera, 48 of prompt and 1
         of state: 177 for two cameras, odd)."""
-        return _aligned(max(length, lerobot_length))
+        return key_aligned(max(length, lerobot_length))
 
     @staticmethod
     def cache_length(p: int, h: int) -> int:
         """Positions a K/V cache holds for a prefix of ``p`` and a suffix of ``h``: rounded up."""
-        return _aligned(p + h)
+        return key_aligned(p + h)
 
     def caches(self, b: int, p: int, h: int, dtype: list[torch.dtype], device: torch.device) -> list[tuple[Tensor, Tensor]]:
         """Per layer, head-major keys and values ``(B, Hkv, L, d)`` in ``dtype[i]``. A layer whose
@@ -317,8 +317,3 @@ class SmolVLAOrdered:
         out = layer.mlp(layer.post_attention_layernorm(out))
         out += after
         return out
-
-
-def _aligned(length: int) -> int:
-    """``length`` rounded up to a multiple of ``KEY_ALIGN``."""
-    return -(-length // KEY_ALIGN) * KEY_ALIGN
