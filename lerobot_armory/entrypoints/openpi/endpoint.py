@@ -56,6 +56,9 @@ MAX_PACE_S = 10.0
 # A client that takes none of our bytes for this long while a reply waits is dropped: its replies
 # would wait forever (websockets' keepalive ping waits behind them and never times out).
 SEND_TIMEOUT_S = 10.0
+# A connection must finish its TLS handshake, then its HTTP upgrade, each within this long
+# (websockets' default, named here): a client that opens a socket and stalls holds it no longer.
+OPEN_TIMEOUT_S = 10.0
 
 
 class OpenpiSession:
@@ -192,7 +195,7 @@ class OpenpiEndpoint:
 
         self._server = await serve(
             self._handle, self.host, self.options.port or 0, compression=None, max_size=self.max_message_bytes,
-            process_request=health, ssl=self._ssl_context(),
+            process_request=health, ssl=self._ssl_context(), open_timeout=OPEN_TIMEOUT_S,
             # A client that sends without waiting for replies queues at most this many frames
             # here (each up to max_size): openpi's client sends one and waits.
             max_queue=4,
