@@ -15,6 +15,7 @@ from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
 from tests.support.vla import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
+from tests.support.vla import nan_allocations, sampler_inputs
 from tests.support.vla import rtc_batch as batch
 
 BUCKETS = (1, 2, 4, 8)
@@ -774,7 +775,7 @@ def test_the_vision_tower_in_bf16_halves_its_memory_and_stays_near_float32(pi05_
     assert plain.vision_cast is None and tower(plain)[0] == {torch.float32}
 
 
-def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_positions_never_reach_a_chunk(engines, monkeypatch):
+def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_positions_never_reach_a_chunk(engines):
     """The fused K/V cache rounds prefix + suffix up to a multiple of ``KEY_ALIGN`` positions (rows
     of scores 16 bytes apart: cuBLAS's fast Hopper kernels need it). The positions between prefix
     and suffix are never written: with every fresh allocation of the sampler filled with NaN (what
@@ -787,9 +788,7 @@ def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_position
 
     _, static = engines
     fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
-    obs, tasks, seeds, prefixes = batch(3, seed=6)
-    kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
-    inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+    inputs = sampler_inputs(static, 3, seed=6, horizon=RTC.execution_horizon)
     cameras = len(inputs.images)
     p = inputs.tokens.shape[1] + sum(emb.shape[1] for emb in fused.vision(inputs.images)[:cameras])
     length = fused.ops.cache_length(p, fused.suffix_length)
@@ -798,15 +797,8 @@ def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_position
     with torch.no_grad():
         fused.sample(inputs)  # the per-policy constants, made before memory turns to NaN
         expected = fused.sample(inputs)
-        new_empty = torch.Tensor.new_empty
-
-        def nan_empty(self, *size, **kw):
-            t = new_empty(self, *size, **kw)
-            return t.fill_(float("nan")) if t.is_floating_point() else t
-
-        monkeypatch.setattr(torch.Tensor, "new_empty", nan_empty)
-        chunks = fused.sample(inputs)
-        monkeypatch.undo()
+        with nan_allocations():
+            chunks = fused.sample(inputs)
         reference = plain.sample(inputs)
     assert torch.isfinite(chunks).all()
     torch.testing.assert_close(chunks, expected, atol=0, rtol=0)

@@ -14,6 +14,7 @@ from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.errors import ConfigError
 from tests.support.vla import TASKS, assert_padding_never_changes_a_real_row, assert_shared_chunks_equal_alone, assert_static_equals_lerobot
 from tests.support.vla import assert_traces_as_one_graph_with_no_host_sync, serve_prompt_robots
+from tests.support.vla import nan_allocations, sampler_inputs
 from tests.support.vla import rtc_batch as batch
 
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
@@ -169,9 +170,7 @@ def test_the_fused_prefix_and_caches_are_multiples_of_8_and_unwritten_memory_nev
     fused = static.sampler.sample.__self__
     ordered = StaticSmolVLA(fused.policy, guided=True, fused=False)
     assert fused.fused and not ordered.fused
-    obs, tasks, seeds, prefixes = batch(3, seed=7)
-    kwargs = {"noise": static._noise(seeds), **rtc.guidance_kwargs(prefixes, static.chunk_size, RTC.execution_horizon, "cpu")}
-    inputs = static._sampler_inputs(static.preprocessor({**static.to_batch(obs), "task": tasks}), kwargs)
+    inputs = sampler_inputs(static, 3, seed=7, horizon=RTC.execution_horizon)
     with torch.no_grad():
         fused.prepare(), ordered.prepare()  # the per-policy constants, made before memory turns to NaN
         vision = fused.vision(inputs.images)
@@ -181,17 +180,8 @@ def test_the_fused_prefix_and_caches_are_multiples_of_8_and_unwritten_memory_nev
         length = fused.ops.cache_length(p, fused.chunk_size)
         assert length % KEY_ALIGN == 0 and length > p + fused.chunk_size, (length, p)  # a gap to test
         expected = fused.sample(inputs)
-        empty, new_empty = torch.empty, torch.Tensor.new_empty
-
-        def nan(t):
-            return t.fill_(float("nan")) if t.is_floating_point() else t
-
-        try:
-            torch.empty = lambda *a, **kw: nan(empty(*a, **kw))
-            torch.Tensor.new_empty = lambda self, *a, **kw: nan(new_empty(self, *a, **kw))
+        with nan_allocations():
             chunks = fused.sample(inputs)
-        finally:
-            torch.empty, torch.Tensor.new_empty = empty, new_empty
         reference = ordered.sample(inputs)
     assert torch.isfinite(chunks).all()
     torch.testing.assert_close(chunks, expected, atol=0, rtol=0)

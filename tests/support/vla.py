@@ -4,8 +4,10 @@ samplers' checks (equal to LeRobot's, padding-safe, one traced graph with no hos
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -70,6 +72,26 @@ def sampler_inputs(engine: PolicyEngine, b: int, seed: int = 0, guided: bool = T
     if not guided:
         inputs.rtc_weights = inputs.rtc_leftover = None
     return inputs
+
+
+@contextlib.contextmanager
+def nan_allocations() -> Iterator[None]:
+    """Every floating-point tensor made by ``torch.empty`` or ``Tensor.new_empty`` inside comes
+    filled with NaN (what a GPU's reused memory may hold): a sampler that reads memory it never
+    wrote gives NaN or other chunks."""
+    import torch
+
+    empty, new_empty = torch.empty, torch.Tensor.new_empty
+
+    def nan(t: Any) -> Any:
+        return t.fill_(float("nan")) if t.is_floating_point() else t
+
+    torch.empty = lambda *a, **kw: nan(empty(*a, **kw))
+    torch.Tensor.new_empty = lambda self, *a, **kw: nan(new_empty(self, *a, **kw))
+    try:
+        yield
+    finally:
+        torch.empty, torch.Tensor.new_empty = empty, new_empty
 
 
 def assert_padding_never_changes_a_real_row(static: PolicyEngine) -> None:
