@@ -94,6 +94,21 @@ def nan_allocations() -> Iterator[None]:
         torch.empty, torch.Tensor.new_empty = empty, new_empty
 
 
+def assert_unwritten_memory_never_reaches_a_chunk(sampler: Any, lerobots_order: Any, inputs: Any) -> None:
+    """``sampler``'s chunks for ``inputs`` are the same bit for bit with every fresh allocation
+    filled with NaN (:func:`nan_allocations`), and within 1e-5 of ``lerobots_order``'s."""
+    import torch
+
+    with torch.no_grad():
+        expected = sampler.sample(inputs)  # the per-policy constants made too, before memory turns to NaN
+        with nan_allocations():
+            chunks = sampler.sample(inputs)
+        reference = lerobots_order.sample(inputs)
+    assert torch.isfinite(chunks).all()
+    torch.testing.assert_close(chunks, expected, atol=0, rtol=0)
+    torch.testing.assert_close(chunks, reference, atol=1e-5, rtol=0)
+
+
 def assert_padding_never_changes_a_real_row(static: PolicyEngine) -> None:
     """Three real rows padded to 4 with their own last row, with another robot's row, or with a
     row of extreme values (state, image, noise, RTC leftover and weight): the real rows' chunks
