@@ -24,7 +24,10 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   ``--engine.early_vision=false`` (one graph a bucket and prompt length, replayed after the
   pre-processor, where by default the vision tower's own graph starts before it); an ``-unaligned``
   suffix: the fused K/V caches prefix + suffix positions end to end (before 2026-11-28; by default
-  rounded up to a multiple of 8 so that attention's rows suit cuBLAS's Hopper kernels);
+  rounded up to a multiple of 8 so that attention's rows suit cuBLAS's Hopper kernels); a
+  ``-stridedmlp`` suffix: the VLM's MLP gate and up as the halves of one product (before
+  2026-11-28 #10; by default two contiguous products, so that the activation and the product after
+  it run in PyTorch's vectorised kernels); both (``-unaligned-stridedmlp``): the sampler of 2026-11-27;
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -52,7 +55,7 @@ eager sampler on the same weights in float32, loaded after the others), and (``-
 faulted CUDA in some versions) where a pass's device time goes: one
 pass at b = 1 and at the largest b traced with ``torch.profiler`` (the kernels inside a graph's
 replay one by one), its kernel time summed by kind — matrix products, attention, norms, copies,
-elementwise — with the ten longest kernels; ``--stages``: each step of a served batch timed alone,
+elementwise — with the 40 longest kernels; ``--stages``: each step of a served batch timed alone,
 synchronised (what the engine adds to the bare pass). Results merge into ``docs/results/gpu/<device>.json``;
 its top-level ``latency_ms`` is the fastest π0.5 bf16 configuration through the engine, so the
 file loads as ``--latency_profile=FILE``. A figure is drawn beside the JAX reference's H100 table
@@ -96,7 +99,8 @@ CONFIGS = (
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
@@ -139,27 +143,40 @@ def _flags(config: str) -> set[str]:
     return set(config.split("-graphs")[1].split("-")[1:]) if "-graphs" in config else set()
 
 
+# Suffixes that undo one of the default's kernel choices (``as_before``): a configuration with one
+# beside the same without says what the choice gives.
+BEFORE = ("unaligned", "stridedmlp")
+
+
 @contextlib.contextmanager
-def cache_alignment(config: str) -> Iterator[None]:
-    """``-unaligned``: the fused K/V caches (and SmolVLA's prefix) as long as LeRobot's, as before
-    2026-11-28, where by default they are rounded up to ``KEY_ALIGN`` positions
-    (``Fused.cache_length``, ``SmolVLAFused.prefix_length``): the same engine otherwise, so the pair
-    says what the alignment gives."""
-    if "unaligned" not in _flags(config):
-        yield
-        return
+def as_before(config: str) -> Iterator[None]:
+    """The same engine with some of its newer kernel choices undone, by suffix:
+
+    - ``-unaligned``: the fused K/V caches (and SmolVLA's prefix) as long as LeRobot's, as before
+      2026-11-28, where by default they are rounded up to ``KEY_ALIGN`` positions
+      (``Fused.cache_length``, ``SmolVLAFused.prefix_length``);
+    - ``-stridedmlp``: the VLM's MLP gate and up as the two halves of one product, as before
+      2026-11-28 #10, where by default they are two contiguous products
+      (``StaticPi05.vlm_mlp_apart``)."""
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
+    from lerobot_armory.policies.pi05_static import StaticPi05
     from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
-    patched = [(Fused, LeRobotOrder, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "prefix_length")]
-    saved = [cls.__dict__[name] for cls, _, name in patched]
-    for cls, lerobots, name in patched:
-        setattr(cls, name, lerobots.__dict__[name])
+    flags = _flags(config)
+    patched: list[tuple[Any, str, Any]] = []  # (class, attribute, the value before)
+    if "unaligned" in flags:
+        patched += [(cls, name, lerobots.__dict__[name]) for cls, lerobots, name in (
+            (Fused, LeRobotOrder, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "prefix_length"))]  # fmt: skip
+    if "stridedmlp" in flags:
+        patched.append((StaticPi05, "vlm_mlp_apart", False))
+    saved = [cls.__dict__[name] for cls, name, _ in patched]
+    for cls, name, before in patched:
+        setattr(cls, name, before)
     try:
         yield
     finally:
-        for (cls, _, name), method in zip(patched, saved, strict=True):
-            setattr(cls, name, method)
+        for (cls, name, _), now in zip(patched, saved, strict=True):
+            setattr(cls, name, now)
 
 
 def _cuda() -> bool:
@@ -329,10 +346,13 @@ KERNEL_KINDS = (
 )
 
 
+LONGEST = 40  # kernels listed by name in a breakdown, longest first
+
+
 def kernel_breakdown(engine: Any, b: int, reps: int = 3) -> dict[str, Any]:
     """Where one forward pass's device time goes at batch b: each kernel's time from
     ``torch.profiler`` (on a GPU, the kernels inside a CUDA graph replay are traced one by one),
-    summed by kind (:data:`KERNEL_KINDS`), with the kernel count and the ten longest. On a CPU the
+    summed by kind (:data:`KERNEL_KINDS`), with the kernel count and the :data:`LONGEST` longest. On a CPU the
     same for aten ops' own CPU time (a script check, not a GPU figure)."""
     import torch
     from torch.profiler import ProfilerActivity, profile
@@ -372,7 +392,9 @@ def kernel_breakdown(engine: Any, b: int, reps: int = 3) -> dict[str, Any]:
         "device_ms": round(sum(ms for _, _, ms in rows), 3),
         "kernels": round(sum(n for _, n, _ in rows)),
         "by_kind_ms": {k: round(v, 3) for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])},
-        "longest": [{"name": name[:120], "per_pass": round(n, 1), "ms": round(ms, 3)} for name, n, ms in rows[:10]],
+        # 40 and 300 characters: 10 and 120 (before 2026-11-28 #10) left 10.3 of 24.6 ms at b = 1
+        # unnamed and cut an elementwise kernel's name before its functor (which operation it is).
+        "longest": [{"name": name[:300], "per_pass": round(n, 1), "ms": round(ms, 3)} for name, n, ms in rows[:LONGEST]],
     }
 
 
@@ -429,10 +451,13 @@ def profile_config(
     if late is not None:  # the vision tower started early must change no chunk: 0 expected
         run["vs_latevision"] = agreement(late, got)
         print(f"  chunks vs {config}-latevision (b = 1, 3, 8; 0 expected): {run['vs_latevision']}", flush=True)
-    unaligned = chunk_sets.get(f"{config}-unaligned")
-    if unaligned is not None:  # zero keys, masked: only the sums' order may differ (bf16 rounding)
-        run["vs_unaligned"] = agreement(unaligned, got)
-        print(f"  chunks vs {config}-unaligned (b = 1, 3, 8): {run['vs_unaligned']}", flush=True)
+    for other, before in chunk_sets.items():
+        # The same engine with choices undone (as_before): zero keys masked, the same products
+        # apart: only the sums' order may differ (bf16 rounding).
+        suffix = other.removeprefix(f"{config}-")
+        if other != suffix and set(suffix.split("-")) <= set(BEFORE):
+            run[f"vs_{suffix}"] = agreement(before, got)
+            print(f"  chunks vs {other} (b = 1, 3, 8): {run[f'vs_{suffix}']}", flush=True)
     if device == "cuda":
         run["peak_gpu_mib"] = round(torch.cuda.max_memory_allocated() / 2**20)
     return run
@@ -586,7 +611,7 @@ def main() -> None:
             loaded = (path, overrides)
             print(f"  loaded in {time.perf_counter() - t0:.0f} s", flush=True)
         assert engine is not None
-        with cache_alignment(config):
+        with as_before(config):
             try:
                 runs[config] = profile_config(engine, config, overrides, device, reference, chunk_sets)
             except Exception as exc:  # one configuration failing (a capture, say) must not lose the others

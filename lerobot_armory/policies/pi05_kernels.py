@@ -4,7 +4,7 @@ The static sampler (``pi05_static.py``) runs the same loop either way; what diff
 kernels each layer launches. On a GPU under a CUDA graph the launch cost is gone but every kernel
 still takes a few microseconds however small its work, and π0.5 at batch 1 is mostly small kernels:
 the action expert runs 18 layers at each of 10 denoising steps. At full depth a sample launches
-9,135 kernels in LeRobot's sequence and 3,995 fused in float32; 10,169 and 4,398 in bfloat16
+9,135 kernels in LeRobot's sequence and 4,012 fused in float32; 10,169 and 4,415 in bfloat16
 (``benchmarks/pi05_ops.py``).
 
 :class:`LeRobotOrder` is LeRobot's and HF's arithmetic, operation for operation (the reference:
@@ -12,7 +12,12 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
 
 - **one projection for q, k and v, and one for the MLP's gate and up** — the layer's q/k/v (and
   gate/up) weights are made *views* of one concatenated tensor (:func:`fuse_weights`): no weight
-  is copied, none changes value, and LeRobot's modules keep working on them;
+  is copied, none changes value, and LeRobot's modules keep working on them; except where a
+  model's MLP runs over many rows (``apart``: the VLM over the prefix), whose gate and up stay two
+  products, each written contiguous: one product's halves are strided, and PyTorch runs the
+  activation and the product of the halves in its non-vectorised elementwise kernel (on an H200
+  at b = 8, 9.4 of 80 ms, where the bytes they move take ≈ 3 ms), which costs more than the
+  second launch (18 a sample);
 - **RMSNorm as one kernel** (``torch.nn.functional.rms_norm``: ``_fused_rms_norm`` on CUDA, where
   LeRobot's ``square, mean, add, rsqrt, mul`` is five), the plain norm's ``1 + weight`` computed
   once; the **adaptive norm's time conditioning folded away** (:meth:`Fused.fold`, once per
@@ -55,6 +60,7 @@ to ≈ 1, 0.6–1.3× on π0 (no gates: within noise of LeRobot's), on the CPU (
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,6 +79,8 @@ def key_aligned(length: int) -> int:
 
 # Buffers Fused registers on LeRobot's modules (non-persistent: never in a state dict).
 _QKV, _GATE_UP, _NORM = "armory_qkv_weight", "armory_gate_up_weight", "armory_weight"
+# A plain attribute on an MLP whose gate and up run as two products (Fused's ``apart``).
+_APART = "armory_gate_up_apart"
 
 
 @dataclass(frozen=True)
@@ -200,12 +208,15 @@ class Fused(LeRobotOrder):
         text_models: the Gemma models whose layers run here (the VLM and the action expert);
             their layers' projection weights become views of fused tensors (:func:`fuse_weights`).
         attention: ``eager`` or ``sdpa``.
+        apart: those of ``text_models`` whose MLPs run the gate and up products apart (each
+            output contiguous; the weights are fused all the same): the ones that run over many
+            rows (see the module docstring).
 
     Raises:
         ValueError: a layer cannot be fused (:func:`fusable_reason`).
     """
 
-    def __init__(self, text_models: list[Any], attention: str) -> None:
+    def __init__(self, text_models: list[Any], attention: str, apart: Sequence[Any] = ()) -> None:
         super().__init__(attention)
         why = fusable_reason(text_models)
         if why is not None:
@@ -236,6 +247,8 @@ class Fused(LeRobotOrder):
                 attn, mlp = layer.self_attn, layer.mlp
                 attn.register_buffer(_QKV, fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj]), persistent=False)
                 mlp.register_buffer(_GATE_UP, fuse_weights([mlp.gate_proj, mlp.up_proj]), persistent=False)
+                # An attribute, not a dict by module: a compiled layer reads (and guards on) its own.
+                setattr(mlp, _APART, any(model is m for m in apart))
             for norm in (*(n for lay in model.layers for n in (lay.input_layernorm, lay.post_attention_layernorm)), model.norm):
                 if getattr(norm, "dense", None) is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
                     norm.register_buffer(_NORM, 1.0 + norm.weight.detach().float(), persistent=False)
@@ -372,8 +385,18 @@ class Fused(LeRobotOrder):
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
     def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
-        gate, up = torch.nn.functional.linear(x, self.gate_up_weight(mlp), bias).chunk(2, dim=-1)
+        gate, up = self.gate_up(mlp, x, bias)
         return mlp.down_proj(mlp.act_fn(gate) * up)
+
+    def gate_up(self, mlp: Any, x: Tensor, bias: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The MLP's gate and up outputs: halves of one product, or two contiguous products where
+        the MLP runs them apart (``apart``: the weights are the two halves of the fused one)."""
+        weight = self.gate_up_weight(mlp)
+        if not getattr(mlp, _APART):
+            return torch.nn.functional.linear(x, weight, bias).chunk(2, dim=-1)
+        half = weight.shape[0] // 2
+        gate_bias, up_bias = (None, None) if bias is None else (bias[:half], bias[half:])
+        return torch.nn.functional.linear(x, weight[:half], gate_bias), torch.nn.functional.linear(x, weight[half:], up_bias)
 
     @staticmethod
     def euler(x: Tensor, v: Tensor, dt: float) -> Tensor:

@@ -236,6 +236,9 @@ class StaticPi05:
     model_name = "PI05Pytorch"
     model_parts: tuple[str, ...] = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
     adaptive_norms = True  # the expert's norms take the flow time (π0.5's adaRMS)
+    # The VLM's MLPs (the prefix's rows: 256 a camera and the prompt's, a sample) run gate and up as two contiguous
+    # products (pi05_kernels.Fused's ``apart``); the expert's 50 rows a sample keep one product.
+    vlm_mlp_apart = True
     takes_state = False  # the sampler embeds the state (SamplerInputs.state); π0.5's prompt holds it
     state_tokens = 0  # suffix tokens before the actions
     compilable = True  # --engine.compile_sampler: compile_layers()
@@ -267,7 +270,7 @@ class StaticPi05:
         self.ops: LeRobotOrder = LeRobotOrder(attention)
         if fused:
             try:  # Fused checks every layer before it touches a weight
-                self.ops = Fused([self.vlm, self.expert], attention)
+                self.ops = Fused([self.vlm, self.expert], attention, apart=[self.vlm] if self.vlm_mlp_apart else [])
             except ValueError as exc:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)

@@ -793,3 +793,42 @@ def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_position
     assert length % KEY_ALIGN == 0 and length > p + fused.suffix_length, (p, fused.suffix_length)  # a gap to test
     assert plain.ops.cache_length(p, plain.suffix_length) == p + plain.suffix_length
     assert_unwritten_memory_never_reaches_a_chunk(fused, plain, inputs)
+
+
+def test_the_vlms_mlp_hands_its_activation_contiguous_gate_and_up_and_the_chunks_stay_lerobots(engines):
+    """Over the prefix's many rows the VLM's gate and up run as two products (``Fused``'s
+    ``apart``), so the activation and the product after it read contiguous tensors (a GPU's
+    vectorised elementwise kernels need them; one product's halves are strided); the expert keeps
+    one product. The weights are the fused ones all the same, and the chunks stay LeRobot's."""
+    import torch
+
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    _, static = engines
+    fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
+    seen: dict[str, list[bool]] = {"vlm": [], "expert": []}
+
+    def recorder(name: str, act: torch.nn.Module) -> torch.nn.Module:
+        class Recording(torch.nn.Module):
+            def forward(self, gate: torch.Tensor) -> torch.Tensor:
+                seen[name].append(gate.is_contiguous())
+                return act(gate)
+
+        return Recording()
+
+    inputs = sampler_inputs(static, 3, seed=2, horizon=RTC.execution_horizon)
+    saved = {mlp: mlp.act_fn for model in (fused.vlm, fused.expert) for mlp in (layer.mlp for layer in model.layers)}
+    try:
+        for name, model in (("vlm", fused.vlm), ("expert", fused.expert)):
+            for layer in model.layers:
+                layer.mlp.act_fn = recorder(name, saved[layer.mlp])
+        with torch.no_grad():
+            got = fused.sample(inputs)
+    finally:
+        for mlp, act in saved.items():
+            mlp.act_fn = act
+    last_vlm_mlp_unused = 1  # the last VLM layer's output is never read (its keys and values are)
+    assert seen["vlm"] == [True] * (len(fused.vlm.layers) - last_vlm_mlp_unused)
+    assert seen["expert"] and not any(seen["expert"])
+    with torch.no_grad():
+        torch.testing.assert_close(got, plain.sample(inputs), atol=1e-5, rtol=0)
