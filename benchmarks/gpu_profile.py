@@ -27,7 +27,10 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   rounded up to a multiple of 8 so that attention's rows suit cuBLAS's Hopper kernels); a
   ``-stridedmlp`` suffix: the VLM's MLP gate and up as the halves of one product (before
   2026-11-28 #10; by default two contiguous products, so that the activation and the product after
-  it run in PyTorch's vectorised kernels); both (``-unaligned-stridedmlp``): the sampler of 2026-11-27;
+  it run in PyTorch's vectorised kernels); a ``-mixedresidual`` suffix: the output and down
+  projections in bf16 (before 2026-11-28 #10; by default on a GPU they write float32, so that the
+  residual sums read one dtype); all three (``-unaligned-stridedmlp-mixedresidual``): the sampler
+  of 2026-11-27;
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -100,7 +103,8 @@ CONFIGS = (
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
@@ -145,7 +149,7 @@ def _flags(config: str) -> set[str]:
 
 # Suffixes that undo one of the default's kernel choices (``as_before``): a configuration with one
 # beside the same without says what the choice gives.
-BEFORE = ("unaligned", "stridedmlp")
+BEFORE = ("unaligned", "stridedmlp", "mixedresidual")
 
 
 @contextlib.contextmanager
@@ -157,19 +161,25 @@ def as_before(config: str) -> Iterator[None]:
       (``Fused.cache_length``, ``SmolVLAFused.prefix_length``);
     - ``-stridedmlp``: the VLM's MLP gate and up as the two halves of one product, as before
       2026-11-28 #10, where by default they are two contiguous products
-      (``StaticPi05.vlm_mlp_apart``)."""
+      (``StaticPi05.vlm_mlp_apart``);
+    - ``-mixedresidual``: the output and down projections in bf16, so that each residual sum
+      reads two dtypes, as before 2026-11-28 #10, where on a GPU they are written in float32
+      (``pi05_kernels.float32_products_reason``)."""
+    from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
     from lerobot_armory.policies.pi05_static import StaticPi05
     from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
     flags = _flags(config)
-    patched: list[tuple[Any, str, Any]] = []  # (class, attribute, the value before)
+    patched: list[tuple[Any, str, Any]] = []  # (class or module, attribute, the value before)
     if "unaligned" in flags:
         patched += [(cls, name, lerobots.__dict__[name]) for cls, lerobots, name in (
             (Fused, LeRobotOrder, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "cache_length"), (SmolVLAFused, SmolVLAOrdered, "prefix_length"))]  # fmt: skip
     if "stridedmlp" in flags:
         patched.append((StaticPi05, "vlm_mlp_apart", False))
-    saved = [cls.__dict__[name] for cls, name, _ in patched]
+    if "mixedresidual" in flags:
+        patched.append((pi05_kernels, "float32_products_reason", lambda device, dtype: "-mixedresidual"))
+    saved = [vars(owner)[name] for owner, name, _ in patched]  # a class's or a module's own
     for cls, name, before in patched:
         setattr(cls, name, before)
     try:

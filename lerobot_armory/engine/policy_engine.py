@@ -212,6 +212,7 @@ class PolicyEngine:
 
         o = self.engine_options
         self.fused_kernels = False
+        self.float32_products = False
         self._sampler_takes_state = False  # the static sampler embeds the state (π0, SmolVLA)
         self._sampler_cameras: tuple[str, ...] = ()  # the cameras its inputs carry, in order
         self.prompt_buckets: tuple[int, ...] = ()  # fitted prompt lengths, ascending (none: the full length)
@@ -266,6 +267,7 @@ class PolicyEngine:
         if sampler.unfused_reason is not None:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
+        self.float32_products = bool(getattr(sampler.ops, "float32_products", False))  # π0 family, bf16, CUDA
         self._sampler_takes_state, self._sampler_cameras = sampler.takes_state, sampler.cameras
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")
@@ -308,6 +310,8 @@ class PolicyEngine:
                 notes.append("static sampler compiled")
             if self.fused_kernels:
                 notes.append("fused kernels")
+                if self.float32_products:
+                    notes.append("output projections in float32")
             if self.vision_cast is not None:
                 notes.append(f"vision tower in {self.vision_cast}")
             if self.prompt_buckets:

@@ -34,7 +34,12 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   weighted sum run on q's ``(B, L·heads, d)`` rows and on k and v where they lie in the cache, and
   the output is the ``(B, L, heads·d)`` the output projection takes (HF transposes q and the
   output and copies K/V per query head);
-- **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``);
+- **gated residuals and the Euler step as one kernel each** (``addcmul``, ``add(alpha=dt)``); in
+  bf16 on a GPU the output and down projections write float32 themselves
+  (``torch.mm(out_dtype=float32)``, :meth:`Fused.project_out`): the residual sum then reads one
+  dtype (PyTorch's elementwise kernels on mixed dtypes are not vectorised: the expert's 360 gated
+  residuals a pass took 5.6 µs each on an H200, the rotation's single-dtype ``addcmul`` of the
+  same size 3.3) and the product reaches the float32 stream unrounded;
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
   as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
   50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
@@ -51,7 +56,8 @@ rounds once where two kernels round twice, the fused norm reduces in its own ord
 is summed inside the matrix product): ``tests/policies/test_pi05_static.py`` holds the fused
 chunks to LeRobot's within 1e-5. Folding the scale into q is exact when it is a power of two
 (π0.5's head size 256 gives 1/16). In bfloat16 the float32 residual stream is what matters: the
-fused chunks are nearer a float32 model's than LeRobot's own bf16 chunks, by how much depends on
+fused chunks are nearer a float32 model's than LeRobot's own bf16 chunks (on a GPU the output and
+down projections' products reach the stream unrounded too: :meth:`Fused.project_out`), by how much depends on
 how much the bf16 products weigh against the stream's rounding: 0.07–0.09× LeRobot's distance on a
 random-weight π0.5 (whose small expert gates damp the products), 0.3–0.5× with its gates raised
 to ≈ 1, 0.6–1.3× on π0 (no gates: within noise of LeRobot's), on the CPU (``benchmarks/bf16_accuracy.py``,
@@ -71,6 +77,26 @@ from torch import Tensor
 
 # Fused K/V caches hold a multiple of this many positions (Fused.cache_length): 16 bytes of bf16.
 KEY_ALIGN = 8
+
+
+def float32_products_reason(device: torch.device, dtype: torch.dtype) -> str | None:
+    """Why :class:`Fused` cannot write the output and down projections in float32 on ``device``
+    for weights of ``dtype`` (None: it can; tried once on the device)."""
+    if dtype != torch.bfloat16:
+        return f"the projections are {dtype}, not bf16"
+    if device.type != "cuda":
+        return "torch.mm(out_dtype=float32) runs on CUDA only"
+    try:
+        probe = torch.ones(KEY_ALIGN, KEY_ALIGN, dtype=dtype, device=device)
+        _float32_mm(probe, probe)
+    except (RuntimeError, TypeError) as exc:  # an older torch or a device without it
+        return f"torch.mm(out_dtype=float32) failed: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}"
+    return None
+
+
+def _float32_mm(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b`` of bf16 matrices, written in float32 by the product (CUDA only)."""
+    return torch.mm(a, b, out_dtype=torch.float32)
 
 
 def key_aligned(length: int) -> int:
@@ -184,6 +210,11 @@ class LeRobotOrder:
         return _attention(self.attention, q, kv[0], kv[1], mask, attn.scaling)
 
     @staticmethod
+    def project_out(linear: Any, x: Tensor) -> Tensor:
+        """A layer part's last projection (attention's output, the MLP's down)."""
+        return linear(x)
+
+    @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return _gated_residual(h, y, gate)
 
@@ -226,6 +257,9 @@ class Fused(LeRobotOrder):
         # layer's own: torch.compile lifts a module's buffers as inputs, where a dict keyed by
         # module would hand every layer the first one's.
         self.compute_dtype = text_models[0].layers[0].self_attn.q_proj.weight.dtype  # the projections' (fusable_reason: one)
+        # Output and down projections written in float32 (project_out), where the device can.
+        self.float32_products_reason = float32_products_reason(text_models[0].layers[0].self_attn.q_proj.weight.device, self.compute_dtype)
+        self.float32_products = self.float32_products_reason is None
         self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
@@ -294,7 +328,9 @@ class Fused(LeRobotOrder):
         assert mod.shift is not None
         with torch.no_grad():
             bias = torch.nn.functional.linear(mod.shift.reshape(-1), weight.float()).to(weight.dtype)
-        return Modulation(mod.scale1.reshape(-1), None, mod.gate, bias)
+        # With float32 products the residual reads float32 only: LeRobot's bf16 gate, in float32.
+        gate = mod.gate.float() if self.float32_products else mod.gate
+        return Modulation(mod.scale1.reshape(-1), None, gate, bias)
 
     def norm(self, norm: Any, h: Tensor) -> Tensor:
         """On the float32 stream, in one kernel, rounded to the layers' dtype for the projections."""
@@ -380,13 +416,20 @@ class Fused(LeRobotOrder):
         probs = torch.nn.functional.softmax(scores.add_(mask), dim=-1)
         return torch.bmm(probs.view(b, lq * heads, -1), kv[:, :, 1]).view(b, lq, heads * d)
 
+    def project_out(self, linear: Any, x: Tensor) -> Tensor:
+        """In float32, written by the product itself, where the device can (``float32_products``):
+        the residual sum after it then reads one dtype (see the module docstring)."""
+        if not self.float32_products or linear.bias is not None:
+            return linear(x)
+        return _float32_mm(x.reshape(-1, x.shape[-1]), linear.weight.t()).view(*x.shape[:-1], linear.weight.shape[0])
+
     @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
     def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
         gate, up = self.gate_up(mlp, x, bias)
-        return mlp.down_proj(mlp.act_fn(gate) * up)
+        return self.project_out(mlp.down_proj, mlp.act_fn(gate) * up)
 
     def gate_up(self, mlp: Any, x: Tensor, bias: Tensor | None) -> tuple[Tensor, Tensor]:
         """The MLP's gate and up outputs: halves of one product, or two contiguous products where

@@ -507,7 +507,7 @@ class StaticPi05:
         """A Gemma layer with plain norms, its input ``x`` normed already: keys and values into
         ``cache`` from ``start``, attention over ``kv`` (the cache's attended part)."""
         q = self.ops.qkv(layer.self_attn, x, rope, cache, start)
-        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, kv, mask)), None)
+        h = self.ops.residual(h, self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, kv, mask)), None)
         return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
 
     def _velocity(
@@ -547,7 +547,7 @@ class StaticPi05:
         behind the prefix's (its last ``chunk_size`` positions), the residual stream returned."""
         x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
         q = self.ops.qkv(layer.self_attn, x, rope, cache, self.ops.length(cache) - h.shape[1], mod_in.bias)
-        h = self.ops.residual(h, layer.self_attn.o_proj(self.ops.attend(layer.self_attn, q, cache, mask)), mod_in.gate)
+        h = self.ops.residual(h, self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, cache, mask)), mod_in.gate)
         x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post)
         return self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
 

@@ -832,3 +832,48 @@ def test_the_vlms_mlp_hands_its_activation_contiguous_gate_and_up_and_the_chunks
     assert seen["expert"] and not any(seen["expert"])
     with torch.no_grad():
         torch.testing.assert_close(got, plain.sample(inputs), atol=1e-5, rtol=0)
+
+
+def test_with_float32_products_every_residual_sum_reads_one_dtype(pi05_dir, monkeypatch):
+    """In bf16 on a GPU the fused sampler's output and down projections write float32 themselves
+    (``torch.mm(out_dtype=float32)``, CUDA only): every residual sum then reads the float32 stream,
+    a float32 product and (the expert's) LeRobot's bf16 gate in float32, so none runs in PyTorch's
+    mixed-dtype elementwise kernels, which a GPU does not vectorise. On the CPU it is off and says
+    why; here the product is stood in for by its arithmetic (bf16 inputs, float32 sums and output,
+    as cuBLAS computes it), and the chunks stay as near a float32 π0.5's as with bf16 products."""
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from lerobot_armory.policies import pi05_kernels
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    class ResidualDtypes(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.mixed = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+            if func in (torch.ops.aten.addcmul.default, torch.ops.aten.add.Tensor):
+                self.mixed += len({a.dtype for a in args if isinstance(a, torch.Tensor)}) > 1
+            return func(*args, **(kwargs or {}))
+
+    float32 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+    bf16 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
+    reference, off = StaticPi05(float32.policy, fused=False), StaticPi05(bf16.policy)
+    assert not off.ops.float32_products and "CUDA only" in off.ops.float32_products_reason
+    assert "float32" not in bf16.description.split("fused kernels")[1]
+    monkeypatch.setattr(pi05_kernels, "float32_products_reason", lambda device, dtype: None)
+    monkeypatch.setattr(pi05_kernels, "_float32_mm", lambda a, b: torch.mm(a.float(), b.float()))
+    on = StaticPi05(bf16.policy)
+    assert on.ops.float32_products
+    for b in (1, 3):
+        inputs = sampler_inputs(bf16, b, seed=b, guided=False)
+        with torch.no_grad():
+            want = reference.sample(inputs)
+            with ResidualDtypes() as before:
+                theirs = off.sample(inputs)
+            with ResidualDtypes() as after:
+                ours = on.sample(inputs)
+        assert before.mixed > 0 and after.mixed == 0, (before.mixed, after.mixed)
+        torch.testing.assert_close(ours, theirs, atol=1e-2, rtol=0)
+        assert (ours - want).abs().max() <= 1.5 * (theirs - want).abs().max()
