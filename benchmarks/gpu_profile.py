@@ -463,7 +463,7 @@ def profile_config(
         print(f"  chunks vs {config}-latevision (b = 1, 3, 8; 0 expected): {run['vs_latevision']}", flush=True)
     for other, before in chunk_sets.items():
         # The same engine with choices undone (as_before): zero keys masked, the same products
-        # apart: only the sums' order may differ (bf16 rounding).
+        # apart: only the sums' order may differ; with -mixedresidual the products' bf16 rounding too.
         suffix = other.removeprefix(f"{config}-")
         if other != suffix and set(suffix.split("-")) <= set(BEFORE):
             run[f"vs_{suffix}"] = agreement(before, got)

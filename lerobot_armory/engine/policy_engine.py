@@ -268,6 +268,9 @@ class PolicyEngine:
             log.info("the static sampler runs LeRobot's own sequence of operations (fused kernels off): %s", sampler.unfused_reason)
         self.fused_kernels = sampler.fused
         self.float32_products = bool(getattr(sampler.ops, "float32_products", False))  # π0 family, bf16, CUDA
+        if not self.float32_products and str(self.device).startswith("cuda") and getattr(sampler.ops, "compute_dtype", None) == torch.bfloat16:
+            # Expected off on a CPU or for float32 weights; on a GPU in bf16, say why.
+            log.info("the output projections stay bf16 (residual sums read two dtypes): %s", sampler.ops.float32_products_reason)
         self._sampler_takes_state, self._sampler_cameras = sampler.takes_state, sampler.cameras
         if getattr(self.config, "compile_model", False):
             log.info("--policy.compile_model is unused: the static sampler serves (--engine.compile_sampler=true compiles it)")

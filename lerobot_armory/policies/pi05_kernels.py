@@ -12,12 +12,12 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
 
 - **one projection for q, k and v, and one for the MLP's gate and up** — the layer's q/k/v (and
   gate/up) weights are made *views* of one concatenated tensor (:func:`fuse_weights`): no weight
-  is copied, none changes value, and LeRobot's modules keep working on them; except where a
-  model's MLP runs over many rows (``apart``: the VLM over the prefix), whose gate and up stay two
+  is copied, none changes value, and LeRobot's modules keep working on them; except where an MLP
+  runs over many rows (``apart``: the VLM's, over the prefix), whose gate and up stay two
   products, each written contiguous: one product's halves are strided, and PyTorch runs the
   activation and the product of the halves in its non-vectorised elementwise kernel (on an H200
   at b = 8, 9.4 of 80 ms, where the bytes they move take ≈ 3 ms), which costs more than the
-  second launch (18 a sample);
+  second launch (17 a sample);
 - **RMSNorm as one kernel** (``torch.nn.functional.rms_norm``: ``_fused_rms_norm`` on CUDA, where
   LeRobot's ``square, mean, add, rsqrt, mul`` is five), the plain norm's ``1 + weight`` computed
   once; the **adaptive norm's time conditioning folded away** (:meth:`Fused.fold`, once per
@@ -66,7 +66,6 @@ to ≈ 1, 0.6–1.3× on π0 (no gates: within noise of LeRobot's), on the CPU (
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -86,11 +85,17 @@ def float32_products_reason(device: torch.device, dtype: torch.dtype) -> str | N
         return f"the projections are {dtype}, not bf16"
     if device.type != "cuda":
         return "torch.mm(out_dtype=float32) runs on CUDA only"
+    if torch.cuda.is_current_stream_capturing():  # never launch a probe into someone's graph
+        return "a CUDA graph was being recorded when the sampler was built"
     try:
         probe = torch.ones(KEY_ALIGN, KEY_ALIGN, dtype=dtype, device=device)
-        _float32_mm(probe, probe)
-    except (RuntimeError, TypeError) as exc:  # an older torch or a device without it
+        out = _float32_mm(probe, probe)
+    except torch.cuda.OutOfMemoryError:
+        raise  # not an answer about the product: the load fails as it would have anyway
+    except (RuntimeError, TypeError, NotImplementedError) as exc:  # an older torch, a device without it
         return f"torch.mm(out_dtype=float32) failed: {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}"
+    if out.dtype != torch.float32:
+        return f"torch.mm(out_dtype=float32) gave {out.dtype}"
     return None
 
 
@@ -105,8 +110,6 @@ def key_aligned(length: int) -> int:
 
 # Buffers Fused registers on LeRobot's modules (non-persistent: never in a state dict).
 _QKV, _GATE_UP, _NORM = "armory_qkv_weight", "armory_gate_up_weight", "armory_weight"
-# A plain attribute on an MLP whose gate and up run as two products (Fused's ``apart``).
-_APART = "armory_gate_up_apart"
 
 
 @dataclass(frozen=True)
@@ -117,7 +120,7 @@ class Modulation:
 
     scale1: Tensor  # 1 + scale, float32 (1, 1, W); (W,) once folded
     shift: Tensor | None  # float32 (1, 1, W); None once folded into ``bias``
-    gate: Tensor  # in the expert's dtype (1, 1, W)
+    gate: Tensor  # in the expert's dtype (1, 1, W); float32 once folded with float32 products
     bias: Tensor | None = None  # the next projection's weight times ``shift`` (:meth:`Fused.fold`)
 
 
@@ -219,7 +222,8 @@ class LeRobotOrder:
         return _gated_residual(h, y, gate)
 
     @staticmethod
-    def mlp(mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
+    def mlp(mlp: Any, x: Tensor, bias: Tensor | None = None, apart: bool = False) -> Tensor:
+        """The MLP (``apart``: gate and up as two products, which LeRobot's always are)."""
         assert bias is None  # fold() folds nothing here
         return mlp(x)
 
@@ -239,15 +243,12 @@ class Fused(LeRobotOrder):
         text_models: the Gemma models whose layers run here (the VLM and the action expert);
             their layers' projection weights become views of fused tensors (:func:`fuse_weights`).
         attention: ``eager`` or ``sdpa``.
-        apart: those of ``text_models`` whose MLPs run the gate and up products apart (each
-            output contiguous; the weights are fused all the same): the ones that run over many
-            rows (see the module docstring).
 
     Raises:
         ValueError: a layer cannot be fused (:func:`fusable_reason`).
     """
 
-    def __init__(self, text_models: list[Any], attention: str, apart: Sequence[Any] = ()) -> None:
+    def __init__(self, text_models: list[Any], attention: str) -> None:
         super().__init__(attention)
         why = fusable_reason(text_models)
         if why is not None:
@@ -281,8 +282,6 @@ class Fused(LeRobotOrder):
                 attn, mlp = layer.self_attn, layer.mlp
                 attn.register_buffer(_QKV, fuse_weights([attn.q_proj, attn.k_proj, attn.v_proj]), persistent=False)
                 mlp.register_buffer(_GATE_UP, fuse_weights([mlp.gate_proj, mlp.up_proj]), persistent=False)
-                # An attribute, not a dict by module: a compiled layer reads (and guards on) its own.
-                setattr(mlp, _APART, any(model is m for m in apart))
             for norm in (*(n for lay in model.layers for n in (lay.input_layernorm, lay.post_attention_layernorm)), model.norm):
                 if getattr(norm, "dense", None) is None:  # a plain Gemma norm: LeRobot multiplies by 1 + weight
                     norm.register_buffer(_NORM, 1.0 + norm.weight.detach().float(), persistent=False)
@@ -419,7 +418,7 @@ class Fused(LeRobotOrder):
     def project_out(self, linear: Any, x: Tensor) -> Tensor:
         """In float32, written by the product itself, where the device can (``float32_products``):
         the residual sum after it then reads one dtype (see the module docstring)."""
-        if not self.float32_products or linear.bias is not None:
+        if not self.float32_products or type(linear) is not torch.nn.Linear or linear.bias is not None or x.dtype != linear.weight.dtype:
             return linear(x)
         return _float32_mm(x.reshape(-1, x.shape[-1]), linear.weight.t()).view(*x.shape[:-1], linear.weight.shape[0])
 
@@ -427,15 +426,17 @@ class Fused(LeRobotOrder):
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
-    def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None) -> Tensor:
-        gate, up = self.gate_up(mlp, x, bias)
+    def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None, apart: bool = False) -> Tensor:
+        """The MLP, its gate and up one product (``apart``: two, for many rows; see the module
+        docstring)."""
+        gate, up = self.gate_up(mlp, x, bias, apart)
         return self.project_out(mlp.down_proj, mlp.act_fn(gate) * up)
 
-    def gate_up(self, mlp: Any, x: Tensor, bias: Tensor | None) -> tuple[Tensor, Tensor]:
-        """The MLP's gate and up outputs: halves of one product, or two contiguous products where
-        the MLP runs them apart (``apart``: the weights are the two halves of the fused one)."""
+    def gate_up(self, mlp: Any, x: Tensor, bias: Tensor | None, apart: bool) -> tuple[Tensor, Tensor]:
+        """The MLP's gate and up outputs: halves of one product, or (``apart``) two contiguous
+        products, whose weights are the two halves of the fused one."""
         weight = self.gate_up_weight(mlp)
-        if not getattr(mlp, _APART):
+        if not apart:
             return torch.nn.functional.linear(x, weight, bias).chunk(2, dim=-1)
         half = weight.shape[0] // 2
         gate_bias, up_bias = (None, None) if bias is None else (bias[:half], bias[half:])

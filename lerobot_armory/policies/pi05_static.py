@@ -237,7 +237,7 @@ class StaticPi05:
     model_parts: tuple[str, ...] = ("action_in_proj", "action_out_proj", "time_mlp_in", "time_mlp_out")
     adaptive_norms = True  # the expert's norms take the flow time (π0.5's adaRMS)
     # The VLM's MLPs (the prefix's rows: 256 a camera and the prompt's, a sample) run gate and up as two contiguous
-    # products (pi05_kernels.Fused's ``apart``); the expert's 50 rows a sample keep one product.
+    # products (``Fused.mlp``'s ``apart``); the expert's 50 rows a sample keep one product.
     vlm_mlp_apart = True
     takes_state = False  # the sampler embeds the state (SamplerInputs.state); π0.5's prompt holds it
     state_tokens = 0  # suffix tokens before the actions
@@ -270,10 +270,11 @@ class StaticPi05:
         self.ops: LeRobotOrder = LeRobotOrder(attention)
         if fused:
             try:  # Fused checks every layer before it touches a weight
-                self.ops = Fused([self.vlm, self.expert], attention, apart=[self.vlm] if self.vlm_mlp_apart else [])
+                self.ops = Fused([self.vlm, self.expert], attention)
             except ValueError as exc:
                 self.unfused_reason = str(exc)
         self.fused = isinstance(self.ops, Fused)
+        self.mlp_apart = self.vlm_mlp_apart  # this sampler's, read once (gpu_profile's A/B patches the class's)
         self.cameras = served_cameras(self.config)  # read once: a traced region cannot read config.type
         self.chunk_size = int(self.config.chunk_size)
         self.suffix_length = self.state_tokens + self.chunk_size
@@ -501,14 +502,17 @@ class StaticPi05:
     def _vlm_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
         """One VLM layer over the prefix, its input ``x`` normed already: keys and values into
         ``cache`` (from position 0), the residual stream after the layer returned."""
-        return self._plain_layer(layer, h, x, cache, 0, self.ops.cached(cache, x.shape[1]), mask, rope)
+        return self._plain_layer(layer, h, x, cache, 0, self.ops.cached(cache, x.shape[1]), mask, rope, self.mlp_apart)
 
-    def _plain_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, start: int, kv: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+    def _plain_layer(
+        self, layer: Any, h: Tensor, x: Tensor, cache: Any, start: int, kv: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mlp_apart: bool = False
+    ) -> Tensor:
         """A Gemma layer with plain norms, its input ``x`` normed already: keys and values into
-        ``cache`` from ``start``, attention over ``kv`` (the cache's attended part)."""
+        ``cache`` from ``start``, attention over ``kv`` (the cache's attended part); ``mlp_apart``:
+        the MLP's gate and up as two products (the ops' ``mlp``)."""
         q = self.ops.qkv(layer.self_attn, x, rope, cache, start)
         h = self.ops.residual(h, self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, kv, mask)), None)
-        return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h)), None)
+        return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h), None, mlp_apart), None)
 
     def _velocity(
         self, x_t: Tensor, cond: Any, fixed: Any, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any

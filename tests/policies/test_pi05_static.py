@@ -834,18 +834,24 @@ def test_the_vlms_mlp_hands_its_activation_contiguous_gate_and_up_and_the_chunks
         torch.testing.assert_close(got, plain.sample(inputs), atol=1e-5, rtol=0)
 
 
-def test_with_float32_products_every_residual_sum_reads_one_dtype(pi05_dir, monkeypatch):
+@pytest.mark.parametrize("kind", ["pi05", "pi0"])
+def test_with_float32_products_every_residual_sum_reads_one_dtype(kind, request, monkeypatch):
     """In bf16 on a GPU the fused sampler's output and down projections write float32 themselves
     (``torch.mm(out_dtype=float32)``, CUDA only): every residual sum then reads the float32 stream,
-    a float32 product and (the expert's) LeRobot's bf16 gate in float32, so none runs in PyTorch's
+    a float32 product and (π0.5's expert) LeRobot's bf16 gate in float32, so none runs in PyTorch's
     mixed-dtype elementwise kernels, which a GPU does not vectorise. On the CPU it is off and says
     why; here the product is stood in for by its arithmetic (bf16 inputs, float32 sums and output,
-    as cuBLAS computes it), and the chunks stay as near a float32 π0.5's as with bf16 products."""
+    as cuBLAS computes it), called once for each sum, and the chunks stay as near a float32
+    model's as with bf16 products. The product itself (meta tensors: shapes and dtypes) is float32."""
     import torch
     from torch.utils._python_dispatch import TorchDispatchMode
 
     from lerobot_armory.policies import pi05_kernels
+    from lerobot_armory.policies.pi0_static import StaticPi0
     from lerobot_armory.policies.pi05_static import StaticPi05
+
+    sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
+    path = str(request.getfixturevalue(f"{kind}_dir"))
 
     class ResidualDtypes(TorchDispatchMode):
         def __init__(self) -> None:
@@ -857,14 +863,23 @@ def test_with_float32_products_every_residual_sum_reads_one_dtype(pi05_dir, monk
                 self.mixed += len({a.dtype for a in args if isinstance(a, torch.Tensor)}) > 1
             return func(*args, **(kwargs or {}))
 
-    float32 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
-    bf16 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
-    reference, off = StaticPi05(float32.policy, fused=False), StaticPi05(bf16.policy)
+    meta = torch.empty(8, 16, dtype=torch.bfloat16, device="meta")
+    assert pi05_kernels._float32_mm(meta, meta.t()).dtype == torch.float32
+    float32 = PolicyEngine(PolicyOptions(path, "cpu"))
+    bf16 = PolicyEngine(PolicyOptions(path, "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
+    reference, off = sampler(float32.policy, fused=False), sampler(bf16.policy)
     assert not off.ops.float32_products and "CUDA only" in off.ops.float32_products_reason
     assert "float32" not in bf16.description.split("fused kernels")[1]
+    calls = []
+
+    def stand_in(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        assert a.dtype == b.dtype == torch.bfloat16
+        calls.append(1)
+        return torch.mm(a.float(), b.float())
+
     monkeypatch.setattr(pi05_kernels, "float32_products_reason", lambda device, dtype: None)
-    monkeypatch.setattr(pi05_kernels, "_float32_mm", lambda a, b: torch.mm(a.float(), b.float()))
-    on = StaticPi05(bf16.policy)
+    monkeypatch.setattr(pi05_kernels, "_float32_mm", stand_in)
+    on = sampler(bf16.policy)
     assert on.ops.float32_products
     for b in (1, 3):
         inputs = sampler_inputs(bf16, b, seed=b, guided=False)
@@ -872,8 +887,9 @@ def test_with_float32_products_every_residual_sum_reads_one_dtype(pi05_dir, monk
             want = reference.sample(inputs)
             with ResidualDtypes() as before:
                 theirs = off.sample(inputs)
+            calls.clear()
             with ResidualDtypes() as after:
                 ours = on.sample(inputs)
-        assert before.mixed > 0 and after.mixed == 0, (before.mixed, after.mixed)
+        assert before.mixed > 0 and after.mixed == 0 and len(calls) == before.mixed, (before.mixed, after.mixed, len(calls))
         torch.testing.assert_close(ours, theirs, atol=1e-2, rtol=0)
         assert (ours - want).abs().max() <= 1.5 * (theirs - want).abs().max()
