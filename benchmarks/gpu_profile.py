@@ -29,8 +29,10 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   2026-11-28 #10; by default two contiguous products, so that the activation and the product after
   it run in PyTorch's vectorised kernels); a ``-mixedresidual`` suffix: the output and down
   projections in bf16 (before 2026-11-28 #10; by default on a GPU they write float32, so that the
-  residual sums read one dtype); all three (``-unaligned-stridedmlp-mixedresidual``): the sampler
-  of 2026-11-27;
+  residual sums read one dtype); a ``-notriton`` suffix: PyTorch's operations where by default on a
+  GPU two Triton kernels run the MLP's activation and the residual sum with the norm after it
+  (before 2026-11-28 #10); all four (``-unaligned-stridedmlp-mixedresidual-notriton``): the
+  sampler of 2026-11-27;
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -104,7 +106,8 @@ CONFIGS = (
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual", "pi05-bf16-graphs-tf32-visionbf16-notriton",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
@@ -149,7 +152,7 @@ def _flags(config: str) -> set[str]:
 
 # Suffixes that undo one of the default's kernel choices (``as_before``): a configuration with one
 # beside the same without says what the choice gives.
-BEFORE = ("unaligned", "stridedmlp", "mixedresidual")
+BEFORE = ("unaligned", "stridedmlp", "mixedresidual", "notriton")
 
 
 @contextlib.contextmanager
@@ -164,7 +167,10 @@ def as_before(config: str) -> Iterator[None]:
       (``StaticPi05.vlm_mlp_apart``);
     - ``-mixedresidual``: the output and down projections in bf16, so that each residual sum
       reads two dtypes, as before 2026-11-28 #10, where on a GPU they are written in float32
-      (``pi05_kernels.float32_products_reason``)."""
+      (``pi05_kernels.float32_products_reason``);
+    - ``-notriton``: PyTorch's operations for the MLP's activation and for the residual sum and
+      norm after attention, as before 2026-11-28 #10, where on a GPU two Triton kernels run them
+      (``pi05_kernels.hand_kernels_reason``)."""
     from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
     from lerobot_armory.policies.pi05_static import StaticPi05
@@ -179,6 +185,8 @@ def as_before(config: str) -> Iterator[None]:
         patched.append((StaticPi05, "vlm_mlp_apart", False))
     if "mixedresidual" in flags:
         patched.append((pi05_kernels, "float32_products_reason", lambda device, dtype: "-mixedresidual"))
+    if "notriton" in flags:
+        patched.append((pi05_kernels, "hand_kernels_reason", lambda *args: "-notriton"))
     saved = [vars(owner)[name] for owner, name, _ in patched]  # a class's or a module's own
     for cls, name, before in patched:
         setattr(cls, name, before)

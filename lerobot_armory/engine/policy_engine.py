@@ -213,6 +213,7 @@ class PolicyEngine:
         o = self.engine_options
         self.fused_kernels = False
         self.float32_products = False
+        self.hand_kernels = False
         self._sampler_takes_state = False  # the static sampler embeds the state (π0, SmolVLA)
         self._sampler_cameras: tuple[str, ...] = ()  # the cameras its inputs carry, in order
         self.prompt_buckets: tuple[int, ...] = ()  # fitted prompt lengths, ascending (none: the full length)
@@ -278,6 +279,9 @@ class PolicyEngine:
             raise ConfigError("engine.compile_sampler", f"{self.config.type}'s static sampler is not compiled yet; leave it false")
         if o.compile_sampler:
             sampler.compile_layers()  # compiled at warm-up, on the first batch through them
+        self.hand_kernels = bool(getattr(sampler.ops, "hand_kernels", False))  # π0 family, Triton
+        if not self.hand_kernels and str(self.device).startswith("cuda") and sampler.fused and hasattr(sampler.ops, "hand_kernels"):
+            log.info("PyTorch's operations serve where the Triton kernels would: %s", sampler.ops.hand_kernels_reason)
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
         rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
         # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
@@ -315,6 +319,8 @@ class PolicyEngine:
                 notes.append("fused kernels")
                 if self.float32_products:
                     notes.append("output projections in float32")
+                if self.hand_kernels:
+                    notes.append("Triton kernels")
             if self.vision_cast is not None:
                 notes.append(f"vision tower in {self.vision_cast}")
             if self.prompt_buckets:

@@ -40,6 +40,14 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   dtype (PyTorch's elementwise kernels on mixed dtypes are not vectorised: the expert's 360 gated
   residuals a pass took 5.6 µs each on an H200, the rotation's single-dtype ``addcmul`` of the
   same size 3.3) and the product reaches the float32 stream unrounded;
+- **two Triton kernels on a GPU** (:mod:`~lerobot_armory.policies.triton_kernels`,
+  ``hand_kernels``): the MLP's activation on the gate/up product's two halves where they lie
+  (GELU and its product: two kernels, both non-vectorised on strided halves), and the residual sum
+  after attention with the norm after it and its cast (three kernels): −608 launches a sample in
+  bf16, −411 in float32, at full depth (17 VLM and 180 expert layer passes: two launches saved
+  by each norm kernel in bf16, one in float32; one by each activation kernel, two in the VLM,
+  whose MLP otherwise runs two products); off on a CPU, compiled (inductor fuses them) or where
+  the device cannot run them (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
   as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
   50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
@@ -72,6 +80,8 @@ from typing import Any
 import torch
 from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
+
+from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul, hand_kernels_reason
 
 
 # Fused K/V caches hold a multiple of this many positions (Fused.cache_length): 16 bytes of bf16.
@@ -217,6 +227,12 @@ class LeRobotOrder:
         """A layer part's last projection (attention's output, the MLP's down)."""
         return linear(x)
 
+    def residual_norm(self, h: Tensor, y: Tensor, gate: Tensor | None, norm: Any, mod: Modulation | None) -> tuple[Tensor, Tensor]:
+        """The residual sum after attention and the norm before the MLP: ``(h + y · gate, the
+        norm of it)``, the norm adaptive when ``mod`` is given."""
+        h = self.residual(h, y, gate)
+        return h, self.norm(norm, h) if mod is None else self.ada_norm(norm, h, mod)
+
     @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return _gated_residual(h, y, gate)
@@ -258,9 +274,16 @@ class Fused(LeRobotOrder):
         # layer's own: torch.compile lifts a module's buffers as inputs, where a dict keyed by
         # module would hand every layer the first one's.
         self.compute_dtype = text_models[0].layers[0].self_attn.q_proj.weight.dtype  # the projections' (fusable_reason: one)
+        device = text_models[0].layers[0].self_attn.q_proj.weight.device
         # Output and down projections written in float32 (project_out), where the device can.
-        self.float32_products_reason = float32_products_reason(text_models[0].layers[0].self_attn.q_proj.weight.device, self.compute_dtype)
+        self.float32_products_reason = float32_products_reason(device, self.compute_dtype)
         self.float32_products = self.float32_products_reason is None
+        # The Triton kernels (triton_kernels.py) for the MLP's activation and the residual + norm,
+        # where the device runs them and every MLP's activation is the tanh GELU they compute.
+        residual_dtype = torch.float32 if self.float32_products else self.compute_dtype  # the products' and gates'
+        widths = [tuple(model.layers[0].mlp.gate_proj.weight.shape[::-1]) for model in text_models]  # (width, MLP width)
+        self.hand_kernels_reason = _tanh_gelu_reason(text_models) or hand_kernels_reason(device, self.compute_dtype, residual_dtype, widths)
+        self.hand_kernels = self.hand_kernels_reason is None
         self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
@@ -426,9 +449,20 @@ class Fused(LeRobotOrder):
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
+    def residual_norm(self, h: Tensor, y: Tensor, gate: Tensor | None, norm: Any, mod: Modulation | None) -> tuple[Tensor, Tensor]:
+        """One Triton kernel where it runs (``hand_kernels``), three of PyTorch's otherwise."""
+        if not self.hand_kernels or (mod is not None and mod.shift is not None):
+            return super().residual_norm(h, y, gate, norm, mod)
+        weight = getattr(norm, _NORM) if mod is None else mod.scale1
+        return add_rms_norm(h, y, gate, weight, norm.eps, self.compute_dtype)
+
     def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None, apart: bool = False) -> Tensor:
         """The MLP, its gate and up one product (``apart``: two, for many rows; see the module
-        docstring)."""
+        docstring), the activation one Triton kernel where it runs (``hand_kernels``: it reads the
+        product's halves where they lie, so ``apart`` is moot)."""
+        if self.hand_kernels:
+            gate_up = torch.nn.functional.linear(x, self.gate_up_weight(mlp), bias)
+            return self.project_out(mlp.down_proj, gelu_tanh_mul(gate_up))
         gate, up = self.gate_up(mlp, x, bias, apart)
         return self.project_out(mlp.down_proj, mlp.act_fn(gate) * up)
 
@@ -445,6 +479,19 @@ class Fused(LeRobotOrder):
     @staticmethod
     def euler(x: Tensor, v: Tensor, dt: float) -> Tensor:
         return torch.add(x, v, alpha=dt)
+
+
+def _tanh_gelu_reason(text_models: list[Any]) -> str | None:
+    """Why the MLPs' activation is not the tanh GELU the Triton kernel computes (None: it is),
+    judged by what each computes on a few values."""
+    probe = torch.linspace(-6.0, 6.0, 97)
+    want = torch.nn.functional.gelu(probe, approximate="tanh")
+    for model in text_models:
+        with torch.no_grad():
+            got = model.layers[0].mlp.act_fn(probe)
+        if not torch.allclose(got, want, atol=1e-6, rtol=0):
+            return f"{type(model).__name__}'s MLP activation is not the tanh GELU"
+    return None
 
 
 def fuse_weights(linears: list[Any]) -> Tensor:

@@ -381,6 +381,8 @@ class StaticPi05:
         projections stay eager."""
         if self._compiled is not None:
             return
+        if isinstance(self.ops, Fused):  # inductor fuses the same operations itself: hand kernels would stand between its fusions
+            self.ops.hand_kernels, self.ops.hand_kernels_reason = False, "the sampler is compiled (inductor fuses them)"
         vlm, expert = torch.compile(self._vlm_layer, fullgraph=True), torch.compile(self._expert_layer, fullgraph=True)
 
         def vlm_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
@@ -511,8 +513,9 @@ class StaticPi05:
         ``cache`` from ``start``, attention over ``kv`` (the cache's attended part); ``mlp_apart``:
         the MLP's gate and up as two products (the ops' ``mlp``)."""
         q = self.ops.qkv(layer.self_attn, x, rope, cache, start)
-        h = self.ops.residual(h, self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, kv, mask)), None)
-        return self.ops.residual(h, self.ops.mlp(layer.mlp, self.ops.norm(layer.post_attention_layernorm, h), None, mlp_apart), None)
+        y = self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, kv, mask))
+        h, x = self.ops.residual_norm(h, y, None, layer.post_attention_layernorm, None)
+        return self.ops.residual(h, self.ops.mlp(layer.mlp, x, None, mlp_apart), None)
 
     def _velocity(
         self, x_t: Tensor, cond: Any, fixed: Any, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any
@@ -551,8 +554,8 @@ class StaticPi05:
         behind the prefix's (its last ``chunk_size`` positions), the residual stream returned."""
         x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
         q = self.ops.qkv(layer.self_attn, x, rope, cache, self.ops.length(cache) - h.shape[1], mod_in.bias)
-        h = self.ops.residual(h, self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, cache, mask)), mod_in.gate)
-        x = self.ops.ada_norm(layer.post_attention_layernorm, h, mod_post)
+        y = self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, cache, mask))
+        h, x = self.ops.residual_norm(h, y, mod_in.gate, layer.post_attention_layernorm, mod_post)
         return self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
 
     def _additive(self, valid: Tensor) -> Tensor:

@@ -1,0 +1,121 @@
+"""The Triton kernels of the π0 family's fused layers (``policies/triton_kernels.py``), run on the
+CPU through Triton's interpreter: the same values as PyTorch's operations they replace, the same
+chunks as LeRobot's sampler, fewer launches a sample. Off on a CPU otherwise, with the reason.
+
+The interpreter rounds float32 to bf16 its own way (not to nearest even, as a GPU does), so bf16
+accuracy is not judged here: float32 is."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from lerobot_armory.engine import rtc
+from lerobot_armory.engine.options import EngineOptions, PolicyOptions
+from lerobot_armory.engine.policy_engine import PolicyEngine
+from tests.support.vla import sampler_inputs
+
+
+@pytest.fixture
+def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Triton's kernels run through its CPU interpreter while the test runs (jitted afresh, in
+    that mode, and forgotten after)."""
+    from lerobot_armory.policies import triton_kernels
+
+    pytest.importorskip("triton", reason="Triton ships with PyTorch's CUDA builds; a CPU-only torch has none")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    triton_kernels._kernels.cache_clear()
+    yield
+    triton_kernels._kernels.cache_clear()
+
+
+def test_the_kernels_compute_what_pytorchs_operations_do(interpreted):
+    import torch
+
+    from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul
+
+    gen = torch.Generator().manual_seed(0)
+    for shape in ((3, 2 * 40), (2, 5, 2 * 1100)):  # 1100 columns: two programs a row, the second part-masked
+        gate_up = 3 * torch.randn(*shape, generator=gen)
+        gate, up = gate_up.chunk(2, dim=-1)
+        got = gelu_tanh_mul(gate_up)
+        assert got.shape == gate.shape and got.dtype == torch.float32
+        torch.testing.assert_close(got, torch.nn.functional.gelu(gate, approximate="tanh") * up, atol=1e-5, rtol=1e-5)
+    h, y = torch.randn(2, 7, 96, generator=gen), torch.randn(2, 7, 96, generator=gen)
+    weight, gate = torch.rand(96, generator=gen), torch.randn(1, 1, 96, generator=gen)
+    for g in (gate, None):
+        total, normed = add_rms_norm(h, y, g, weight, 1e-6, torch.float32)
+        want = h + y if g is None else torch.addcmul(h, y, g)
+        torch.testing.assert_close(total, want, atol=1e-6, rtol=0)
+        torch.testing.assert_close(normed, torch.nn.functional.rms_norm(want, (96,), weight, 1e-6), atol=2e-6, rtol=1e-6)
+    _, normed = add_rms_norm(h, y.to(torch.bfloat16), gate.to(torch.bfloat16), weight, 1e-6, torch.bfloat16)
+    assert normed.dtype == torch.bfloat16
+
+
+@pytest.mark.parametrize("kind", ["pi05", "pi0"])
+def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_kernels(kind, request, interpreted, monkeypatch):
+    """Float32: the fused sampler with the Triton kernels gives LeRobot's chunks (1e-5, with RTC),
+    and a sample launches fewer kernels, each Triton kernel standing for at least two of PyTorch's
+    (the MLP's activation: GELU and its product; the residual sum, the norm and its cast)."""
+    import torch
+    from torch.utils._python_dispatch import _disable_current_modes
+
+    from lerobot_armory.policies import pi05_kernels
+    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.policies.pi0_static import StaticPi0
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
+    horizon = 8
+    guided = rtc.RTCOptions(enabled=True, execution_horizon=horizon, delay_margin=0)
+    engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu"), guided, EngineOptions(static_sampler=True))
+    reference = sampler(engine.policy, guided=True, fused=False)
+    with monkeypatch.context() as off_cpu:
+        off_cpu.delenv("TRITON_INTERPRET")
+        plain = sampler(engine.policy, guided=True)
+    assert not plain.ops.hand_kernels and "CUDA only" in plain.ops.hand_kernels_reason
+    fused = sampler(engine.policy, guided=True)
+    assert fused.ops.hand_kernels, fused.ops.hand_kernels_reason
+    calls: list[str] = []
+
+    def counted(name: str) -> Any:
+        kernel = getattr(pi05_kernels, name)
+
+        def run(*args: Any, **kwargs: Any) -> Any:
+            calls.append(name)
+            with _disable_current_modes():  # one launch each: the interpreter's own work is not counted
+                return kernel(*args, **kwargs)
+
+        return run
+
+    for name in ("gelu_tanh_mul", "add_rms_norm"):
+        monkeypatch.setattr(pi05_kernels, name, counted(name))
+    for b in (1, 3):
+        inputs = sampler_inputs(engine, b, seed=b, horizon=horizon)
+        with torch.no_grad():
+            want = reference.sample(inputs)
+            plain.sample(inputs), fused.sample(inputs)  # the per-size constants, outside the count
+            with OpTrace() as before:
+                theirs = plain.sample(inputs)
+            calls.clear()
+            with OpTrace() as after:
+                ours = fused.sample(inputs)
+        torch.testing.assert_close(ours, want, atol=1e-5, rtol=0)
+        torch.testing.assert_close(theirs, want, atol=1e-5, rtol=0)
+        assert set(calls) == {"gelu_tanh_mul", "add_rms_norm"}
+        assert after.launches + len(calls) <= before.launches - len(calls), (before.launches, after.launches, len(calls))
+        assert not after.host_syncs
+
+
+def test_a_compiled_sampler_leaves_the_fusing_to_inductor(pi05_dir, interpreted):
+    """``compile_layers`` turns the hand kernels off (inductor fuses the same operations, and an
+    opaque kernel would stand between its fusions), and says so."""
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
+    sampler = StaticPi05(engine.policy)
+    assert sampler.ops.hand_kernels
+    sampler.compile_layers()
+    assert not sampler.ops.hand_kernels and "compiled" in sampler.ops.hand_kernels_reason
