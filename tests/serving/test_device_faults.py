@@ -117,7 +117,9 @@ def test_a_lost_device_stops_the_loop_at_the_first_batch_with_one_clear_reason()
 class UnrecordedFrom(EchoEngine):
     """The echo engine whose batches of ``size`` or more find no recorded CUDA graph (as a batch
     whose prompt length or shapes no graph holds): its ``unrecorded_batches`` count grows; every
-    fifth such batch then fails (an eager batch allocates outside the graphs' memory pool)."""
+    second such batch then fails (an eager batch allocates outside the graphs' memory pool). Every
+    second, not fifth, and the robots run until two were: a fresh-clone run on a loaded 2-core
+    machine (2026-11-28) shared only one batch of two in the test's two seconds."""
 
     def __init__(self, size: int) -> None:
         super().__init__(0.01)
@@ -127,7 +129,7 @@ class UnrecordedFrom(EchoEngine):
         self.sizes.append(len(observations))
         if len(observations) >= self.size:
             self.unrecorded_batches += 1
-            if self.unrecorded_batches % 5 == 0:
+            if self.unrecorded_batches % 2 == 0:
                 raise RuntimeError("an eager batch failed")
         return super().infer(observations, tasks, noise_seeds)
 
@@ -140,13 +142,16 @@ def test_batches_served_without_their_cuda_graph_are_counted_and_shown():
     engine = UnrecordedFrom(size=2)
     server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
     try:
-        clients = echo_robots(server, 3, 2.0)
+        for _ in range(4):  # on a loaded machine the robots may share few batches: run until two were unrecorded
+            clients = echo_robots(server, 3, 3.0)
+            if engine.unrecorded_batches >= 2:
+                break
         stats = server.loop.stats
         # (a batch that began as the robots left may still be finishing: its count lands after it)
         assert wait_for(lambda: stats.unrecorded_batches == sum(b >= 2 for b in engine.sizes), timeout=5)
         missed = stats.unrecorded_batches
         assert 0 < missed < len(engine.sizes), engine.sizes  # both kinds of batch ran
-        assert stats.failed_batches == missed // 5 >= 1, (stats.failed_batches, missed)
+        assert stats.failed_batches == missed // 2 >= 1, (stats.failed_batches, missed)
         assert server.metrics.registry.get_sample_value("armory_batches_unrecorded_total") == missed
         assert f"unrecorded={missed}" in server.status_line()
         assert all(c.chunks_received > 3 for c in clients)
