@@ -27,7 +27,8 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   rounded up to a multiple of 8 so that attention's rows suit cuBLAS's Hopper kernels); a
   ``-stridedmlp`` suffix: the VLM's MLP gate and up as the halves of one product (before
   2026-11-28 #10; by default two contiguous products, so that the activation and the product after
-  it run in PyTorch's vectorised kernels); a ``-mixedresidual`` suffix: the output and down
+  it run in PyTorch's vectorised kernels; meaningful with ``-notriton`` only, the Triton
+  activation reading one product's halves); a ``-mixedresidual`` suffix: the output and down
   projections in bf16 (before 2026-11-28 #10; by default on a GPU they write float32, so that the
   residual sums read one dtype); a ``-notriton`` suffix: PyTorch's operations where by default on a
   GPU two Triton kernels run the MLP's activation and the residual sum with the norm after it
@@ -104,9 +105,8 @@ CONFIGS = (
     "pi05-bf16-graphs-ordered", "pi05-bf16-graphs-tf32-ordered", "pi05-bf16-graphs-tf32-fullprompt",
     "pi05-bf16-graphs-tf32-ordered-fullprompt", "pi05-bf16-graphs-tf32-visionbf16", "pi05-bf16-graphs-tf32-compiled",
     "pi05-bf16-graphs-tf32-visionbf16-compiled", "pi05-bf16-graphs-tf32-visionbf16-latevision",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
-    "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual", "pi05-bf16-graphs-tf32-visionbf16-notriton",
+    "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
+    "pi05-bf16-graphs-tf32-visionbf16-notriton", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp-notriton",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
@@ -164,7 +164,8 @@ def as_before(config: str) -> Iterator[None]:
       (``Fused.cache_length``, ``SmolVLAFused.prefix_length``);
     - ``-stridedmlp``: the VLM's MLP gate and up as the two halves of one product, as before
       2026-11-28 #10, where by default they are two contiguous products
-      (``StaticPi05.vlm_mlp_apart``);
+      (``StaticPi05.vlm_mlp_apart``); only with ``-notriton``: the Triton activation kernel
+      reads one product's halves either way;
     - ``-mixedresidual``: the output and down projections in bf16, so that each residual sum
       reads two dtypes, as before 2026-11-28 #10, where on a GPU they are written in float32
       (``pi05_kernels.float32_products_reason``);

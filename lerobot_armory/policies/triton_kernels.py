@@ -5,8 +5,9 @@ does (the action expert's 18 layers run at each of 10 steps). Two sequences in e
 elementwise work PyTorch runs as several kernels, each reading and writing the whole tensor:
 
 - **the MLP's activation**: ``gelu_tanh(gate) · up`` on the two halves of the gate/up product —
-  two kernels, and on a GPU both in PyTorch's non-vectorised kernel, the halves being strided
-  (:func:`gelu_tanh_mul`: one kernel, reading the halves where they lie);
+  two kernels, on a GPU both in PyTorch's non-vectorised kernel where the halves are strided (the
+  expert's; the VLM's MLP runs two products instead, one launch more) (:func:`gelu_tanh_mul`: one
+  kernel after one product, reading the halves where they lie);
 - **the residual sum and the norm after it**: ``h + y · gate``, then RMSNorm of that sum with its
   weight, then the cast to the projections' dtype — three kernels, the first in PyTorch's
   mixed-dtype kernel when ``y`` is bf16 (:func:`add_rms_norm`: one kernel, one program a row,
@@ -23,6 +24,7 @@ the tests run these kernels through Triton's interpreter (``TRITON_INTERPRET=1``
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Sequence
 from typing import Any
@@ -41,6 +43,8 @@ def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype
     and a compiler or device that cannot run one is told before any batch."""
     if device.type != "cuda" and not interpreted():
         return "the Triton kernels run on CUDA only"
+    if device.type == "cuda" and interpreted():  # its host copies would land inside a graph's recording
+        return "TRITON_INTERPRET=1 is set (Triton's CPU interpreter, for tests): unset it to run them on the GPU"
     try:
         import triton  # noqa: F401
     except ImportError:
@@ -87,7 +91,8 @@ def gelu_tanh_mul(gate_up: Tensor) -> Tensor:
     if rows and width:
         gate_up = gate_up.contiguous()
         kernel = _kernels()[0]
-        kernel[(rows, -(-width // _GELU_BLOCK))](gate_up, out, width, BLOCK=_GELU_BLOCK)
+        with _on(gate_up.device):
+            kernel[(rows, -(-width // _GELU_BLOCK))](gate_up, out, width, BLOCK=_GELU_BLOCK)
     return out
 
 
@@ -97,16 +102,25 @@ def add_rms_norm(h: Tensor, y: Tensor, gate: Tensor | None, weight: Tensor, eps:
     and ``weight`` ``W`` values. Returns ``(s, normed)``: ``s`` float32 (the residual stream)."""
     width = h.shape[-1]
     rows = h.numel() // max(width, 1)
+    # One value a channel (the kernel reads the first ``width``): a per-row gate would be misread.
+    if weight.numel() != width or (gate is not None and gate.numel() != width) or y.shape != h.shape:
+        raise ValueError(f"add_rms_norm: h and y {tuple(h.shape)} / {tuple(y.shape)}, gate and weight one value a channel ({width})")
     h, y = h.contiguous(), y.contiguous()
     total = torch.empty_like(h, dtype=torch.float32)
     normed = torch.empty_like(h, dtype=out_dtype)
     if rows and width:
         kernel = _kernels()[1]
         gate_flat = weight if gate is None else gate.reshape(-1)  # a pointer either way; unread without a gate
-        kernel[(rows,)](
-            h, y, gate_flat, weight.reshape(-1), total, normed, width, eps, HAS_GATE=gate is not None, BLOCK=_pow2(width)
-        )
+        with _on(h.device):
+            kernel[(rows,)](
+                h, y, gate_flat, weight.reshape(-1), total, normed, width, eps, HAS_GATE=gate is not None, BLOCK=_pow2(width)
+            )
     return total, normed
+
+
+def _on(device: torch.device) -> Any:
+    """Triton launches on the current CUDA device: make it the tensors' (a second GPU's policy)."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
 
 
 def _pow2(n: int) -> int:

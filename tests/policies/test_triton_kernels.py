@@ -26,9 +26,10 @@ def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
     pytest.importorskip("triton", reason="Triton ships with PyTorch's CUDA builds; a CPU-only torch has none")
     monkeypatch.setenv("TRITON_INTERPRET", "1")
-    triton_kernels._kernels.cache_clear()
+    jit = triton_kernels._kernels  # a test may patch the module's name: clear the cache itself after
+    jit.cache_clear()
     yield
-    triton_kernels._kernels.cache_clear()
+    jit.cache_clear()
 
 
 def test_the_kernels_compute_what_pytorchs_operations_do(interpreted):
@@ -119,3 +120,56 @@ def test_a_compiled_sampler_leaves_the_fusing_to_inductor(pi05_dir, interpreted)
     assert sampler.ops.hand_kernels
     sampler.compile_layers()
     assert not sampler.ops.hand_kernels and "compiled" in sampler.ops.hand_kernels_reason
+
+
+@pytest.mark.parametrize("kind", ["pi05", "pi0"])
+@pytest.mark.parametrize("float32_products", [False, True], ids=["bf16-products", "float32-products"])
+def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_near(kind, float32_products, request, interpreted, monkeypatch):
+    """bf16, with the output projections in bf16 or (on a GPU) float32: the load-time check
+    (``hand_kernels_reason``) launches every variant Triton will compile for a sample — the same
+    pointer dtypes, block sizes, gate or none and integer specialisations — so nothing compiles
+    inside a CUDA graph's recording; the chunks are finite and within a bf16 rounding of the
+    sampler without the kernels (the interpreter's own bf16 rounding included)."""
+    import torch
+
+    from lerobot_armory.policies import pi05_kernels, triton_kernels
+    from lerobot_armory.policies.pi0_static import StaticPi0
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    if float32_products:  # the GPU's product, stood in for by its arithmetic (test_pi05_static.py)
+        monkeypatch.setattr(pi05_kernels, "float32_products_reason", lambda device, dtype: None)
+        monkeypatch.setattr(pi05_kernels, "_float32_mm", lambda a, b: torch.mm(a.float(), b.float()))
+    launches: list[tuple[Any, ...]] = []
+    jitted = triton_kernels._kernels()
+
+    class Recorded:
+        def __init__(self, kernel: Any, name: str) -> None:
+            self.kernel, self.name = kernel, name
+
+        def __getitem__(self, grid: Any) -> Any:
+            def launch(*args: Any, **kwargs: Any) -> Any:
+                # What Triton specialises on: tensors' dtypes, integers' divisibility by 16 (and 1), constexprs.
+                key = tuple(str(a.dtype) if isinstance(a, torch.Tensor) else (a % 16 == 0, a == 1) if isinstance(a, int) else type(a).__name__ for a in args)
+                launches.append((self.name, key, tuple(sorted(kwargs.items()))))
+                return self.kernel[grid](*args, **kwargs)
+
+            return launch
+
+    monkeypatch.setattr(triton_kernels, "_kernels", lambda: (Recorded(jitted[0], "gelu"), Recorded(jitted[1], "norm")))
+    sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
+    engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
+    with monkeypatch.context() as off_cpu:
+        off_cpu.delenv("TRITON_INTERPRET")
+        plain = sampler(engine.policy)
+    launches.clear()  # the engine's own sampler launched some: only this one's load-time check counts
+    fused = sampler(engine.policy)
+    assert fused.ops.hand_kernels and fused.ops.float32_products == float32_products
+    compiled_at_load = set(launches)
+    launches.clear()
+    for b in (1, 3):
+        inputs = sampler_inputs(engine, b, seed=b, guided=False)
+        with torch.no_grad():
+            ours, theirs = fused.sample(inputs), plain.sample(inputs)
+        assert launches and set(launches) <= compiled_at_load, set(launches) - compiled_at_load
+        assert torch.isfinite(ours).all()
+        torch.testing.assert_close(ours, theirs, atol=1e-2, rtol=0)
