@@ -42,12 +42,14 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   same size 3.3) and the product reaches the float32 stream unrounded;
 - **two Triton kernels on a GPU** (:mod:`~lerobot_armory.policies.triton_kernels`,
   ``hand_kernels``): the MLP's activation on the gate/up product's two halves where they lie
-  (GELU and its product: two kernels, both non-vectorised on strided halves), and the residual sum
-  after attention with the norm after it and its cast (three kernels): −608 launches a sample in
-  bf16, −411 in float32, at full depth (17 VLM and 180 expert layer passes: two launches saved
-  by each norm kernel in bf16, one in float32; one by each activation kernel, two in the VLM,
-  whose MLP otherwise runs two products); off on a CPU, compiled (inductor fuses them) or where
-  the device cannot run them (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
+  (GELU and its product: two kernels, both non-vectorised on strided halves), and each residual
+  sum with the norm after it and its cast (three kernels): attention's with the MLP's norm, and
+  the MLP's with the next layer's input norm (a layer leaves that sum pending, :data:`Pending`,
+  and the next adds it in :meth:`LeRobotOrder.enter`): −914 launches a sample in bf16, −564 in
+  float32, at full depth (350 norm kernels: 17 + 17 in the VLM, 180 + 170 in the expert, each
+  saving two launches in bf16, one in float32; 197 activation kernels, each saving one, two in
+  the VLM, whose MLP otherwise runs two products); off on a CPU, compiled (inductor fuses them) or
+  where the device cannot run them (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
   as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
   50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
@@ -83,6 +85,10 @@ from torch import Tensor
 
 from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul, hand_kernels_reason
 
+
+# A layer's last residual sum, left for the next layer to add with its input norm (LeRobotOrder.enter):
+# the MLP's output and its gate (None: none), or None where no layer came before.
+Pending = tuple[Tensor, Tensor | None] | None
 
 # Fused K/V caches hold a multiple of this many positions (Fused.cache_length): 16 bytes of bf16.
 KEY_ALIGN = 8
@@ -228,10 +234,18 @@ class LeRobotOrder:
         return linear(x)
 
     def residual_norm(self, h: Tensor, y: Tensor, gate: Tensor | None, norm: Any, mod: Modulation | None) -> tuple[Tensor, Tensor]:
-        """The residual sum after attention and the norm before the MLP: ``(h + y · gate, the
-        norm of it)``, the norm adaptive when ``mod`` is given."""
+        """A residual sum and the norm after it (attention's, before the MLP; the MLP's, before
+        the next layer): ``(h + y · gate, the norm of it)``, the norm adaptive when ``mod`` is given."""
         h = self.residual(h, y, gate)
         return h, self.norm(norm, h) if mod is None else self.ada_norm(norm, h, mod)
+
+    def enter(self, h: Tensor, pending: Pending, norm: Any, mod: Modulation | None) -> tuple[Tensor, Tensor]:
+        """A layer's input norm, after the residual sum the layer before left ``pending`` (its
+        MLP's output and gate; None: the first layer), so that the two can be one kernel
+        (:meth:`residual_norm`). Returns the stream and the normed input."""
+        if pending is None:
+            return h, self.norm(norm, h) if mod is None else self.ada_norm(norm, h, mod)
+        return self.residual_norm(h, pending[0], pending[1], norm, mod)
 
     @staticmethod
     def residual(h: Tensor, y: Tensor, gate: Tensor | None) -> Tensor:

@@ -63,7 +63,7 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
-from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, Fused, LeRobotOrder, Modulation
+from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, Fused, LeRobotOrder, Modulation, Pending
 from lerobot_armory.policies.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
@@ -385,14 +385,14 @@ class StaticPi05:
             self.ops.hand_kernels, self.ops.hand_kernels_reason = False, "the sampler is compiled (inductor fuses them)"
         vlm, expert = torch.compile(self._vlm_layer, fullgraph=True), torch.compile(self._expert_layer, fullgraph=True)
 
-        def vlm_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+        def vlm_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Pending]:
             _mark_dynamic((h, x, cache, mask, rope), h.shape[0], {x.shape[1], self.ops.length(cache)})
             return vlm(layer, h, x, cache, mask, rope)
 
-        def expert_layer(layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], *mods: Modulation) -> Tensor:
+        def expert_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], *mods: Modulation) -> tuple[Tensor, Pending]:
             # The suffix's length is fixed (the chunk, and π0's state token): only the cache's varies.
-            _mark_dynamic((h, cache, mask, rope), h.shape[0], {self.ops.length(cache)})
-            return expert(layer, h, cache, mask, rope, *mods)
+            _mark_dynamic((h, x, cache, mask, rope), h.shape[0], {self.ops.length(cache)})
+            return expert(layer, h, x, cache, mask, rope, *mods)
 
         self._compiled = (vlm_layer, expert_layer)
 
@@ -491,31 +491,33 @@ class StaticPi05:
         rope = self.ops.rope(self.vlm, self._like(self.vlm, embs), positions)
         caches = []
         last = len(self.vlm.layers) - 1
+        pending: Pending = None
         for i, layer in enumerate(self.vlm.layers):
-            x = self.ops.norm(layer.input_layernorm, h)
+            h, x = self.ops.enter(h, pending, layer.input_layernorm, None)
             cache = self.ops.new_cache(layer.self_attn, x, p, self.suffix_length)
             caches.append(cache)
             if i == last:  # the last layer's output is never read: only its keys and values are
                 self.ops.qkv(layer.self_attn, x, rope, cache, 0)
                 break
-            h = vlm_layer(layer, h, x, cache, mask, rope)
+            h, pending = vlm_layer(layer, h, x, cache, mask, rope)
         return caches
 
-    def _vlm_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:
+    def _vlm_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Pending]:
         """One VLM layer over the prefix, its input ``x`` normed already: keys and values into
-        ``cache`` (from position 0), the residual stream after the layer returned."""
+        ``cache`` (from position 0); returns the residual stream and the MLP's sum left pending."""
         return self._plain_layer(layer, h, x, cache, 0, self.ops.cached(cache, x.shape[1]), mask, rope, self.mlp_apart)
 
     def _plain_layer(
         self, layer: Any, h: Tensor, x: Tensor, cache: Any, start: int, kv: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mlp_apart: bool = False
-    ) -> Tensor:
+    ) -> tuple[Tensor, Pending]:
         """A Gemma layer with plain norms, its input ``x`` normed already: keys and values into
         ``cache`` from ``start``, attention over ``kv`` (the cache's attended part); ``mlp_apart``:
-        the MLP's gate and up as two products (the ops' ``mlp``)."""
+        the MLP's gate and up as two products (the ops' ``mlp``). Returns the residual stream and
+        the MLP's output, whose residual sum the next layer adds with its input norm (``enter``)."""
         q = self.ops.qkv(layer.self_attn, x, rope, cache, start)
         y = self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, kv, mask))
         h, x = self.ops.residual_norm(h, y, None, layer.post_attention_layernorm, None)
-        return self.ops.residual(h, self.ops.mlp(layer.mlp, x, None, mlp_apart), None)
+        return h, (self.ops.mlp(layer.mlp, x, None, mlp_apart), None)
 
     def _velocity(
         self, x_t: Tensor, cond: Any, fixed: Any, caches: list[Any], mask: Tensor, rope: tuple[Tensor, Tensor], expert_layer: Any
@@ -523,9 +525,15 @@ class StaticPi05:
         """One denoising step of the action expert (LeRobot's ``denoise_step``): ``cond`` is the
         step's time conditioning (:meth:`prepare`), ``fixed`` what a sample's steps share
         (:meth:`_sample_constants`)."""
-        h = self._embed_suffix(x_t, cond, fixed)
+        h, pending = self._embed_suffix(x_t, cond, fixed), None
         for i, layer in enumerate(self.expert.layers):
-            h = expert_layer(layer, h, caches[i], mask, rope, *self._layer_conditioning(cond, i))
+            # The input norm here, outside a compiled layer (as the VLM's): a first layer with no
+            # sum pending would be a second compilation of it.
+            mods = self._layer_conditioning(cond, i)
+            h, x = self.ops.enter(h, pending, layer.input_layernorm, mods[0] if mods else None)
+            h, pending = expert_layer(layer, h, x, caches[i], mask, rope, *mods)
+        assert pending is not None  # the model has layers (unsupported_reason)
+        h = self.ops.residual(h, *pending)
         # The norm is per token: the actions' rows alone give the same values.
         return self.model.action_out_proj(self._final_norm(h[:, -self.chunk_size :], cond).to(dtype=torch.float32))
 
@@ -548,15 +556,15 @@ class StaticPi05:
         return self.ops.ada_norm(self.expert.norm, h, cond.final)
 
     def _expert_layer(
-        self, layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mod_in: Modulation, mod_post: Modulation
-    ) -> Tensor:
-        """One action-expert layer: the suffix's keys and values written into ``cache`` in place,
-        behind the prefix's (its last ``chunk_size`` positions), the residual stream returned."""
-        x = self.ops.ada_norm(layer.input_layernorm, h, mod_in)
+        self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor], mod_in: Modulation, mod_post: Modulation
+    ) -> tuple[Tensor, Pending]:
+        """One action-expert layer, its input ``x`` normed already (with ``mod_in``): the suffix's
+        keys and values written into ``cache`` in place, behind the prefix's (its last
+        ``chunk_size`` positions); returns the residual stream and the MLP's sum left pending."""
         q = self.ops.qkv(layer.self_attn, x, rope, cache, self.ops.length(cache) - h.shape[1], mod_in.bias)
         y = self.ops.project_out(layer.self_attn.o_proj, self.ops.attend(layer.self_attn, q, cache, mask))
         h, x = self.ops.residual_norm(h, y, mod_in.gate, layer.post_attention_layernorm, mod_post)
-        return self.ops.residual(h, self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
+        return h, (self.ops.mlp(layer.mlp, x, mod_post.bias), mod_post.gate)
 
     def _additive(self, valid: Tensor) -> Tensor:
         """LeRobot's additive mask (B, Lq, Lk): 0 where attended, its large negative constant elsewhere."""
@@ -597,6 +605,8 @@ def _mark_dynamic(tensors: Sequence[Any], batch: int, lengths: set[int]) -> None
     ``lengths`` (``maybe``: a dimension the code specialises costs a compilation, not an error; a
     static one marked by a coincidence of sizes only loses its specialisation)."""
     for t in tensors:
+        if t is None:  # a gate or a sum the first layer has not
+            continue
         if isinstance(t, tuple):
             _mark_dynamic(t, batch, lengths)
             continue

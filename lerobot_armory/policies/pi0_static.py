@@ -28,6 +28,7 @@ import torch
 from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from torch import Tensor
 
+from lerobot_armory.policies.pi05_kernels import Pending
 from lerobot_armory.policies.pi05_static import SamplerInputs, StaticPi05
 
 
@@ -99,10 +100,10 @@ class StaticPi0(StaticPi05):
     def _layer_conditioning(cond: Any, layer: int) -> tuple[()]:
         return ()
 
-    def _expert_layer(self, layer: Any, h: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> Tensor:  # type: ignore[override]
-        """One action-expert layer (plain norms, no gates): the suffix's keys and values written
-        into ``cache`` behind the prefix's, the residual stream returned."""
-        x = self.ops.norm(layer.input_layernorm, h)
+    def _expert_layer(self, layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Pending]:  # type: ignore[override]
+        """One action-expert layer (plain norms, no gates), its input ``x`` normed already: the
+        suffix's keys and values written into ``cache`` behind the prefix's; returns the residual
+        stream and the MLP's sum left pending."""
         return self._plain_layer(layer, h, x, cache, self.ops.length(cache) - h.shape[1], cache, mask, rope)
 
     def _final_norm(self, h: Tensor, cond: Any) -> Tensor:
