@@ -31,7 +31,7 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   activation reading one product's halves); a ``-mixedresidual`` suffix: the output and down
   projections in bf16 (before 2026-11-28 #10; by default on a GPU they write float32, so that the
   residual sums read one dtype); a ``-notriton`` suffix: PyTorch's operations where by default on a
-  GPU two Triton kernels run the MLP's activation and the residual sum with the norm after it
+  GPU two Triton kernels run the MLP's activation and each residual sum with the norm after it
   (before 2026-11-28 #10); all four (``-unaligned-stridedmlp-mixedresidual-notriton``): the
   sampler of 2026-11-27;
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
@@ -169,9 +169,9 @@ def as_before(config: str) -> Iterator[None]:
     - ``-mixedresidual``: the output and down projections in bf16, so that each residual sum
       reads two dtypes, as before 2026-11-28 #10, where on a GPU they are written in float32
       (``pi05_kernels.float32_products_reason``);
-    - ``-notriton``: PyTorch's operations for the MLP's activation and for the residual sum and
-      norm after attention, as before 2026-11-28 #10, where on a GPU two Triton kernels run them
-      (``pi05_kernels.hand_kernels_reason``)."""
+    - ``-notriton``: PyTorch's operations for the MLP's activation and for each residual sum with
+      the norm after it (attention's, and the MLP's with the next layer's input norm), as before
+      2026-11-28 #10, where on a GPU two Triton kernels run them (``pi05_kernels.hand_kernels_reason``)."""
     from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
     from lerobot_armory.policies.pi05_static import StaticPi05

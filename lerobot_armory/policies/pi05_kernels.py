@@ -48,8 +48,9 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   and the next adds it in :meth:`LeRobotOrder.enter`): −914 launches a sample in bf16, −564 in
   float32, at full depth (350 norm kernels: 17 + 17 in the VLM, 180 + 170 in the expert, each
   saving two launches in bf16, one in float32; 197 activation kernels, each saving one, two in
-  the VLM, whose MLP otherwise runs two products); off on a CPU, compiled (inductor fuses them) or
-  where the device cannot run them (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
+  the VLM, whose MLP otherwise runs two products); off on a CPU, inside a compiled layer (inductor
+  fuses those operations; between compiled layers they run) or where the device cannot run them
+  (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
   as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
   50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
@@ -464,17 +465,24 @@ class Fused(LeRobotOrder):
         return h + y if gate is None else torch.addcmul(h, y, gate)
 
     def residual_norm(self, h: Tensor, y: Tensor, gate: Tensor | None, norm: Any, mod: Modulation | None) -> tuple[Tensor, Tensor]:
-        """One Triton kernel where it runs (``hand_kernels``), three of PyTorch's otherwise."""
-        if not self.hand_kernels or (mod is not None and mod.shift is not None):
+        """One Triton kernel where it runs (``hand_kernels``, outside a compiled graph, where
+        inductor fuses PyTorch's operations itself), three of PyTorch's otherwise."""
+        if not self.triton_here() or (mod is not None and mod.shift is not None):
             return super().residual_norm(h, y, gate, norm, mod)
         weight = getattr(norm, _NORM) if mod is None else mod.scale1
         return add_rms_norm(h, y, gate, weight, norm.eps, self.compute_dtype)
+
+    def triton_here(self) -> bool:
+        """Whether the Triton kernels run at this point: ``hand_kernels``, and not inside a graph
+        torch.compile is tracing (inductor fuses the same operations; an opaque kernel would stand
+        between its fusions), so a compiled sampler keeps them between its compiled layers."""
+        return self.hand_kernels and not torch.compiler.is_compiling()
 
     def mlp(self, mlp: Any, x: Tensor, bias: Tensor | None = None, apart: bool = False) -> Tensor:
         """The MLP, its gate and up one product (``apart``: two, for many rows; see the module
         docstring), the activation one Triton kernel where it runs (``hand_kernels``: it reads the
         product's halves where they lie, so ``apart`` is moot)."""
-        if self.hand_kernels:
+        if self.triton_here():
             gate_up = torch.nn.functional.linear(x, self.gate_up_weight(mlp), bias)
             return self.project_out(mlp.down_proj, gelu_tanh_mul(gate_up))
         gate, up = self.gate_up(mlp, x, bias, apart)

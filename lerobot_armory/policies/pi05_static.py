@@ -381,8 +381,6 @@ class StaticPi05:
         projections stay eager."""
         if self._compiled is not None:
             return
-        if isinstance(self.ops, Fused):  # inductor fuses the same operations itself: hand kernels would stand between its fusions
-            self.ops.hand_kernels, self.ops.hand_kernels_reason = False, "the sampler is compiled (inductor fuses them)"
         vlm, expert = torch.compile(self._vlm_layer, fullgraph=True), torch.compile(self._expert_layer, fullgraph=True)
 
         def vlm_layer(layer: Any, h: Tensor, x: Tensor, cache: Any, mask: Tensor, rope: tuple[Tensor, Tensor]) -> tuple[Tensor, Pending]:
@@ -528,11 +526,12 @@ class StaticPi05:
         h, pending = self._embed_suffix(x_t, cond, fixed), None
         for i, layer in enumerate(self.expert.layers):
             # The input norm here, outside a compiled layer (as the VLM's): a first layer with no
-            # sum pending would be a second compilation of it.
+            # sum pending would be a second compilation of it; between compiled layers it is one
+            # Triton kernel with the sum (Fused.triton_here).
             mods = self._layer_conditioning(cond, i)
             h, x = self.ops.enter(h, pending, layer.input_layernorm, mods[0] if mods else None)
             h, pending = expert_layer(layer, h, x, caches[i], mask, rope, *mods)
-        assert pending is not None  # the model has layers (unsupported_reason)
+        assert pending is not None  # a model without layers fails before (the layers[0] it reads at construction)
         h = self.ops.residual(h, *pending)
         # The norm is per token: the actions' rows alone give the same values.
         return self.model.action_out_proj(self._final_norm(h[:, -self.chunk_size :], cond).to(dtype=torch.float32))
@@ -605,8 +604,6 @@ def _mark_dynamic(tensors: Sequence[Any], batch: int, lengths: set[int]) -> None
     ``lengths`` (``maybe``: a dimension the code specialises costs a compilation, not an error; a
     static one marked by a coincidence of sizes only loses its specialisation)."""
     for t in tensors:
-        if t is None:  # a gate or a sum the first layer has not
-            continue
         if isinstance(t, tuple):
             _mark_dynamic(t, batch, lengths)
             continue

@@ -110,16 +110,41 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
         assert not after.host_syncs
 
 
-def test_a_compiled_sampler_leaves_the_fusing_to_inductor(pi05_dir, interpreted):
-    """``compile_layers`` turns the hand kernels off (inductor fuses the same operations, and an
-    opaque kernel would stand between its fusions), and says so."""
+def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi05_dir, interpreted, monkeypatch):
+    """``--engine.compile_sampler=true``: inside a compiled layer the operations are PyTorch's
+    (inductor fuses them; an opaque kernel would stand between its fusions), between layers — a
+    layer's pending sum with the next layer's input norm — the Triton kernel runs; the chunks stay
+    LeRobot's. Dynamo's ``eager`` backend stands in for inductor (the same tracing)."""
+    import torch
+    from torch.utils._python_dispatch import _disable_current_modes
+
+    from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_static import StaticPi05
 
-    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))
-    sampler = StaticPi05(engine.policy)
-    assert sampler.ops.hand_kernels
+    real_compile = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: real_compile(fn, **{**kw, "backend": "eager"}))
+    torch._dynamo.reset()
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    reference, sampler = StaticPi05(engine.policy, fused=False), StaticPi05(engine.policy)
     sampler.compile_layers()
-    assert not sampler.ops.hand_kernels and "compiled" in sampler.ops.hand_kernels_reason
+    assert sampler.ops.hand_kernels
+    calls: list[str] = []
+    for name in ("gelu_tanh_mul", "add_rms_norm"):
+        kernel = getattr(pi05_kernels, name)
+
+        def run(*args: Any, kernel: Any = kernel, name: str = name, **kwargs: Any) -> Any:
+            calls.append(name)
+            with _disable_current_modes():
+                return kernel(*args, **kwargs)
+
+        monkeypatch.setattr(pi05_kernels, name, run)
+    inputs = sampler_inputs(engine, 2, seed=1, guided=False)
+    with torch.no_grad():
+        ours, want = sampler.sample_compiled(inputs), reference.sample(inputs)
+    between_layers = len(sampler.vlm.layers) - 1 + (len(sampler.expert.layers) - 1) * sampler.num_steps
+    assert calls == ["add_rms_norm"] * between_layers
+    torch.testing.assert_close(ours, want, atol=1e-5, rtol=0)
+    torch._dynamo.reset()
 
 
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
