@@ -73,6 +73,7 @@ for s in "$@"; do
     smolvla) step smolvla 420 python3 benchmarks/gpu_profile.py --configs=smolvla-fp32,smolvla-fp32-graphs-tf32-unaligned,smolvla-fp32-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/smolvla.json" --work_dir=/tmp/gp ;;
     stages) step stages 360 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-visionbf16-latevision,pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --stages --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
     kernels) step kernels 270 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton,pi05-bf16-graphs-tf32-visionbf16-notriton,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
+    micro) step micro 90 python3 benchmarks/gpu/micro.py --out="$OUT/micro.json" ;;
     buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
     efficiency) step efficiency 170 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
     live4) step live4 170 live 4 ;;
@@ -82,7 +83,7 @@ for s in "$@"; do
     vs_async8) step vs_async8 560 vs_async 8 ;;
     faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
     swap) step swap 400 swap_gpu ;;
-    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
+    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels micro buckets compiled efficiency live4 live10 live20 vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).
