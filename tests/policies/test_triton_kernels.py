@@ -32,6 +32,26 @@ def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     jit.cache_clear()
 
 
+def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The names of the Triton kernels the fused layers call, in order, while the test runs; each
+    runs outside any dispatch mode (one launch each: the interpreter's own tensor work is not an
+    operation a GPU would launch)."""
+    from torch.utils._python_dispatch import _disable_current_modes
+
+    from lerobot_armory.policies import pi05_kernels
+
+    calls: list[str] = []
+    for name in ("gelu_tanh_mul", "add_rms_norm"):
+
+        def run(*args: Any, kernel: Any = getattr(pi05_kernels, name), name: str = name, **kwargs: Any) -> Any:
+            calls.append(name)
+            with _disable_current_modes():
+                return kernel(*args, **kwargs)
+
+        monkeypatch.setattr(pi05_kernels, name, run)
+    return calls
+
+
 def test_the_kernels_compute_what_pytorchs_operations_do(interpreted):
     import torch
 
@@ -61,9 +81,7 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
     and a sample launches fewer kernels, each Triton kernel standing for at least two of PyTorch's
     (the MLP's activation: GELU and its product; the residual sum, the norm and its cast)."""
     import torch
-    from torch.utils._python_dispatch import _disable_current_modes
 
-    from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.op_trace import OpTrace
     from lerobot_armory.policies.pi0_static import StaticPi0
     from lerobot_armory.policies.pi05_static import StaticPi05
@@ -79,20 +97,7 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
     assert not plain.ops.hand_kernels and "CUDA only" in plain.ops.hand_kernels_reason
     fused = sampler(engine.policy, guided=True)
     assert fused.ops.hand_kernels, fused.ops.hand_kernels_reason
-    calls: list[str] = []
-
-    def counted(name: str) -> Any:
-        kernel = getattr(pi05_kernels, name)
-
-        def run(*args: Any, **kwargs: Any) -> Any:
-            calls.append(name)
-            with _disable_current_modes():  # one launch each: the interpreter's own work is not counted
-                return kernel(*args, **kwargs)
-
-        return run
-
-    for name in ("gelu_tanh_mul", "add_rms_norm"):
-        monkeypatch.setattr(pi05_kernels, name, counted(name))
+    calls = counted_kernel_calls(monkeypatch)
     for b in (1, 3):
         inputs = sampler_inputs(engine, b, seed=b, horizon=horizon)
         with torch.no_grad():
@@ -116,9 +121,7 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     layer's pending sum with the next layer's input norm — the Triton kernel runs; the chunks stay
     LeRobot's. Dynamo's ``eager`` backend stands in for inductor (the same tracing)."""
     import torch
-    from torch.utils._python_dispatch import _disable_current_modes
 
-    from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_static import StaticPi05
 
     real_compile = torch.compile
@@ -128,16 +131,7 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     reference, sampler = StaticPi05(engine.policy, fused=False), StaticPi05(engine.policy)
     sampler.compile_layers()
     assert sampler.ops.hand_kernels
-    calls: list[str] = []
-    for name in ("gelu_tanh_mul", "add_rms_norm"):
-        kernel = getattr(pi05_kernels, name)
-
-        def run(*args: Any, kernel: Any = kernel, name: str = name, **kwargs: Any) -> Any:
-            calls.append(name)
-            with _disable_current_modes():
-                return kernel(*args, **kwargs)
-
-        monkeypatch.setattr(pi05_kernels, name, run)
+    calls = counted_kernel_calls(monkeypatch)
     inputs = sampler_inputs(engine, 2, seed=1, guided=False)
     with torch.no_grad():
         ours, want = sampler.sample_compiled(inputs), reference.sample(inputs)
