@@ -33,7 +33,9 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   residual sums read one dtype); a ``-notriton`` suffix: PyTorch's operations where by default on a
   GPU two Triton kernels run the MLP's activation and each residual sum with the norm after it
   (before 2026-11-28 #10); all four (``-unaligned-stridedmlp-mixedresidual-notriton``): the
-  sampler of 2026-11-27;
+  sampler of 2026-11-27; a ``-notritonattention`` suffix: PyTorch's operations for the rotary
+  embedding and attention's mask + softmax, which by default on a GPU two more Triton kernels run
+  (before 2026-11-28 #11: that day's measured default);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -108,6 +110,7 @@ CONFIGS = (
     "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
     "pi05-bf16-graphs-tf32-visionbf16-notriton", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp-notriton",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton",
+    "pi05-bf16-graphs-tf32-visionbf16-notritonattention",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
@@ -152,7 +155,7 @@ def _flags(config: str) -> set[str]:
 
 # Suffixes that undo one of the default's kernel choices (``as_before``): a configuration with one
 # beside the same without says what the choice gives.
-BEFORE = ("unaligned", "stridedmlp", "mixedresidual", "notriton")
+BEFORE = ("unaligned", "stridedmlp", "mixedresidual", "notriton", "notritonattention")
 
 
 @contextlib.contextmanager
@@ -171,7 +174,11 @@ def as_before(config: str) -> Iterator[None]:
       (``pi05_kernels.float32_products_reason``);
     - ``-notriton``: PyTorch's operations for the MLP's activation and for each residual sum with
       the norm after it (attention's, and the MLP's with the next layer's input norm), as before
-      2026-11-28 #10, where on a GPU two Triton kernels run them (``pi05_kernels.hand_kernels_reason``)."""
+      2026-11-28 #10, where on a GPU two Triton kernels run them (``pi05_kernels.hand_kernels_reason``);
+      with it every Triton kernel is off;
+    - ``-notritonattention``: PyTorch's operations for the rotary embedding and for attention's
+      mask and softmax, as before 2026-11-28 #11, where on a GPU a Triton kernel runs each
+      (``Fused.triton_attention``); the MLP's and the norms' Triton kernels stay."""
     from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
     from lerobot_armory.policies.pi05_static import StaticPi05
@@ -188,6 +195,8 @@ def as_before(config: str) -> Iterator[None]:
         patched.append((pi05_kernels, "float32_products_reason", lambda device, dtype: "-mixedresidual"))
     if "notriton" in flags:
         patched.append((pi05_kernels, "hand_kernels_reason", lambda *args: "-notriton"))
+    if "notritonattention" in flags:
+        patched.append((Fused, "triton_attention", False))
     saved = [vars(owner)[name] for owner, name, _ in patched]  # a class's or a module's own
     for cls, name, before in patched:
         setattr(cls, name, before)

@@ -9,7 +9,11 @@ prompt; expert: 50 action rows):
   two contiguous products' outputs (the VLM's ``apart``), and the Triton kernel on the halves;
 - a residual sum with the norm and cast after it: PyTorch's ``addcmul`` (mixed-dtype: bf16 product
   and gate on the float32 stream), ``rms_norm`` and cast, against the Triton kernel;
-- the output and down projections: bf16 out against float32 out (``mm(out_dtype=float32)``).
+- the output and down projections: bf16 out against float32 out (``mm(out_dtype=float32)``);
+- (2026-11-28 #11) the rotary embedding of q, k and v with the keys and values written into the
+  cache: PyTorch's four kernels against the Triton kernel;
+- (2026-11-28 #11) attention's mask and softmax: PyTorch's add and softmax against the Triton
+  kernel (the expert's rows attend the prefix's keys and their own, 632).
 
 Times are the median of CUDA-graph replays (``triton.testing.do_bench_cudagraph``), so launch
 gaps are gone as in the served graphs. A few seconds on a GPU; it says, before the whole-sampler
@@ -31,9 +35,11 @@ from typing import Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-# π0.5's two Gemmas: (width, MLP width, attention output width); rows a sample.
+# π0.5's two Gemmas: (width, MLP width, attention output width); rows a sample; keys a row attends.
 FULL = {"vlm": (2048, 16384, 2048), "expert": (1024, 4096, 2048)}
 ROWS = {"vlm": 576, "expert": 50}
+KEYS = {"vlm": 576, "expert": 632}  # the expert's: the prefix and its 50, rounded up to 8 (the aligned cache)
+HEADS, KV_HEADS, HEAD_DIM = 8, 1, 256  # both Gemmas'; on a CPU a head of 8
 
 
 def main() -> None:
@@ -57,7 +63,8 @@ def main() -> None:
     for model, (width, mlp_width, attn_width) in shapes.items():
         for b in sizes:
             rows = ROWS[model] * b if cuda else 8
-            for name, pair in cases(torch, device, rows, width, mlp_width, attn_width).items():
+            attention = (b, ROWS[model], KEYS[model], HEAD_DIM) if cuda else (1, 8, 12, 8)
+            for name, pair in cases(torch, device, rows, width, mlp_width, attn_width, attention).items():
                 old, new = pair
                 ref, got = old(), new()
                 diff = (got.float() - ref.float()).abs().max().item()
@@ -78,9 +85,12 @@ def main() -> None:
         sys.exit(f"values differ: {', '.join(wrong)}")
 
 
-def cases(torch: Any, device: Any, rows: int, width: int, mlp_width: int, attn_width: int) -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
-    """Each choice as (what it replaced, the choice), closures over fresh random inputs."""
-    from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul
+def cases(
+    torch: Any, device: Any, rows: int, width: int, mlp_width: int, attn_width: int, attention: tuple[int, int, int, int]
+) -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
+    """Each choice as (what it replaced, the choice), closures over fresh random inputs;
+    ``attention``: (batch rows, query rows a batch row, keys, head width)."""
+    from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul, masked_softmax, rope_qkv
 
     gen = torch.Generator(device="cpu").manual_seed(0)
 
@@ -104,7 +114,25 @@ def cases(torch: Any, device: Any, rows: int, width: int, mlp_width: int, attn_w
         s = torch.addcmul(h, y, gate)
         return torch.nn.functional.rms_norm(s, (width,), weight, 1e-6).to(torch.bfloat16)
 
+    b, queries, keys, d = attention
+    all_heads = HEADS + 2 * KV_HEADS
+    qkv, cos, sin = (rand(b, queries, all_heads, d) for _ in range(3))
+    cache = rand(b, keys, 2 * KV_HEADS, d)
+    dest = cache[:, keys - queries :]  # a suffix's place, as the expert writes it (the VLM's: all)
+    scores = rand(b, queries, HEADS, keys, scale=3.0)
+    mask = torch.where(torch.rand(b, queries, 1, keys, generator=gen) < 0.2, -2.3819763e38, 0.0).to(device=device, dtype=torch.bfloat16)
+
+    def eager_rope() -> Any:  # pi05_kernels.Fused.qkv without the kernel
+        rotated, swapped = qkv * cos, torch.cat((qkv[..., d // 2 :], qkv[..., : d // 2]), dim=-1)
+        torch.addcmul(rotated[:, :, HEADS:], swapped[:, :, HEADS:], sin[:, :, HEADS:], out=dest)
+        return torch.addcmul(rotated[:, :, :HEADS], swapped[:, :, :HEADS], sin[:, :, :HEADS])
+
+    def softmax_copy() -> Any:  # what the sampler's own scores would be: a fresh product's output
+        return scores.clone()
+
     return {
+        "rope: aten -> triton": (eager_rope, lambda: rope_qkv(qkv, cos, sin, HEADS, dest)),
+        "softmax: aten -> triton": (lambda: torch.softmax(softmax_copy().add_(mask), dim=-1), lambda: masked_softmax(softmax_copy(), mask)),
         "gelu: strided -> triton": (strided, lambda: gelu_tanh_mul(gate_up)),
         "gelu: strided -> apart": (strided, lambda: gelu(gate_alone, approximate="tanh") * up_alone),
         "norm: aten -> triton": (eager_norm, lambda: add_rms_norm(h, y, gate, weight, 1e-6, torch.bfloat16)[1]),

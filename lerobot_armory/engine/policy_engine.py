@@ -213,7 +213,7 @@ class PolicyEngine:
         o = self.engine_options
         self.fused_kernels = False
         self.float32_products = False
-        self.hand_kernels = False
+        self.hand_kernels = self.attention_kernels = False
         self._sampler_takes_state = False  # the static sampler embeds the state (π0, SmolVLA)
         self._sampler_cameras: tuple[str, ...] = ()  # the cameras its inputs carry, in order
         self.prompt_buckets: tuple[int, ...] = ()  # fitted prompt lengths, ascending (none: the full length)
@@ -282,6 +282,9 @@ class PolicyEngine:
         self.hand_kernels = bool(getattr(sampler.ops, "hand_kernels", False))  # π0 family, Triton
         if not self.hand_kernels and str(self.device).startswith("cuda") and sampler.fused and hasattr(sampler.ops, "hand_kernels"):
             log.info("PyTorch's operations serve where the Triton kernels would: %s", sampler.ops.hand_kernels_reason)
+        self.attention_kernels = self.hand_kernels and bool(getattr(sampler.ops, "attention_kernels", False))
+        if self.hand_kernels and not self.attention_kernels:
+            log.info("PyTorch's operations serve the rotary embedding and attention's softmax: %s", sampler.ops.attention_kernels_reason)
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
         rest = sampler.sample_embedded_compiled if o.compile_sampler else sampler.sample_embedded
         # The vision tower is recorded apart from the rest (BucketedSampler.start) where the images
@@ -320,7 +323,7 @@ class PolicyEngine:
                 if self.float32_products:
                     notes.append("output projections in float32")
                 if self.hand_kernels:
-                    notes.append("Triton kernels")
+                    notes.append("Triton kernels" + ("" if self.attention_kernels else " (not attention's)"))
             if self.vision_cast is not None:
                 notes.append(f"vision tower in {self.vision_cast}")
             if self.prompt_buckets:

@@ -40,7 +40,7 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   dtype (PyTorch's elementwise kernels on mixed dtypes are not vectorised: the expert's 360 gated
   residuals a pass took 5.6 µs each on an H200, the rotation's single-dtype ``addcmul`` of the
   same size 3.3) and the product reaches the float32 stream unrounded;
-- **two Triton kernels on a GPU** (:mod:`~lerobot_armory.policies.triton_kernels`,
+- **Triton kernels on a GPU** (:mod:`~lerobot_armory.policies.triton_kernels`,
   ``hand_kernels``): the MLP's activation on the gate/up product's two halves where they lie
   (GELU and its product: two kernels, both non-vectorised on strided halves), and each residual
   sum with the norm after it and its cast (three kernels): attention's with the MLP's norm, and
@@ -48,7 +48,9 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   and the next adds it in :meth:`LeRobotOrder.enter`): −914 launches a sample in bf16, −564 in
   float32, at full depth (350 norm kernels: 17 + 17 in the VLM, 180 + 170 in the expert, each
   saving two launches in bf16, one in float32; 197 activation kernels, each saving one, two in
-  the VLM, whose MLP otherwise runs two products); off on a CPU, inside a compiled layer (inductor
+  the VLM, whose MLP otherwise runs two products); since 2026-11-28 #11 also the rotary
+  embedding (four kernels a layer → one, writing q and the cache) and attention's mask with its
+  softmax (two → one): −(198 × 3 + 197) = −791 more; off on a CPU, inside a compiled layer (inductor
   fuses those operations; between compiled layers they run) or where the device cannot run them
   (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
@@ -60,7 +62,7 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   their bf16 input (LeRobot casts the bf16 stream to float32 before every norm, and rounds every
   residual sum to bf16); attention scores, mask and softmax stay in bf16 (softmax computes in
   float32 inside either way; LeRobot's float32 mask makes its scores and probabilities float32,
-  then casts them back). The weights stay as LeRobot loads them.
+  then casts them back; the Triton kernel adds the mask in float32 too). The weights stay as LeRobot loads them.
 
 Numerics: in float32, the same operations with a different rounding order (a fused ``a + b·c``
 rounds once where two kernels round twice, the fused norm reduces in its own order, the shift
@@ -84,7 +86,15 @@ import torch
 from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
 
-from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul, hand_kernels_reason
+from lerobot_armory.policies.triton_kernels import (
+    LayerShape,
+    add_rms_norm,
+    attention_kernels_reason,
+    gelu_tanh_mul,
+    hand_kernels_reason,
+    masked_softmax,
+    rope_qkv,
+)
 
 
 # A layer's last residual sum, left for the next layer to add with its input norm (LeRobotOrder.enter):
@@ -279,6 +289,10 @@ class Fused(LeRobotOrder):
         ValueError: a layer cannot be fused (:func:`fusable_reason`).
     """
 
+    # The rotary embedding and attention's mask + softmax in Triton too, where the kernels run
+    # (``gpu_profile``'s ``-notritonattention`` patches this to measure them against PyTorch's).
+    triton_attention = True
+
     def __init__(self, text_models: list[Any], attention: str) -> None:
         super().__init__(attention)
         why = fusable_reason(text_models)
@@ -296,9 +310,14 @@ class Fused(LeRobotOrder):
         # The Triton kernels (triton_kernels.py) for the MLP's activation and the residual + norm,
         # where the device runs them and every MLP's activation is the tanh GELU they compute.
         residual_dtype = torch.float32 if self.float32_products else self.compute_dtype  # the products' and gates'
-        widths = [tuple(model.layers[0].mlp.gate_proj.weight.shape[::-1]) for model in text_models]  # (width, MLP width)
-        self.hand_kernels_reason = _tanh_gelu_reason(text_models) or hand_kernels_reason(device, self.compute_dtype, residual_dtype, widths)
+        shapes = [_layer_shape(model) for model in text_models]
+        self.hand_kernels_reason = _tanh_gelu_reason(text_models) or hand_kernels_reason(device, self.compute_dtype, residual_dtype, shapes)
         self.hand_kernels = self.hand_kernels_reason is None
+        if not self.triton_attention:
+            self.attention_kernels_reason: str | None = "turned off (Fused.triton_attention)"
+        else:
+            self.attention_kernels_reason = self.hand_kernels_reason or attention_kernels_reason(device, self.compute_dtype, shapes)
+        self.attention_kernels = self.attention_kernels_reason is None
         self.rope_scale: dict[Any, tuple[Tensor, Tensor]] = {}  # per model, each (Hq + 2·Hkv, 1): the scale, cos's offset
         for model in text_models:
             attn = model.layers[0].self_attn
@@ -419,12 +438,16 @@ class Fused(LeRobotOrder):
     def qkv(self, attn: Any, x: Tensor, rope: tuple[Tensor, Tensor], cache: Tensor, start: int, bias: Tensor | None = None) -> Tensor:
         """One projection (``bias``: a folded shift), one rotation for q, k and v; the rotation's
         last kernel runs twice, once for q's rows (a fresh contiguous q, the layout attention
-        gathers its rows in) and once for k's and v's, stored straight into ``cache``: no copy."""
+        gathers its rows in) and once for k's and v's, stored straight into ``cache``: no copy.
+        Where the Triton kernels run, the whole rotation is one kernel writing both."""
         heads, kv_heads = _heads(attn)
         qkv = torch.nn.functional.linear(x, self.qkv_weight(attn), bias).view(*x.shape[:-1], heads + 2 * kv_heads, attn.head_dim)
         cos, signed_sin = rope
+        dest = cache[:, start : start + x.shape[1]]
+        if self.attention_kernels and self.triton_here():  # one kernel for the four below
+            return rope_qkv(qkv, cos, signed_sin, heads, dest)
         rotated, swapped = qkv * cos, _swap_halves(qkv)  # q scaled, k rotated, v as it was (after the addcmul)
-        kv, dest = (rotated[:, :, heads:], swapped[:, :, heads:], signed_sin[:, :, heads:]), cache[:, start : start + x.shape[1]]
+        kv = (rotated[:, :, heads:], swapped[:, :, heads:], signed_sin[:, :, heads:])
         if torch.compiler.is_compiling():
             # Dynamo refuses an ``out=`` that is not contiguous (a graph break); inductor fuses
             # the copy into the addcmul's kernel anyway.
@@ -450,7 +473,9 @@ class Fused(LeRobotOrder):
         # and rounds each probability once as it stores it, where LeRobot's float32 scores, float32
         # probabilities and a cast read and write the largest tensor of the layer three more times
         # (same values: the added mask is 0 or beyond exp's range either way).
-        probs = torch.nn.functional.softmax(scores.add_(mask), dim=-1)
+        # (The Triton kernel adds the mask in float32 and rounds each probability once too; one
+        # kernel, where PyTorch's add reads the mask broadcast over heads, non-vectorised.)
+        probs = masked_softmax(scores, mask) if self.attention_kernels and self.triton_here() else torch.nn.functional.softmax(scores.add_(mask), dim=-1)
         return torch.bmm(probs.view(b, lq * heads, -1), kv[:, :, 1]).view(b, lq, heads * d)
 
     def project_out(self, linear: Any, x: Tensor) -> Tensor:
@@ -591,6 +616,14 @@ def _attention(kind: str, q: Tensor, k: Tensor, v: Tensor, mask: Tensor, scaling
         probs = torch.nn.functional.softmax(scores, dim=-1, dtype=torch.float32).to(q.dtype)
         out = torch.matmul(probs.view(b, k.shape[1], groups * lq, -1), v).view(b, heads, lq, d)
     return out.transpose(1, 2).reshape(b, lq, heads * d)
+
+
+def _layer_shape(model: Any) -> LayerShape:
+    """What the Triton kernels see of ``model``'s layers (all alike: :func:`fusable_reason`)."""
+    layer = model.layers[0]
+    heads, kv_heads = _heads(layer.self_attn)
+    width, mlp_width = layer.mlp.gate_proj.weight.shape[::-1]
+    return LayerShape(width, mlp_width, heads, kv_heads, layer.self_attn.head_dim)
 
 
 def _heads(attn: Any) -> tuple[int, int]:

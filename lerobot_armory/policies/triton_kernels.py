@@ -1,4 +1,4 @@
-"""Two fused elementwise kernels for the π0 family's fused layers (``pi05_kernels.Fused``), in Triton.
+"""Fused elementwise kernels for the π0 family's fused layers (``pi05_kernels.Fused``), in Triton.
 
 At batch 1 a sample is thousands of small kernels, each a few microseconds however little it
 does (the action expert's 18 layers run at each of 10 steps). Two sequences in every layer are
@@ -11,9 +11,17 @@ elementwise work PyTorch runs as several kernels, each reading and writing the w
 - **the residual sum and the norm after it**: ``h + y · gate``, then RMSNorm of that sum with its
   weight, then the cast to the projections' dtype — three kernels, the first in PyTorch's
   mixed-dtype kernel when ``y`` is bf16 (:func:`add_rms_norm`: one kernel, one program a row,
-  writing the float32 sum and the normed row).
+  writing the float32 sum and the normed row);
+- **the rotary embedding**: ``x · cos + swap_halves(x) · sin`` for q, k and v side by side (v's
+  table the identity) — four kernels (the product with cos, the halves' swap as a ``cat``, two
+  ``addcmul``, the keys' one non-vectorised as it writes into the cache's strided slice), 2.3 ms
+  at b = 1 and 5.3 ms at b = 8 on an H200 (2026-11-28) (:func:`rope_qkv`: one kernel writing q
+  and the cache's keys and values);
+- **attention's mask and softmax**: the mask added to the scores (broadcast over the heads, so
+  non-vectorised) and the softmax — two kernels, 1.5 ms at b = 1 and 4.8 ms at b = 8
+  (:func:`masked_softmax`: one kernel, in place).
 
-Both compute in float32 and round once, on the way out (PyTorch's bf16 GELU rounds its output
+All compute in float32 and round once, on the way out (PyTorch's bf16 GELU rounds its output
 before the product; the fused kernel does not). A CUDA graph records them like any other kernel:
 Triton compiles each on its first call, which the graph's warm-up makes, never inside a recording.
 
@@ -27,20 +35,97 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 _GELU_BLOCK = 1024  # columns a program of gelu_tanh_mul covers
+# Keys a program of masked_softmax covers per pass over a row: one pass for π0.5's rows (at most
+# ≈ 770 keys with two cameras), more for longer ones. Fixed, so that the row length is no constexpr:
+# a new prompt bucket compiles no new kernel (and never inside a CUDA graph's recording).
+_SOFTMAX_BLOCK = 1024
 
 
-def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype: torch.dtype, widths: Sequence[tuple[int, int]]) -> str | None:
+class LayerShape(NamedTuple):
+    """What a model's layers hand the kernels: the widths of its residual stream and MLP, its
+    query and key/value heads and their width."""
+
+    width: int
+    mlp_width: int
+    heads: int
+    kv_heads: int
+    head_dim: int
+
+
+def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype: torch.dtype, shapes: Sequence[LayerShape]) -> str | None:
     """Why the Triton kernels cannot run on ``device`` (None: they can). Each is run there once,
-    on one row, for every shape it will see — ``widths``: each model's (width, MLP width) — in
-    the layers' ``dtype``, with products and gates of ``residual_dtype``, gated or not, and
-    compared with PyTorch's operations: every variant Triton compiles is compiled here, at load,
-    and a compiler or device that cannot run one is told before any batch."""
+    on one row, for every shape it will see — ``shapes``: each model's — in the layers' ``dtype``,
+    with products and gates of ``residual_dtype``, gated or not, and compared with PyTorch's
+    operations: every variant Triton compiles is compiled here, at load, and a compiler or device
+    that cannot run one is told before any batch. (Lengths and strides that vary with the batch
+    or the prompt are not specialised on: no variant depends on them.)"""
+    why = _unrunnable_reason(device)
+    if why is not None:
+        return why
+    loose = _tolerance(dtype, residual_dtype)
+    try:
+        rand = _random(device, dtype)
+        for shape in sorted(set(shapes)):
+            gate_up = rand(1, 2 * shape.mlp_width)
+            gate, up = gate_up.float().chunk(2, dim=-1)
+            if not torch.allclose(gelu_tanh_mul(gate_up).float(), torch.nn.functional.gelu(gate, approximate="tanh") * up, **loose):
+                return f"the Triton GELU kernel disagreed with PyTorch's on {device} (MLP width {shape.mlp_width})"
+            h = rand(1, shape.width, like=torch.float32)
+            y, gate = rand(1, shape.width, like=residual_dtype), rand(1, shape.width, like=residual_dtype)
+            weight = rand(shape.width, like=torch.float32).abs()
+            for g in (gate, None):
+                total, normed = add_rms_norm(h, y, g, weight, 1e-6, dtype)
+                want = h + y.float() * (1.0 if g is None else g.float())
+                if not (torch.allclose(total, want, **loose) and torch.allclose(normed.float(), torch.nn.functional.rms_norm(want, (shape.width,), weight, 1e-6), **loose)):
+                    return f"the Triton norm kernel disagreed with PyTorch's on {device} (width {shape.width})"
+    except torch.cuda.OutOfMemoryError:
+        raise  # not an answer about the kernels: the load fails as it would have anyway
+    except Exception as exc:  # noqa: BLE001 — a compiler or driver without them: PyTorch's ops serve
+        return _failed(device, exc)
+    return None
+
+
+def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: Sequence[LayerShape]) -> str | None:
+    """Why :func:`rope_qkv` and :func:`masked_softmax` cannot run on ``device`` (None: they can),
+    checked as :func:`hand_kernels_reason` checks the others, apart from them: a kernel of these
+    two that fails turns off these two only. Each runs once a shape on one token: the rotation
+    into a cache's slice past its first position (as a suffix is written), the softmax with a
+    masked key."""
+    why = _unrunnable_reason(device)
+    if why is not None:
+        return why
+    loose = _tolerance(dtype, dtype)
+    try:
+        rand = _random(device, dtype)
+        for shape in sorted(set(shapes)):
+            heads, kv, d = shape.heads, 2 * shape.kv_heads, shape.head_dim
+            qkv, cos, sin = (rand(1, 1, heads + kv, d) for _ in range(3))
+            cache = rand(1, 3, kv, d)
+            q = rope_qkv(qkv, cos, sin, heads, cache[:, 1:2])
+            want = qkv.float() * cos.float() + torch.cat((qkv[..., d // 2 :], qkv[..., : d // 2]), dim=-1).float() * sin.float()
+            if not (torch.allclose(q.float(), want[:, :, :heads], **loose) and torch.allclose(cache[:, 1:2].float(), want[:, :, heads:], **loose)):
+                return f"the Triton rotary kernel disagreed with PyTorch's on {device} ({heads} + {kv} heads of {d})"
+            for keys in (5, 8):  # both of its variants: rows a multiple of 8 keys long or not
+                scores, mask = rand(1, 1, heads, keys), torch.zeros(1, 1, 1, keys, device=device, dtype=dtype)
+                mask[..., 2] = -1e30
+                want = torch.softmax(scores.float() + mask.float(), dim=-1)
+                if not torch.allclose(masked_softmax(scores, mask).float(), want, **loose):
+                    return f"the Triton softmax kernel disagreed with PyTorch's on {device} ({heads} heads, {keys} keys)"
+    except torch.cuda.OutOfMemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        return _failed(device, exc)
+    return None
+
+
+def _unrunnable_reason(device: torch.device) -> str | None:
+    """Why no Triton kernel can run on ``device`` at all (None: one may)."""
     if device.type != "cuda" and not interpreted():
         return "the Triton kernels run on CUDA only"
     if device.type == "cuda" and interpreted():  # its host copies would land inside a graph's recording
@@ -51,28 +136,26 @@ def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype
         return "triton is not installed"
     if device.type == "cuda" and torch.cuda.is_current_stream_capturing():  # never launch a probe into someone's graph
         return "a CUDA graph was being recorded when the sampler was built"
-    loose = {"atol": 0.05, "rtol": 0.02} if torch.bfloat16 in (dtype, residual_dtype) else {"atol": 1e-4, "rtol": 1e-4}
-    try:
-        gen = torch.Generator(device="cpu").manual_seed(0)
-        for width, mlp_width in sorted(set(widths)):
-            gate_up = torch.randn(1, 2 * mlp_width, generator=gen).to(device=device, dtype=dtype)
-            gate, up = gate_up.float().chunk(2, dim=-1)
-            if not torch.allclose(gelu_tanh_mul(gate_up).float(), torch.nn.functional.gelu(gate, approximate="tanh") * up, **loose):
-                return f"the Triton GELU kernel disagreed with PyTorch's on {device} (MLP width {mlp_width})"
-            h = torch.randn(1, width, generator=gen).to(device)
-            y, gate = (torch.randn(1, width, generator=gen).to(device=device, dtype=residual_dtype) for _ in range(2))
-            weight = torch.rand(width, generator=gen).to(device)
-            for g in (gate, None):
-                total, normed = add_rms_norm(h, y, g, weight, 1e-6, dtype)
-                want = h + y.float() * (1.0 if g is None else g.float())
-                if not (torch.allclose(total, want, **loose) and torch.allclose(normed.float(), torch.nn.functional.rms_norm(want, (width,), weight, 1e-6), **loose)):
-                    return f"the Triton norm kernel disagreed with PyTorch's on {device} (width {width})"
-    except torch.cuda.OutOfMemoryError:
-        raise  # not an answer about the kernels: the load fails as it would have anyway
-    except Exception as exc:  # noqa: BLE001 — a compiler or driver without them: PyTorch's ops serve
-        text = str(exc).strip()
-        return f"the Triton kernels failed on {device}: {text.splitlines()[0] if text else type(exc).__name__}"
     return None
+
+
+def _tolerance(*dtypes: torch.dtype) -> dict[str, float]:
+    return {"atol": 0.05, "rtol": 0.02} if torch.bfloat16 in dtypes else {"atol": 1e-4, "rtol": 1e-4}
+
+
+def _random(device: torch.device, dtype: torch.dtype) -> Any:
+    """``rand(*shape, like=dtype)``: seeded normal values on ``device``, the same at every load."""
+    gen = torch.Generator(device="cpu").manual_seed(0)
+
+    def rand(*shape: int, like: torch.dtype = dtype) -> Tensor:
+        return torch.randn(*shape, generator=gen).to(device=device, dtype=like)
+
+    return rand
+
+
+def _failed(device: torch.device, exc: Exception) -> str:
+    text = str(exc).strip()
+    return f"the Triton kernels failed on {device}: {text.splitlines()[0] if text else type(exc).__name__}"
 
 
 def interpreted() -> bool:
@@ -118,6 +201,49 @@ def add_rms_norm(h: Tensor, y: Tensor, gate: Tensor | None, weight: Tensor, eps:
     return total, normed
 
 
+def rope_qkv(qkv: Tensor, cos: Tensor, signed_sin: Tensor, heads: int, dest: Tensor) -> Tensor:
+    """The rotary embedding of a layer's q, k and v heads side by side (``pi05_kernels.Fused.rope``'s
+    tables: q's scaled, v's the identity): ``x · cos + swap_halves(x) · signed_sin``, in float32,
+    rounded once. ``qkv``, ``cos`` and ``signed_sin`` are ``(B, L, H + 2·Hkv, d)`` (the tables may
+    have one batch row for all); returns q, a fresh ``(B, L, H, d)``, and writes k's and v's heads
+    into ``dest`` ``(B, L, 2·Hkv, d)``, a cache's slice (each token's row contiguous)."""
+    b, length, all_heads, d = qkv.shape
+    kv = all_heads - heads
+    tables_ok = all(t.shape[1:] == qkv.shape[1:] and t.shape[0] in (1, b) and t.is_contiguous() for t in (cos, signed_sin))
+    if not tables_ok or cos.shape != signed_sin.shape or d % 2 or tuple(dest.shape) != (b, length, kv, d) or dest.stride()[2:] != (d, 1) or dest.stride(0) % d or dest.stride(1) % d:
+        raise ValueError(f"rope_qkv: qkv {tuple(qkv.shape)}, tables {tuple(cos.shape)} / {tuple(signed_sin.shape)}, dest {tuple(dest.shape)} {dest.stride()}, {heads} query heads")
+    qkv = qkv.contiguous()
+    q = qkv.new_empty(b, length, heads, d)
+    if qkv.numel():
+        kernel = _kernels()[2]
+        table_stride = cos.stride(0) if cos.shape[0] == b and b > 1 else 0
+        with _on(qkv.device):
+            strides = (qkv.stride(0), table_stride, q.stride(0), dest.stride(0), dest.stride(1))  # in elements: whole heads
+            kernel[(length, b)](
+                qkv, cos, signed_sin, q, dest, *(stride // d for stride in strides),
+                HEADS=heads, ALL=all_heads, D=d, HEAD_BLOCK=_pow2(all_heads), BLOCK=_pow2(d // 2),
+            )
+    return q
+
+
+def masked_softmax(scores: Tensor, mask: Tensor) -> Tensor:
+    """``softmax(scores + mask)`` over the keys, in place, computed in float32, each probability
+    rounded once: ``scores`` ``(B, Lq, H, Lk)`` contiguous, ``mask`` ``(B, Lq, 1, Lk)`` (additive,
+    one row for all of a query's heads). Returns ``scores``, now the probabilities."""
+    b, lq, heads, length = scores.shape
+    if tuple(mask.shape) != (b, lq, 1, length) or not scores.is_contiguous():
+        raise ValueError(f"masked_softmax: scores {tuple(scores.shape)} (contiguous: {scores.is_contiguous()}), mask {tuple(mask.shape)}")
+    mask = mask.contiguous()
+    if scores.numel():
+        kernel = _kernels()[3]
+        with _on(scores.device):
+            # Two variants at most: rows a multiple of 8 keys apart (π0.5's, whose caches are
+            # aligned: 16 bytes in bf16) or not; the load-time check compiles both.
+            div = 8 if length % 8 == 0 else 1
+            kernel[(b * lq,)](scores, mask, length // div, LENGTH_DIV=div, HEADS=heads, HEAD_BLOCK=_pow2(heads), BLOCK=_SOFTMAX_BLOCK, num_warps=8)
+    return scores
+
+
 def _on(device: torch.device) -> Any:
     """Triton launches on the current CUDA device: make it the tensors' (a second GPU's policy)."""
     return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
@@ -134,22 +260,23 @@ except ImportError:  # pragma: no cover - triton ships with PyTorch's Linux buil
 
 
 @functools.cache
-def _kernels() -> tuple[Any, Any]:
-    """The two Triton kernels, jitted on first use: Triton reads ``TRITON_INTERPRET`` when a
-    function is jitted, so a test sets it first, and the combine function the norm's reduction
-    calls is jitted here too, in the same mode, and bound to the module name the kernel reads
-    (Triton resolves a kernel's calls through its module's globals)."""
+def _kernels() -> tuple[Any, Any, Any, Any]:
+    """The Triton kernels (GELU · up, residual + norm, rotary, masked softmax), jitted on first
+    use: Triton reads ``TRITON_INTERPRET`` when a function is jitted, so a test sets it first.
+    Strides and lengths that vary with the batch or the prompt are not specialised on (Triton
+    would otherwise compile a variant for each divisibility by 16)."""
     import triton
 
-    globals()["_add_jitted"] = triton.jit(_add)
-    return triton.jit(_gelu_tanh_mul_kernel), triton.jit(_add_rms_norm_kernel)
+    rope = triton.jit(_rope_qkv_kernel, do_not_specialize=["qkv_stride", "table_stride", "q_stride", "dest_stride", "dest_row"])
+    softmax = triton.jit(_masked_softmax_kernel, do_not_specialize=["length"])
+    return triton.jit(_gelu_tanh_mul_kernel), triton.jit(_add_rms_norm_kernel), rope, softmax
 
 
-# The kernels' bodies: plain functions, jitted by _kernels().
-
-
-def _add(a, b):  # type: ignore[no-untyped-def]
-    return a + b
+# The kernels' bodies: plain functions, jitted by _kernels(). Their reductions are ``tl.reduce``
+# with Triton's own combine functions (what ``tl.sum`` and ``tl.max`` pass it): ``tl.sum`` itself
+# is jitted when triton is imported, which Triton's CPU interpreter cannot run unless it was on by
+# then, and with these combine functions the interpreter reduces in numpy, not one Python call a
+# pair of elements. On a GPU it is the same reduction ``tl.sum`` / ``tl.max`` compile to.
 
 
 def _gelu_tanh_mul_kernel(gate_up_ptr, out_ptr, width, BLOCK: tl.constexpr):  # type: ignore[no-untyped-def,name-defined]
@@ -179,7 +306,72 @@ def _add_rms_norm_kernel(  # type: ignore[no-untyped-def]
         y = y * tl.load(gate_ptr + cols, mask=inside, other=0.0).to(tl.float32)
     total = h + y
     tl.store(total_ptr + row + cols, total, mask=inside)
-    mean_square = tl.reduce(total * total, 0, _add_jitted) / width  # noqa: F821 - bound by _kernels()
+    mean_square = tl.reduce(total * total, 0, tl.standard._sum_combine) / width
     scale = 1.0 / tl.sqrt(mean_square + eps)
     weight = tl.load(weight_ptr + cols, mask=inside, other=0.0).to(tl.float32)
     tl.store(normed_ptr + row + cols, (total * scale * weight).to(normed_ptr.dtype.element_ty), mask=inside)
+
+
+def _rope_qkv_kernel(  # type: ignore[no-untyped-def]
+    qkv_ptr, cos_ptr, sin_ptr, q_ptr, dest_ptr, qkv_stride, table_stride, q_stride, dest_stride, dest_row,
+    HEADS: tl.constexpr, ALL: tl.constexpr, D: tl.constexpr, HEAD_BLOCK: tl.constexpr, BLOCK: tl.constexpr,  # type: ignore[name-defined]
+):
+    # One program a (position, batch row): all its heads, each as its two halves loaded contiguous
+    # (an index taken modulo d would keep the loads from vectorising): the first half's sine term
+    # reads the second half and the other way round. q's heads are stored to q, the others to the
+    # cache's slice, by two masked stores.
+    pos = tl.program_id(0).to(tl.int64)
+    row = tl.program_id(1).to(tl.int64)
+    # The strides come in heads (rows of whole heads: exact), times D here, so that the compiler
+    # knows every offset a multiple of a head's width and the loads and stores vectorise
+    # (unspecialised integers carry no divisibility of their own).
+    qkv_stride, table_stride, q_stride = qkv_stride * D, table_stride * D, q_stride * D
+    dest_stride, dest_row = dest_stride * D, dest_row * D
+    head = tl.arange(0, HEAD_BLOCK)[:, None]
+    half = tl.arange(0, BLOCK)[None, :]
+    inside = (head < ALL) & (half < D // 2)
+    at = (pos * ALL + head) * D + half
+    src, table = qkv_ptr + row * qkv_stride + at, row * table_stride + at
+    lo = tl.load(src, mask=inside, other=0.0).to(tl.float32)
+    hi = tl.load(src + D // 2, mask=inside, other=0.0).to(tl.float32)
+    cos_lo = tl.load(cos_ptr + table, mask=inside, other=0.0).to(tl.float32)
+    cos_hi = tl.load(cos_ptr + table + D // 2, mask=inside, other=0.0).to(tl.float32)
+    sin_lo = tl.load(sin_ptr + table, mask=inside, other=0.0).to(tl.float32)
+    sin_hi = tl.load(sin_ptr + table + D // 2, mask=inside, other=0.0).to(tl.float32)
+    out_lo, out_hi = lo * cos_lo + hi * sin_lo, hi * cos_hi + lo * sin_hi
+    q = q_ptr + row * q_stride + (pos * HEADS + head) * D + half
+    is_q = inside & (head < HEADS)
+    tl.store(q, out_lo.to(q_ptr.dtype.element_ty), mask=is_q)
+    tl.store(q + D // 2, out_hi.to(q_ptr.dtype.element_ty), mask=is_q)
+    kv = dest_ptr + row * dest_stride + pos * dest_row + (head - HEADS) * D + half
+    is_kv = inside & (head >= HEADS)
+    tl.store(kv, out_lo.to(dest_ptr.dtype.element_ty), mask=is_kv)
+    tl.store(kv + D // 2, out_hi.to(dest_ptr.dtype.element_ty), mask=is_kv)
+
+
+def _masked_softmax_kernel(scores_ptr, mask_ptr, length, LENGTH_DIV: tl.constexpr, HEADS: tl.constexpr, HEAD_BLOCK: tl.constexpr, BLOCK: tl.constexpr):  # type: ignore[no-untyped-def,name-defined]
+    # One program a (batch row, query): its heads' rows of scores, which share the query's mask row
+    # (loaded once a block). Two passes: each row's running maximum and sum of exponentials
+    # (rescaled as the maximum grows), then the probabilities. Keys past the row read -inf: exp
+    # gives them 0.
+    query = tl.program_id(0).to(tl.int64)
+    length = length * LENGTH_DIV  # it comes divided by LENGTH_DIV: rows 16 bytes apart (aligned caches) vectorise
+    head = tl.arange(0, HEAD_BLOCK)[:, None]
+    cols = tl.arange(0, BLOCK)[None, :]
+    scores = scores_ptr + (query * HEADS + head) * length
+    mask = mask_ptr + query * length
+    top = tl.full((HEAD_BLOCK,), float("-inf"), tl.float32)
+    total = tl.full((HEAD_BLOCK,), 0.0, tl.float32)
+    for start in range(0, length, BLOCK):
+        inside = (start + cols < length) & (head < HEADS)
+        x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
+        x = x + tl.load(mask + start + cols, mask=start + cols < length, other=0.0).to(tl.float32)
+        x = tl.where(head < HEADS, x, 0.0)  # the block's rows past the heads: finite, never stored
+        new_top = tl.maximum(top, tl.reduce(x, 1, tl.standard._elementwise_max))
+        total = total * tl.exp(top - new_top) + tl.reduce(tl.exp(x - new_top[:, None]), 1, tl.standard._sum_combine)
+        top = new_top
+    for start in range(0, length, BLOCK):
+        inside = (start + cols < length) & (head < HEADS)
+        x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
+        x = x + tl.load(mask + start + cols, mask=start + cols < length, other=0.0).to(tl.float32)
+        tl.store(scores + start + cols, (tl.exp(x - top[:, None]) / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)

@@ -8,6 +8,7 @@ accuracy is not judged here: float32 is."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -32,6 +33,9 @@ def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     jit.cache_clear()
 
 
+KERNELS = ("gelu_tanh_mul", "add_rms_norm", "rope_qkv", "masked_softmax")
+
+
 def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     """The names of the Triton kernels the fused layers call, in order, while the test runs; each
     runs outside any dispatch mode (one launch each: the interpreter's own tensor work is not an
@@ -41,7 +45,7 @@ def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     from lerobot_armory.policies import pi05_kernels
 
     calls: list[str] = []
-    for name in ("gelu_tanh_mul", "add_rms_norm"):
+    for name in KERNELS:
 
         def run(*args: Any, kernel: Any = getattr(pi05_kernels, name), name: str = name, **kwargs: Any) -> Any:
             calls.append(name)
@@ -73,6 +77,43 @@ def test_the_kernels_compute_what_pytorchs_operations_do(interpreted):
         torch.testing.assert_close(normed, torch.nn.functional.rms_norm(want, (96,), weight, 1e-6), atol=2e-6, rtol=1e-6)
     _, normed = add_rms_norm(h, y.to(torch.bfloat16), gate.to(torch.bfloat16), weight, 1e-6, torch.bfloat16)
     assert normed.dtype == torch.bfloat16
+
+
+def test_the_rotary_and_softmax_kernels_compute_what_pytorchs_operations_do(interpreted):
+    """The rotation writes q and, into the cache's slice only, k and v (the tables per batch row or
+    one for all); the softmax adds the mask in place over rows longer than one pass (two programs'
+    worth of keys), masked keys get 0, and a NaN score spoils its own row only."""
+    import torch
+
+    from lerobot_armory.policies.triton_kernels import _SOFTMAX_BLOCK, masked_softmax, rope_qkv
+
+    gen = torch.Generator().manual_seed(0)
+    b, length, heads, kv, d = 2, 5, 3, 2, 8
+    qkv = torch.randn(b, length, heads + kv, d, generator=gen)
+    swapped = torch.cat((qkv[..., d // 2 :], qkv[..., : d // 2]), dim=-1)
+    for rows in (b, 1):
+        cos, sin = (torch.randn(rows, length, heads + kv, d, generator=gen) for _ in range(2))
+        cache = torch.full((b, length + 4, kv, d), 7.0)
+        q = rope_qkv(qkv, cos, sin, heads, cache[:, 3 : 3 + length])
+        want = qkv * cos + swapped * sin
+        torch.testing.assert_close(q, want[:, :, :heads], atol=1e-6, rtol=0)
+        torch.testing.assert_close(cache[:, 3 : 3 + length], want[:, :, heads:], atol=1e-6, rtol=0)
+        assert (cache[:, :3] == 7.0).all() and (cache[:, 3 + length :] == 7.0).all()
+    with pytest.raises(ValueError, match="rope_qkv"):
+        rope_qkv(qkv, cos, sin, heads, torch.empty(b, length, kv + 1, d))
+    for keys in (7, _SOFTMAX_BLOCK + 300):
+        scores = 4 * torch.randn(2, 3, 4, keys, generator=gen)
+        mask = torch.where(torch.rand(2, 3, 1, keys, generator=gen) < 0.3, -2.3819763e38, 0.0)
+        mask[..., 0] = 0.0  # every query attends a key
+        scores[1, 2, 3, keys // 2] = float("nan")
+        want = torch.softmax(scores + mask, dim=-1)
+        got = masked_softmax(scores.clone(), mask)
+        assert got[1, 2, 3].isnan().all() and got.isnan().sum() == keys
+        finite = ~want.isnan()
+        torch.testing.assert_close(got[finite], want[finite], atol=1e-6, rtol=1e-5)
+        assert (got[(mask < 0).expand_as(got) & finite] == 0).all()
+    with pytest.raises(ValueError, match="masked_softmax"):
+        masked_softmax(scores, mask[:, :, :, :-1])
 
 
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
@@ -110,7 +151,7 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
                 ours = fused.sample(inputs)
         torch.testing.assert_close(ours, want, atol=1e-5, rtol=0)
         torch.testing.assert_close(theirs, want, atol=1e-5, rtol=0)
-        assert set(calls) == {"gelu_tanh_mul", "add_rms_norm"}
+        assert set(calls) == set(KERNELS)
         assert after.launches + len(calls) <= before.launches - len(calls), (before.launches, after.launches, len(calls))
         assert not after.host_syncs
 
@@ -136,7 +177,8 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     with torch.no_grad():
         ours, want = sampler.sample_compiled(inputs), reference.sample(inputs)
     between_layers = len(sampler.vlm.layers) - 1 + (len(sampler.expert.layers) - 1) * sampler.num_steps
-    assert calls == ["add_rms_norm"] * between_layers
+    # ... and the last VLM layer's keys and values, whose layer is cut short before its attention.
+    assert sorted(calls) == ["add_rms_norm"] * between_layers + ["rope_qkv"]
     torch.testing.assert_close(ours, want, atol=1e-5, rtol=0)
     torch._dynamo.reset()
 
@@ -164,17 +206,21 @@ def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_ne
     class Recorded:
         def __init__(self, kernel: Any, name: str) -> None:
             self.kernel, self.name = kernel, name
+            names = kernel.arg_names  # the interpreter keeps jit's options in ``kwargs``
+            self.unspecialised = {names.index(n) for n in kernel.kwargs.get("do_not_specialize") or ()}
 
         def __getitem__(self, grid: Any) -> Any:
             def launch(*args: Any, **kwargs: Any) -> Any:
-                # What Triton specialises on: tensors' dtypes, integers' divisibility by 16 (and 1), constexprs.
-                key = tuple(str(a.dtype) if isinstance(a, torch.Tensor) else (a % 16 == 0, a == 1) if isinstance(a, int) else type(a).__name__ for a in args)
+                # What Triton specialises on: tensors' dtypes, integers' divisibility by 16 (and 1)
+                # unless the kernel says not to, constexprs.
+                key = tuple(str(a.dtype) if isinstance(a, torch.Tensor) else "any" if i in self.unspecialised else (a % 16 == 0, a == 1) if isinstance(a, int) else type(a).__name__ for i, a in enumerate(args))
                 launches.append((self.name, key, tuple(sorted(kwargs.items()))))
                 return self.kernel[grid](*args, **kwargs)
 
             return launch
 
-    monkeypatch.setattr(triton_kernels, "_kernels", lambda: (Recorded(jitted[0], "gelu"), Recorded(jitted[1], "norm")))
+    recorded = tuple(Recorded(kernel, name) for kernel, name in zip(jitted, ("gelu", "norm", "rope", "softmax"), strict=True))
+    monkeypatch.setattr(triton_kernels, "_kernels", lambda: recorded)
     sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
     engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
     with monkeypatch.context() as off_cpu:
@@ -190,5 +236,82 @@ def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_ne
         with torch.no_grad():
             ours, theirs = fused.sample(inputs), plain.sample(inputs)
         assert launches and set(launches) <= compiled_at_load, set(launches) - compiled_at_load
+        assert {name for name, _, _ in launches} == {"gelu", "norm", "rope", "softmax"}
         assert torch.isfinite(ours).all()
         torch.testing.assert_close(ours, theirs, atol=1e-2, rtol=0)
+
+
+def test_every_kernel_compiles_for_hopper_with_vector_loads_and_no_spills(tmp_path):
+    """No GPU here: each kernel compiled for sm_90a (an H100's / H200's) at the full π0.5's shapes,
+    in bf16 and float32, through Triton's own code generator and ``ptxas`` — the check that the
+    kernels build for the device at all, that their global loads and stores are vectorised (the
+    strides and lengths Triton does not specialise on come as multiples it can see) and that no
+    register spills. Integers Triton specialises are given the divisibility a full π0.5 has."""
+    import re
+    import subprocess
+
+    triton = pytest.importorskip("triton")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from lerobot_armory.policies import triton_kernels
+
+    triton_kernels._kernels.cache_clear()  # jitted for the GPU (no interpreter)
+    gelu, norm, rope, softmax = triton_kernels._kernels()
+    ptxas = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "ptxas"
+    if not ptxas.exists():
+        pytest.skip("this Triton carries no ptxas")
+    unspecialised = {"qkv_stride", "table_stride", "q_stride", "dest_stride", "dest_row", "length"}
+    for dt in ("bf16", "fp32"):
+        ints = {"width": "i32", "eps": "fp32", "length": "i32", **{name: "i64" for name in unspecialised - {"length"}}}
+        cases = [
+            (gelu, {"BLOCK": 1024}, 4),
+            (norm, {"HAS_GATE": True, "BLOCK": 2048}, 4),
+            (rope, {"HEADS": 8, "ALL": 10, "D": 256, "HEAD_BLOCK": 16, "BLOCK": 128}, 4),
+            (softmax, {"LENGTH_DIV": 8, "HEADS": 8, "HEAD_BLOCK": 8, "BLOCK": triton_kernels._SOFTMAX_BLOCK}, 8),
+        ]
+        for kernel, constexprs, warps in cases:
+            float32_args = {"h_ptr", "weight_ptr", "total_ptr"}  # the norm's float32 stream and weight
+            signature = {
+                name: "constexpr" if name in constexprs else ints[name] if name in ints else f"*{'fp32' if name in float32_args else dt}"
+                for name in kernel.arg_names
+            }
+            attrs = {(i,): [["tt.divisibility", 16]] for i, (name, kind) in enumerate(signature.items()) if kind.startswith("*") or name == "width"}
+            compiled = triton.compile(ASTSource(kernel, signature, constexprs, attrs), target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
+            ptx = compiled.asm["ptx"]
+            name = kernel.fn.__name__
+            source = tmp_path / f"{name}_{dt}.ptx"
+            source.write_text(ptx)
+            report = subprocess.run([str(ptxas), "-arch=sm_90a", "-v", str(source), "-o", str(tmp_path / "out.cubin")], capture_output=True, text=True)
+            assert report.returncode == 0 and name in report.stderr, (name, report.stderr[-500:])
+            assert "0 bytes spill stores" in report.stderr, (name, dt, report.stderr)
+            accesses = set(re.findall(r"(?:ld|st)\.global(?:\.[a-z0-9]+)*", ptx))
+            assert accesses and all(".v2." in a or ".v4." in a for a in accesses), (name, dt, accesses)
+    triton_kernels._kernels.cache_clear()
+
+
+def test_attention_kernels_that_fail_their_check_turn_off_alone_and_are_told(pi05_dir, interpreted, monkeypatch, caplog):
+    """The rotary and softmax kernels are checked apart from the first two: where their check fails
+    PyTorch's operations serve them, the activation and norm kernels stay, the engine logs why and
+    its description says so; the chunks stay LeRobot's (float32)."""
+    import logging
+
+    import torch
+
+    from lerobot_armory.policies import pi05_kernels
+    from lerobot_armory.policies.pi05_static import StaticPi05
+
+    monkeypatch.setattr(pi05_kernels, "attention_kernels_reason", lambda *args: "a stand-in failure")
+    with caplog.at_level(logging.INFO):
+        engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    assert engine.hand_kernels and not engine.attention_kernels
+    assert "Triton kernels (not attention's)" in engine.description
+    assert any("attention's softmax: a stand-in failure" in r.getMessage() for r in caplog.records)
+    reference, sampler = StaticPi05(engine.policy, fused=False), StaticPi05(engine.policy)
+    assert sampler.ops.hand_kernels and not sampler.ops.attention_kernels
+    calls = counted_kernel_calls(monkeypatch)
+    inputs = sampler_inputs(engine, 2, seed=3, guided=False)
+    with torch.no_grad():
+        ours, want = sampler.sample(inputs), reference.sample(inputs)
+    assert set(calls) == {"gelu_tanh_mul", "add_rms_norm"}
+    torch.testing.assert_close(ours, want, atol=1e-5, rtol=0)
