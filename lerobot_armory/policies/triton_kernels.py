@@ -94,9 +94,8 @@ def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype
 def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: Sequence[LayerShape]) -> str | None:
     """Why :func:`rope_qkv` and :func:`masked_softmax` cannot run on ``device`` (None: they can),
     checked as :func:`hand_kernels_reason` checks the others, apart from them: a kernel of these
-    two that fails turns off these two only. Each runs once a shape on one token: the rotation
-    into a cache's slice past its first position (as a suffix is written), the softmax with a
-    masked key."""
+    two that fails turns off these two only. Each runs once a shape, in each variant Triton will
+    compile for it."""
     why = _unrunnable_reason(device)
     if why is not None:
         return why
@@ -105,13 +104,18 @@ def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: S
         rand = _random(device, dtype)
         for shape in sorted(set(shapes)):
             heads, kv, d = shape.heads, 2 * shape.kv_heads, shape.head_dim
-            qkv, cos, sin = (rand(1, 1, heads + kv, d) for _ in range(3))
-            cache = rand(1, 3, kv, d)
-            q = rope_qkv(qkv, cos, sin, heads, cache[:, 1:2])
+            # Two batch rows of two positions, into a cache's slice past its first position (as a
+            # suffix is written): every stride is used, and the positions around stay as they were.
+            qkv, cos, sin = (rand(2, 2, heads + kv, d) for _ in range(3))
+            cache = rand(2, 4, kv, d)
+            around = cache[:, ::3].clone()
+            q = rope_qkv(qkv, cos, sin, heads, cache[:, 1:3])
             want = qkv.float() * cos.float() + torch.cat((qkv[..., d // 2 :], qkv[..., : d // 2]), dim=-1).float() * sin.float()
-            if not (torch.allclose(q.float(), want[:, :, :heads], **loose) and torch.allclose(cache[:, 1:2].float(), want[:, :, heads:], **loose)):
+            rotated = torch.allclose(q.float(), want[:, :, :heads], **loose) and torch.allclose(cache[:, 1:3].float(), want[:, :, heads:], **loose)
+            if not (rotated and torch.equal(cache[:, ::3], around)):
                 return f"the Triton rotary kernel disagreed with PyTorch's on {device} ({heads} + {kv} heads of {d})"
-            for keys in (5, 8):  # both of its variants: rows a multiple of 8 keys long or not
+            # Both variants (rows a multiple of 8 keys long or not), the long one past one pass.
+            for keys in (5, _SOFTMAX_BLOCK + 8):
                 scores, mask = rand(1, 1, heads, keys), torch.zeros(1, 1, 1, keys, device=device, dtype=dtype)
                 mask[..., 2] = -1e30
                 want = torch.softmax(scores.float() + mask.float(), dim=-1)
@@ -350,28 +354,31 @@ def _rope_qkv_kernel(  # type: ignore[no-untyped-def]
 
 
 def _masked_softmax_kernel(scores_ptr, mask_ptr, length, LENGTH_DIV: tl.constexpr, HEADS: tl.constexpr, HEAD_BLOCK: tl.constexpr, BLOCK: tl.constexpr):  # type: ignore[no-untyped-def,name-defined]
-    # One program a (batch row, query): its heads' rows of scores, which share the query's mask row
-    # (loaded once a block). Two passes: each row's running maximum and sum of exponentials
-    # (rescaled as the maximum grows), then the probabilities. Keys past the row read -inf: exp
-    # gives them 0.
+    # One program a (batch row, query): its heads' rows of scores, which share the query's mask row.
+    # Two passes: each row's running maximum and sum of exponentials (rescaled as the maximum
+    # grows), then the probabilities. Keys past the row read -inf: exp gives them 0. A maximum
+    # still -inf (every key so far -inf) is taken as 0, so that -inf - -inf never makes a NaN.
     query = tl.program_id(0).to(tl.int64)
     length = length * LENGTH_DIV  # it comes divided by LENGTH_DIV: rows 16 bytes apart (aligned caches) vectorise
     head = tl.arange(0, HEAD_BLOCK)[:, None]
     cols = tl.arange(0, BLOCK)[None, :]
     scores = scores_ptr + (query * HEADS + head) * length
-    mask = mask_ptr + query * length
+    # The mask's row read as a (heads, keys) block like the scores' (``head * 0``): the same layout,
+    # so no conversion through shared memory between the two (a 1-D row would need one).
+    mask = mask_ptr + query * length + head * 0
     top = tl.full((HEAD_BLOCK,), float("-inf"), tl.float32)
     total = tl.full((HEAD_BLOCK,), 0.0, tl.float32)
     for start in range(0, length, BLOCK):
         inside = (start + cols < length) & (head < HEADS)
         x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
-        x = x + tl.load(mask + start + cols, mask=start + cols < length, other=0.0).to(tl.float32)
-        x = tl.where(head < HEADS, x, 0.0)  # the block's rows past the heads: finite, never stored
+        x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
         new_top = tl.maximum(top, tl.reduce(x, 1, tl.standard._elementwise_max))
-        total = total * tl.exp(top - new_top) + tl.reduce(tl.exp(x - new_top[:, None]), 1, tl.standard._sum_combine)
+        shift = tl.where(new_top == float("-inf"), 0.0, new_top)
+        total = total * tl.exp(top - shift) + tl.reduce(tl.exp(x - shift[:, None]), 1, tl.standard._sum_combine)
         top = new_top
+    shift = tl.where(top == float("-inf"), 0.0, top)
     for start in range(0, length, BLOCK):
         inside = (start + cols < length) & (head < HEADS)
         x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
-        x = x + tl.load(mask + start + cols, mask=start + cols < length, other=0.0).to(tl.float32)
-        tl.store(scores + start + cols, (tl.exp(x - top[:, None]) / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)
+        x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
+        tl.store(scores + start + cols, (tl.exp(x - shift[:, None]) / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)
