@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import torch
@@ -65,12 +65,9 @@ def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype
     operations: every variant Triton compiles is compiled here, at load, and a compiler or device
     that cannot run one is told before any batch. (Lengths and strides that vary with the batch
     or the prompt are not specialised on: no variant depends on them.)"""
-    why = _unrunnable_reason(device)
-    if why is not None:
-        return why
     loose = _tolerance(dtype, residual_dtype)
-    try:
-        rand = _random(device, dtype)
+
+    def check(rand: Any) -> str | None:
         for shape in sorted(set(shapes)):
             gate_up = rand(1, 2 * shape.mlp_width)
             gate, up = gate_up.float().chunk(2, dim=-1)
@@ -84,11 +81,9 @@ def hand_kernels_reason(device: torch.device, dtype: torch.dtype, residual_dtype
                 want = h + y.float() * (1.0 if g is None else g.float())
                 if not (torch.allclose(total, want, **loose) and torch.allclose(normed.float(), torch.nn.functional.rms_norm(want, (shape.width,), weight, 1e-6), **loose)):
                     return f"the Triton norm kernel disagreed with PyTorch's on {device} (width {shape.width})"
-    except torch.cuda.OutOfMemoryError:
-        raise  # not an answer about the kernels: the load fails as it would have anyway
-    except Exception as exc:  # noqa: BLE001 — a compiler or driver without them: PyTorch's ops serve
-        return _failed(device, exc)
-    return None
+        return None
+
+    return _probe(device, dtype, check)
 
 
 def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: Sequence[LayerShape]) -> str | None:
@@ -96,12 +91,9 @@ def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: S
     checked as :func:`hand_kernels_reason` checks the others, apart from them: a kernel of these
     two that fails turns off these two only. Each runs once a shape, in each variant Triton will
     compile for it."""
-    why = _unrunnable_reason(device)
-    if why is not None:
-        return why
     loose = _tolerance(dtype, dtype)
-    try:
-        rand = _random(device, dtype)
+
+    def check(rand: Any) -> str | None:
         for shape in sorted(set(shapes)):
             heads, kv, d = shape.heads, 2 * shape.kv_heads, shape.head_dim
             # Two batch rows of two positions, into a cache's slice past its first position (as a
@@ -121,11 +113,24 @@ def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: S
                 want = torch.softmax(scores.float() + mask.float(), dim=-1)
                 if not torch.allclose(masked_softmax(scores, mask).float(), want, **loose):
                     return f"the Triton softmax kernel disagreed with PyTorch's on {device} ({heads} heads, {keys} keys)"
+        return None
+
+    return _probe(device, dtype, check)
+
+
+def _probe(device: torch.device, dtype: torch.dtype, check: Callable[[Any], str | None]) -> str | None:
+    """``check(rand)`` on ``device`` where a Triton kernel may run there at all: its answer, or why
+    not (a compiler or driver that cannot build or run a kernel: PyTorch's operations serve)."""
+    why = _unrunnable_reason(device)
+    if why is not None:
+        return why
+    try:
+        return check(_random(device, dtype))
     except torch.cuda.OutOfMemoryError:
-        raise
-    except Exception as exc:  # noqa: BLE001
-        return _failed(device, exc)
-    return None
+        raise  # not an answer about the kernels: the load fails as it would have anyway
+    except Exception as exc:  # noqa: BLE001 — a compiler or driver without them: PyTorch's ops serve
+        text = str(exc).strip()
+        return f"the Triton kernels failed on {device}: {text.splitlines()[0] if text else type(exc).__name__}"
 
 
 def _unrunnable_reason(device: torch.device) -> str | None:
@@ -155,11 +160,6 @@ def _random(device: torch.device, dtype: torch.dtype) -> Any:
         return torch.randn(*shape, generator=gen).to(device=device, dtype=like)
 
     return rand
-
-
-def _failed(device: torch.device, exc: Exception) -> str:
-    text = str(exc).strip()
-    return f"the Triton kernels failed on {device}: {text.splitlines()[0] if text else type(exc).__name__}"
 
 
 def interpreted() -> bool:
