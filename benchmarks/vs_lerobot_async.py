@@ -680,6 +680,17 @@ def variants(opts: Options) -> list[Variant]:
     return out
 
 
+def report_header(opts: Options, command: str) -> dict[str, Any]:
+    """What ``write`` stores besides the runs: the command, the machine, the policy (its weights'
+    sha256: a read of the whole file, so made once)."""
+    return {
+        "command": command, "machine": machine(), "gpu": gpu_name(opts.device), "device": opts.device,
+        "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "ours_server_args": opts.ours_server_args, "max_batch_size": opts.max_batch_size,
+        "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
+        "policy_sha256": weights_sha256(opts.policy),
+    }  # fmt: skip
+
+
 def write(opts: Options, report: dict[str, Any]) -> None:
     """``<device>.json`` and ``<device>.md`` under ``--out``."""
     if not opts.out:
@@ -705,6 +716,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{len(todo)} run(s) of {opts.duration_s:g} s on {opts.device}; policy {opts.policy}; logs in {work}",
             flush=True,
         )
+        header = report_header(opts, command)
         runs = []
         for k, (variant, n) in enumerate(todo):
             print(f"[{k + 1}/{len(todo)}] {variant.label} N={n} ...", flush=True)
@@ -713,6 +725,7 @@ def main(argv: list[str] | None = None) -> None:
                   f"{record['chunks_per_s']:.2f} chunks/s per robot, latency p50 {record['latency_p50_ms']:.0f} ms, "
                   f"servers {record['server_rss_peak_bytes'] / 2**30:.2f} GiB, {record['server_cpu_pct']:.0f} % CPU", flush=True)  # fmt: skip
             runs.append(record)
+            write(opts, {**header, "runs": runs, "stock_shared_server": None})  # kept as each run ends: a call cut short loses only the run under way
             time.sleep(1.0)
         shared = None
         if opts.stock_shared_server:
@@ -725,12 +738,7 @@ def main(argv: list[str] | None = None) -> None:
     except RunFailed as exc:
         print(f"vs_lerobot_async: error: {exc}", file=sys.stderr)
         sys.exit(1)
-    report = {
-        "command": command, "machine": machine(), "gpu": gpu_name(opts.device), "device": opts.device,
-        "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "ours_server_args": opts.ours_server_args, "max_batch_size": opts.max_batch_size,
-        "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
-        "policy_sha256": weights_sha256(opts.policy), "runs": runs, "stock_shared_server": shared,
-    }  # fmt: skip
+    report = {**header, "runs": runs, "stock_shared_server": shared}
     print()
     print(table(runs))
     if shared:
