@@ -273,12 +273,32 @@ def rss_bytes(pid: int) -> int:
     return 0
 
 
-class Monitor:
-    """Samples the servers' summed RSS (peak) and everyone's CPU seconds while a run lasts."""
+def gpu_memory_used_bytes() -> int | None:
+    """Memory in use on GPU 0 as ``nvidia-smi`` reports it (every process's; None without one).
 
-    def __init__(self, fleet: Fleet) -> None:
+    Read from outside the processes so the monitor opens no CUDA context of its own; the device
+    machine runs nothing but this benchmark, so the figure is the servers' (and robots', which
+    hold no CUDA memory) footprint: where it meets the GPU's size, stock runs out of copies.
+    """
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=memory.used", "--format=csv,noheader,nounits", "--id=0"],
+            capture_output=True, text=True, check=True, timeout=5,
+        )  # fmt: skip
+        return int(out.stdout.split()[0]) * 2**20
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError):
+        return None
+
+
+class Monitor:
+    """Samples the servers' summed RSS (peak), the GPU's memory in use (peak, on CUDA) and
+    everyone's CPU seconds while a run lasts."""
+
+    def __init__(self, fleet: Fleet, gpu: bool = False) -> None:
         self.fleet = fleet
         self.peak_rss = 0
+        self.gpu = gpu
+        self.peak_gpu: int | None = None
         self.client_cpu = {p.popen.pid: cpu_seconds(p.popen.pid) for p in fleet.clients}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
@@ -289,6 +309,8 @@ class Monitor:
 
     def sample(self) -> None:
         self.peak_rss = max(self.peak_rss, sum(rss_bytes(p.popen.pid) for p in self.fleet.servers))
+        if self.gpu and (used := gpu_memory_used_bytes()) is not None:
+            self.peak_gpu = max(self.peak_gpu or 0, used)
         for p in self.fleet.clients:
             if p.popen.poll() is None:
                 self.client_cpu[p.popen.pid] = max(self.client_cpu[p.popen.pid], cpu_seconds(p.popen.pid))
@@ -303,10 +325,10 @@ class Monitor:
         self._thread.join()
 
 
-def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str) -> dict[str, float]:
-    """Start the robots (the go file), follow the run with progress lines; CPU and RSS figures."""
+def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str, gpu: bool = False) -> dict[str, float | None]:
+    """Start the robots (the go file), follow the run with progress lines; CPU, RSS and GPU memory figures."""
     servers = [p.popen.pid for p in fleet.servers]
-    with Monitor(fleet) as mon:
+    with Monitor(fleet, gpu) as mon:
         client_cpu0 = dict(mon.client_cpu)
         server_cpu0 = sum(cpu_seconds(pid) for pid in servers)
         machine0, t0 = machine_cpu(), time.monotonic()
@@ -320,7 +342,8 @@ def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str) -> dict[
                 raise RunFailed(f"{label}: robots still running {duration_s + 120:.0f} s after the start")
             if time.monotonic() >= next_report:
                 print(
-                    f"    {time.monotonic() - t0:5.0f} / {duration_s:.0f} s   servers RSS {mon.peak_rss / 2**30:.2f} GiB",
+                    f"    {time.monotonic() - t0:5.0f} / {duration_s:.0f} s   servers RSS {gib(mon.peak_rss)} GiB"
+                    + ("" if mon.peak_gpu is None else f", GPU memory {gib(mon.peak_gpu)} GiB"),
                     flush=True,
                 )
                 next_report += 10.0
@@ -334,6 +357,7 @@ def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str) -> dict[
     client_cpu = sum(mon.client_cpu[pid] - client_cpu0[pid] for pid in client_cpu0)
     return {
         "server_rss_peak_bytes": float(mon.peak_rss),
+        "gpu_memory_peak_bytes": None if mon.peak_gpu is None else float(mon.peak_gpu),
         "server_cpu_pct": 100.0 * server_cpu / max(1e-9, wall),
         "robots_cpu_pct": 100.0 * client_cpu / max(1e-9, wall),
         "machine_busy_pct": 100.0 * (machine1[0] - machine0[0]) / max(1e-9, machine1[1] - machine0[1]),
@@ -370,7 +394,7 @@ def run_one(opts: Options, variant: Variant, n: int, work: Path) -> dict[str, An
     run_dir.mkdir(parents=True, exist_ok=True)
     fleet = start_fleet(opts, variant, n, run_dir)
     try:
-        usage = measure(fleet, run_dir, opts.duration_s, f"{variant.label} N={n}")
+        usage = measure(fleet, run_dir, opts.duration_s, f"{variant.label} N={n}", gpu=opts.device.startswith("cuda"))
     finally:
         fleet.stop()
     robots = read_robot_stats(run_dir, n, f"{variant.label} N={n}")
@@ -451,8 +475,13 @@ def shared_server_check(opts: Options, work: Path) -> dict[str, Any]:
 
 HEADER = (
     "| system | N | starvation mean % | starvation max % | ticks/s | chunks/s per robot | latency p50 ms | "
-    "latency p90 ms | server RSS GiB | server CPU % | robots CPU % | machine busy % |"
+    "latency p90 ms | server RSS GiB | GPU memory GiB | server CPU % | robots CPU % | machine busy % |"
 )
+
+
+def gib(value: float | None) -> str:
+    """Bytes as GiB for the table; "–" where not measured (no GPU)."""
+    return "–" if value is None else f"{value / 2**30:.2f}"
 
 
 def table(runs: list[dict[str, Any]]) -> str:
@@ -463,7 +492,7 @@ def table(runs: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {r['label']} | {r['robots']} | {r['starvation_mean_pct']:.1f} | {r['starvation_max_pct']:.1f} | "
             f"{r['ticks_per_s']:.1f} | {r['chunks_per_s']:.2f} | {r['latency_p50_ms']:.0f} | {r['latency_p90_ms']:.0f} | "
-            f"{r['server_rss_peak_bytes'] / 2**30:.2f} | {r['server_cpu_pct']:.0f} | {r['robots_cpu_pct']:.0f} | "
+            f"{gib(r['server_rss_peak_bytes'])} | {gib(r.get('gpu_memory_peak_bytes'))} | {r['server_cpu_pct']:.0f} | {r['robots_cpu_pct']:.0f} | "
             f"{r['machine_busy_pct']:.0f}{flag} |"
         )
     return "\n".join(lines)
@@ -571,7 +600,7 @@ def markdown(report: dict[str, Any]) -> str:
         (
             f"Device: `{report['device']}`. Ours: `--scheduler.type={report['ours_scheduler']}`, "
             f"`--max_batch_size={report['max_batch_size']}`. {report['duration_s']:g} s per run. "
-            f"Policy: demo ACT, chunk {CHUNK} (weights sha256 `{report['policy_sha256'][:16]}…`)."
+            f"Policy: `{report['policy']}` ({report.get('policy_type', '?')}), chunk {CHUNK} (weights sha256 `{report['policy_sha256'][:16]}…`)."
         ),
         "",
         "```",
@@ -687,7 +716,7 @@ def report_header(opts: Options, command: str) -> dict[str, Any]:
         "command": command, "machine": machine(), "gpu": gpu_name(opts.device), "device": opts.device,
         "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "ours_server_args": opts.ours_server_args, "max_batch_size": opts.max_batch_size,
         "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
-        "policy_sha256": weights_sha256(opts.policy),
+        "policy_type": policy_type(opts.policy), "policy_sha256": weights_sha256(opts.policy),
     }  # fmt: skip
 
 
@@ -723,7 +752,8 @@ def main(argv: list[str] | None = None) -> None:
             record = run_one(opts, variant, n, work)
             print(f"    starvation mean {record['starvation_mean_pct']:.1f} % max {record['starvation_max_pct']:.1f} %, "
                   f"{record['chunks_per_s']:.2f} chunks/s per robot, latency p50 {record['latency_p50_ms']:.0f} ms, "
-                  f"servers {record['server_rss_peak_bytes'] / 2**30:.2f} GiB, {record['server_cpu_pct']:.0f} % CPU", flush=True)  # fmt: skip
+                  f"servers {gib(record['server_rss_peak_bytes'])} GiB RSS, GPU memory {gib(record['gpu_memory_peak_bytes'])} GiB, "
+                  f"{record['server_cpu_pct']:.0f} % CPU", flush=True)  # fmt: skip
             runs.append(record)
             write(opts, {**header, "runs": runs, "stock_shared_server": None})  # kept as each run ends: a call cut short loses only the run under way
             time.sleep(1.0)
