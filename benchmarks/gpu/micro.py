@@ -13,7 +13,9 @@ prompt; expert: 50 action rows):
 - (2026-11-28 #11) the rotary embedding of q, k and v with the keys and values written into the
   cache: PyTorch's four kernels against the Triton kernel;
 - (2026-11-28 #11) attention's mask and softmax: PyTorch's add and softmax against the Triton
-  kernel (the expert's rows attend the prefix's keys and their own, 632).
+  kernel (the expert's rows attend the prefix's keys and their own, 632);
+- (2026-11-28 #12) the softmax kernel reading a row once (every π0.5 row fits its block) against
+  its two passes (2026-11-28 #11's, which read each row twice).
 
 Times are the median of CUDA-graph replays (``triton.testing.do_bench_cudagraph``), so launch
 gaps are gone as in the served graphs. A few seconds on a GPU; it says, before the whole-sampler
@@ -133,6 +135,7 @@ def cases(
     return {
         "rope: aten -> triton": (eager_rope, lambda: rope_qkv(qkv, cos, sin, HEADS, dest)),
         "softmax: aten -> triton": (lambda: torch.softmax(softmax_copy().add_(mask), dim=-1), lambda: masked_softmax(softmax_copy(), mask)),
+        "softmax: 2 passes -> 1": (lambda: masked_softmax(softmax_copy(), mask, one_pass=False), lambda: masked_softmax(softmax_copy(), mask)),
         "gelu: strided -> triton": (strided, lambda: gelu_tanh_mul(gate_up)),
         "gelu: strided -> apart": (strided, lambda: gelu(gate_alone, approximate="tanh") * up_alone),
         "norm: aten -> triton": (eager_norm, lambda: add_rms_norm(h, y, gate, weight, 1e-6, torch.bfloat16)[1]),

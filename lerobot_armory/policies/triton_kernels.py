@@ -16,10 +16,11 @@ elementwise work PyTorch runs as several kernels, each reading and writing the w
   table the identity) — four kernels (the product with cos, the halves' swap as a ``cat``, two
   ``addcmul``, the keys' one non-vectorised as it writes into the cache's strided slice), 2.3 ms
   at b = 1 and 5.3 ms at b = 8 on an H200 (2026-11-28) (:func:`rope_qkv`: one kernel writing q
-  and the cache's keys and values);
+  and the cache's keys and values; 0.50 / 1.08 ms there);
 - **attention's mask and softmax**: the mask added to the scores (broadcast over the heads, so
   non-vectorised) and the softmax — two kernels, 1.5 ms at b = 1 and 4.8 ms at b = 8
-  (:func:`masked_softmax`: one kernel, in place).
+  (:func:`masked_softmax`: one kernel, in place; 0.86 / 2.74 ms there in two passes over each row,
+  one pass since).
 
 All compute in float32 and round once, on the way out (PyTorch's bf16 GELU rounds its output
 before the product; the fused kernel does not). A CUDA graph records them like any other kernel:
@@ -106,8 +107,8 @@ def attention_kernels_reason(device: torch.device, dtype: torch.dtype, shapes: S
             rotated = torch.allclose(q.float(), want[:, :, :heads], **loose) and torch.allclose(cache[:, 1:3].float(), want[:, :, heads:], **loose)
             if not (rotated and torch.equal(cache[:, ::3], around)):
                 return f"the Triton rotary kernel disagreed with PyTorch's on {device} ({heads} + {kv} heads of {d})"
-            # Both variants (rows a multiple of 8 keys long or not), the long one past one pass.
-            for keys in (5, _SOFTMAX_BLOCK + 8):
+            # Every variant: rows a multiple of 8 keys long or not, in one pass or two.
+            for keys in (5, 16, _SOFTMAX_BLOCK + 5, _SOFTMAX_BLOCK + 8):
                 scores, mask = rand(1, 1, heads, keys), torch.zeros(1, 1, 1, keys, device=device, dtype=dtype)
                 mask[..., 2] = -1e30
                 want = torch.softmax(scores.float() + mask.float(), dim=-1)
@@ -230,21 +231,30 @@ def rope_qkv(qkv: Tensor, cos: Tensor, signed_sin: Tensor, heads: int, dest: Ten
     return q
 
 
-def masked_softmax(scores: Tensor, mask: Tensor) -> Tensor:
+def masked_softmax(scores: Tensor, mask: Tensor, one_pass: bool | None = None) -> Tensor:
     """``softmax(scores + mask)`` over the keys, in place, computed in float32, each probability
     rounded once: ``scores`` ``(B, Lq, H, Lk)`` contiguous, ``mask`` ``(B, Lq, 1, Lk)`` (additive,
-    one row for all of a query's heads). Returns ``scores``, now the probabilities."""
+    one row for all of a query's heads). Returns ``scores``, now the probabilities.
+
+    A row of at most :data:`_SOFTMAX_BLOCK` keys is read once (``one_pass``; ``False`` forces the
+    two passes longer rows take, for ``benchmarks/gpu/micro.py`` to time one against the other)."""
     b, lq, heads, length = scores.shape
     if tuple(mask.shape) != (b, lq, 1, length) or not scores.is_contiguous():
         raise ValueError(f"masked_softmax: scores {tuple(scores.shape)} (contiguous: {scores.is_contiguous()}), mask {tuple(mask.shape)}")
     mask = mask.contiguous()
+    fits = length <= _SOFTMAX_BLOCK
+    if one_pass and not fits:
+        raise ValueError(f"masked_softmax: a row of {length} keys takes two passes (one holds {_SOFTMAX_BLOCK})")
     if scores.numel():
         kernel = _kernels()[3]
         with _on(scores.device):
-            # Two variants at most: rows a multiple of 8 keys apart (π0.5's, whose caches are
-            # aligned: 16 bytes in bf16) or not; the load-time check compiles both.
+            # Four variants at most: rows a multiple of 8 keys apart (π0.5's, whose caches are
+            # aligned: 16 bytes in bf16) or not, in one pass or two; the load-time check compiles all.
             div = 8 if length % 8 == 0 else 1
-            kernel[(b * lq,)](scores, mask, length // div, LENGTH_DIV=div, HEADS=heads, HEAD_BLOCK=_pow2(heads), BLOCK=_SOFTMAX_BLOCK, num_warps=8)
+            kernel[(b * lq,)](
+                scores, mask, length // div, LENGTH_DIV=div, HEADS=heads, HEAD_BLOCK=_pow2(heads), BLOCK=_SOFTMAX_BLOCK,
+                ONE_PASS=fits if one_pass is None else one_pass, num_warps=8,
+            )  # fmt: skip
     return scores
 
 
@@ -353,11 +363,13 @@ def _rope_qkv_kernel(  # type: ignore[no-untyped-def]
     tl.store(kv + D // 2, out_hi.to(dest_ptr.dtype.element_ty), mask=is_kv)
 
 
-def _masked_softmax_kernel(scores_ptr, mask_ptr, length, LENGTH_DIV: tl.constexpr, HEADS: tl.constexpr, HEAD_BLOCK: tl.constexpr, BLOCK: tl.constexpr):  # type: ignore[no-untyped-def,name-defined]
+def _masked_softmax_kernel(scores_ptr, mask_ptr, length, LENGTH_DIV: tl.constexpr, HEADS: tl.constexpr, HEAD_BLOCK: tl.constexpr, BLOCK: tl.constexpr, ONE_PASS: tl.constexpr):  # type: ignore[no-untyped-def,name-defined]
     # One program a (batch row, query): its heads' rows of scores, which share the query's mask row.
-    # Two passes: each row's running maximum and sum of exponentials (rescaled as the maximum
-    # grows), then the probabilities. Keys past the row read -inf: exp gives them 0. A maximum
-    # still -inf (every key so far -inf) is taken as 0, so that -inf - -inf never makes a NaN.
+    # ONE_PASS (a row of at most BLOCK keys, every row π0.5 has): the rows read once, held in
+    # registers, normalised and stored. Otherwise two passes: each row's running maximum and sum of
+    # exponentials (rescaled as the maximum grows), then the probabilities, the rows read again.
+    # Keys past the row read -inf: exp gives them 0. A maximum still -inf (every key so far -inf)
+    # is taken as 0, so that -inf - -inf never makes a NaN.
     query = tl.program_id(0).to(tl.int64)
     length = length * LENGTH_DIV  # it comes divided by LENGTH_DIV: rows 16 bytes apart (aligned caches) vectorise
     head = tl.arange(0, HEAD_BLOCK)[:, None]
@@ -366,19 +378,28 @@ def _masked_softmax_kernel(scores_ptr, mask_ptr, length, LENGTH_DIV: tl.constexp
     # The mask's row read as a (heads, keys) block like the scores' (``head * 0``): the same layout,
     # so no conversion through shared memory between the two (a 1-D row would need one).
     mask = mask_ptr + query * length + head * 0
-    top = tl.full((HEAD_BLOCK,), float("-inf"), tl.float32)
-    total = tl.full((HEAD_BLOCK,), 0.0, tl.float32)
-    for start in range(0, length, BLOCK):
-        inside = (start + cols < length) & (head < HEADS)
-        x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
-        x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
-        new_top = tl.maximum(top, tl.reduce(x, 1, tl.standard._elementwise_max))
-        shift = tl.where(new_top == float("-inf"), 0.0, new_top)
-        total = total * tl.exp(top - shift) + tl.reduce(tl.exp(x - shift[:, None]), 1, tl.standard._sum_combine)
-        top = new_top
-    shift = tl.where(top == float("-inf"), 0.0, top)
-    for start in range(0, length, BLOCK):
-        inside = (start + cols < length) & (head < HEADS)
-        x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
-        x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
-        tl.store(scores + start + cols, (tl.exp(x - shift[:, None]) / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)
+    if ONE_PASS:
+        inside = (cols < length) & (head < HEADS)
+        x = tl.load(scores + cols, mask=inside, other=float("-inf")).to(tl.float32)
+        x = x + tl.load(mask + cols, mask=inside, other=0.0).to(tl.float32)
+        top = tl.reduce(x, 1, tl.standard._elementwise_max)
+        e = tl.exp(x - tl.where(top == float("-inf"), 0.0, top)[:, None])
+        total = tl.reduce(e, 1, tl.standard._sum_combine)
+        tl.store(scores + cols, (e / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)
+    else:
+        top = tl.full((HEAD_BLOCK,), float("-inf"), tl.float32)
+        total = tl.full((HEAD_BLOCK,), 0.0, tl.float32)
+        for start in range(0, length, BLOCK):
+            inside = (start + cols < length) & (head < HEADS)
+            x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
+            x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
+            new_top = tl.maximum(top, tl.reduce(x, 1, tl.standard._elementwise_max))
+            shift = tl.where(new_top == float("-inf"), 0.0, new_top)
+            total = total * tl.exp(top - shift) + tl.reduce(tl.exp(x - shift[:, None]), 1, tl.standard._sum_combine)
+            top = new_top
+        shift = tl.where(top == float("-inf"), 0.0, top)
+        for start in range(0, length, BLOCK):
+            inside = (start + cols < length) & (head < HEADS)
+            x = tl.load(scores + start + cols, mask=inside, other=float("-inf")).to(tl.float32)
+            x = x + tl.load(mask + start + cols, mask=inside, other=0.0).to(tl.float32)
+            tl.store(scores + start + cols, (tl.exp(x - shift[:, None]) / total[:, None]).to(scores_ptr.dtype.element_ty), mask=inside)

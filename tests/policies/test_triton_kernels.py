@@ -116,8 +116,12 @@ def test_the_rotary_and_softmax_kernels_compute_what_pytorchs_operations_do(inte
         finite = ~want.isnan()
         torch.testing.assert_close(got[finite], want[finite], atol=1e-6, rtol=1e-5)
         assert (got[(mask < 0).expand_as(got) & finite] == 0).all()
+        if keys <= _SOFTMAX_BLOCK:  # the two passes forced on a row that fits one (micro.py's comparison)
+            torch.testing.assert_close(masked_softmax(scores.clone(), mask, one_pass=False), got, equal_nan=True, atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="masked_softmax"):
         masked_softmax(scores, mask[:, :, :, :-1])
+    with pytest.raises(ValueError, match="two passes"):
+        masked_softmax(scores, mask, one_pass=True)
 
 
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
@@ -279,7 +283,7 @@ def test_every_kernel_compiles_for_hopper_with_vector_loads_and_no_spills(tmp_pa
             (gelu, {"BLOCK": 1024}, 4),
             (norm, {"HAS_GATE": True, "BLOCK": 2048}, 4),
             (rope, {"HEADS": 8, "ALL": 10, "D": 256, "HEAD_BLOCK": 16, "BLOCK": 128}, 4),
-            (softmax, {"LENGTH_DIV": 8, "HEADS": 8, "HEAD_BLOCK": 8, "BLOCK": triton_kernels._SOFTMAX_BLOCK}, 8),
+            *((softmax, {"LENGTH_DIV": 8, "HEADS": 8, "HEAD_BLOCK": 8, "BLOCK": triton_kernels._SOFTMAX_BLOCK, "ONE_PASS": one}, 8) for one in (True, False)),
         ]
         for kernel, constexprs, warps in cases:
             float32_args = {"h_ptr", "weight_ptr", "total_ptr"}  # the norm's float32 stream and weight
