@@ -1,14 +1,15 @@
 """Our server side by side with LeRobot's own async inference (``policy_server`` + ``robot_client``).
 
-The same policy directory (the demo ACT, chunk 10, bit-identical weights: both sides load the
-same files) serves the same simulated robots (``armory_sim``, one process per robot on both
-sides, same seeds) at fps 30, chunk 10, a new request after 5 executed steps, for N robots:
+The same policy directory (the demo ACT built with the chunk, bit-identical weights: both sides
+load the same files) serves the same simulated robots (``armory_sim``, one process per robot on
+both sides, same seeds) at fps 30, chunk H (``--chunk``, 10 by default), a new request after H/2
+executed steps (5 of 10), for N robots:
 
 - ``ours``: one ``lerobot-armory-server`` (default scheduler: lookahead) and N armory clients
-  (``--fps=30 --h_min=5 --h_max=10``), optionally at several ``--policy.cpu_threads``;
+  (``--fps=30 --h_min=H/2 --h_max=H``), optionally at several ``--policy.cpu_threads``;
 - ``stock``: N stock ``policy_server`` processes (a stock server serves one client: a second
   client's ``Ready`` resets it), each with one stock ``robot_client`` whose robot is armory_sim
-  (``actions_per_chunk=10``, ``chunk_size_threshold=0.5``, ``fps=30``, ``policy_type`` from the
+  (``actions_per_chunk=H``, ``chunk_size_threshold=0.5``, ``fps=30``, ``policy_type`` from the
   policy's ``config.json``),
   with its default observation-similarity filter;
 - ``stock_nofilter``: the same with the filter patched off in the launcher.
@@ -16,13 +17,15 @@ sides, same seeds) at fps 30, chunk 10, a new request after 5 executed steps, fo
 Per system and N: per-robot starvation (mean, max over robots; counted from each robot's first
 chunk), control ticks/s, chunks/s per robot, chunk latency p50/p90 (observation capture -> chunk
 received), total server RSS (sum over server processes, peak over the run), server CPU (% of one
-core) and the robot processes' CPU. ``--stock_shared_server`` adds a check that two stock
+core), the robot processes' CPU and the time the fleet took to become ready (servers up, robots
+connected: stock loads its policy then). ``--stock_shared_server`` adds a check that two stock
 clients on ONE stock server receive each other's chunks. Writes ``<device>.md`` and ``.json``
 under ``--out``; exits 1 with a message if a process dies or a robot never gets a chunk.
 
     .venv/bin/python benchmarks/vs_lerobot_async.py --robots=1,2,4,8 --duration_s=60 \\
         --systems=ours,stock,stock_nofilter --ours_cpu_threads=1,2 --stock_shared_server \\
         --out=docs/results/vs_lerobot_async
+    .venv/bin/python benchmarks/vs_lerobot_async.py --chunk=50 --robots=1 --systems=ours,stock_nofilter
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import os
 import platform
 import shlex
@@ -49,9 +53,8 @@ from lerobot_armory.bench.live import cpu_seconds, machine_cpu  # the live bench
 
 HERE = Path(__file__).resolve().parent
 FPS = 30
-CHUNK = 10
-H_MIN = 5
-THRESHOLD = 0.5  # stock: ask for a chunk when <= 5 of 10 actions are left = after 5 executed steps
+CHUNK = 10  # the default --chunk
+THRESHOLD = 0.5  # stock: ask for a chunk when <= half of it is left (5 of 10) = after h_min_of(chunk) steps
 IMAGE_SIZE = 64
 SYSTEMS = ("ours", "stock", "stock_nofilter")
 READY_TIMEOUT_S = 300.0
@@ -61,6 +64,16 @@ BUSY_PCT = 90.0
 
 class RunFailed(RuntimeError):
     """A run could not be measured (a process died, a robot never got a chunk, ...)."""
+
+
+def h_min_of(chunk: int) -> int:
+    """Ours' ``--h_min`` for a chunk: the executed steps after which stock asks for the next one.
+
+    Stock asks once ``left / chunk <= THRESHOLD``, i.e. with ``floor(chunk * THRESHOLD)`` actions
+    left; ours then asks after the rest executed. For an even chunk that is ``chunk // 2`` (5 of
+    10, 25 of 50); for an odd one ``chunk // 2`` would ask one step before stock does.
+    """
+    return chunk - math.floor(chunk * THRESHOLD)
 
 
 @dataclass
@@ -81,6 +94,7 @@ class Options:
     work_dir: str | None
     stock_shared_server: bool
     ours_server_args: str = ""
+    chunk: int = CHUNK
 
 
 @dataclass
@@ -122,6 +136,7 @@ class Fleet:
 
     servers: list[Proc] = field(default_factory=list)
     clients: list[Proc] = field(default_factory=list)
+    ready_s: float = 0.0  # start -> servers up and every robot connected (``start_fleet``)
 
     def stop(self) -> None:
         """Terminate what is still running (each by its own pid), then reap."""
@@ -229,7 +244,7 @@ def robot_spec(opts: Options, k: int, address: str, run_dir: Path) -> dict[str, 
     """What robot ``k`` needs (both sides read the keys they use)."""
     return {
         "robot_id": f"robot{k}", "scene": opts.scene, "image_size": IMAGE_SIZE, "seed": k, "fps": FPS,
-        "h_min": H_MIN, "h_max": CHUNK, "actions_per_chunk": CHUNK, "chunk_size_threshold": THRESHOLD,
+        "h_min": h_min_of(opts.chunk), "h_max": opts.chunk, "actions_per_chunk": opts.chunk, "chunk_size_threshold": THRESHOLD,
         "address": address, "policy_path": opts.policy, "policy_type": policy_type(opts.policy), "device": opts.device,
         "duration_s": opts.duration_s, "ready_path": str(run_dir / f"ready{k}"), "go_path": str(run_dir / "go"), "stats_path": str(run_dir / f"robot{k}.json"),
     }  # fmt: skip
@@ -247,14 +262,23 @@ def start_client(system: str, spec: dict[str, Any], k: int, run_dir: Path) -> Pr
 
 
 def wait_clients_ready(fleet: Fleet, run_dir: Path, timeout_s: float = READY_TIMEOUT_S) -> None:
-    """Every robot connected (stock: its server loaded the policy); fail if anything died."""
-    deadline = time.monotonic() + timeout_s
+    """Every robot connected (stock: its server loaded the policy); fail if anything died.
+
+    Says every 10 s how many are connected: a run cut from outside shows in its log where it was.
+    """
+    t0 = time.monotonic()
+    deadline, next_report = t0 + timeout_s, t0 + 10.0
     while time.monotonic() < deadline:
         for p in fleet.servers + fleet.clients:
             if p.popen.poll() is not None:
                 raise RunFailed(p.failed())
-        if all((run_dir / f"ready{k}").exists() for k in range(len(fleet.clients))):
+        ready = sum((run_dir / f"ready{k}").exists() for k in range(len(fleet.clients)))
+        if ready == len(fleet.clients):
             return
+        if time.monotonic() >= next_report:
+            waited = time.monotonic() - t0
+            print(f"    {waited:5.0f} s   {ready} of {len(fleet.clients)} robot(s) connected", flush=True)
+            next_report += 10.0
         time.sleep(0.1)
     raise RunFailed(f"robots not connected within {timeout_s:.0f} s")
 
@@ -368,8 +392,14 @@ def measure(fleet: Fleet, run_dir: Path, duration_s: float, label: str, gpu: boo
 
 
 def start_fleet(opts: Options, variant: Variant, n: int, run_dir: Path) -> Fleet:
-    """The servers of ``variant`` and its ``n`` robots, connected and waiting for the go."""
+    """The servers of ``variant`` and its ``n`` robots, connected and waiting for the go.
+
+    Prints when the servers are up and when the robots are connected (a stock server loads its
+    policy only once its client connects, so for stock most of the time is the second part), and
+    keeps the total in ``Fleet.ready_s``.
+    """
     fleet = Fleet()
+    t0 = time.monotonic()
     try:
         if variant.system == "ours":
             proc, address = start_ours_server(opts, variant.cpu_threads, run_dir)
@@ -379,12 +409,15 @@ def start_fleet(opts: Options, variant: Variant, n: int, run_dir: Path) -> Fleet
             started = start_stock_servers(opts, n, variant.system == "stock_nofilter", run_dir)
             fleet.servers.extend(p for p, _ in started)
             addresses = [a for _, a in started]
+        print(f"    {len(fleet.servers)} server(s) up in {time.monotonic() - t0:.1f} s", flush=True)
         for k in range(n):
             fleet.clients.append(start_client(variant.system, robot_spec(opts, k, addresses[k], run_dir), k, run_dir))
         wait_clients_ready(fleet, run_dir)
     except BaseException:
         fleet.stop()
         raise
+    fleet.ready_s = time.monotonic() - t0
+    print(f"    {n} robot(s) connected: ready in {fleet.ready_s:.1f} s", flush=True)
     return fleet
 
 
@@ -406,7 +439,7 @@ def run_one(opts: Options, variant: Variant, n: int, work: Path) -> dict[str, An
         lat = r.pop("latency_ms")
         r.update(latency_p50_ms=percentile(lat, 0.5), latency_p90_ms=percentile(lat, 0.9))
     return {"system": variant.system, "label": variant.label, "cpu_threads": variant.cpu_threads, "robots": n,
-            **summary, **usage, "per_robot": robots}  # fmt: skip
+            **summary, **usage, "ready_s": fleet.ready_s, "per_robot": robots}  # fmt: skip
 
 
 def read_robot_stats(run_dir: Path, n: int, label: str) -> list[dict[str, Any]]:
@@ -546,8 +579,8 @@ def gpu_name(device: str) -> str | None:
 NOTES = """\
 - **Same policy, same robots.** Both sides load the same policy directory (sha256 of its weights
   above), the robots are the same `armory_sim` (same seeds, scene `{scene}`, 64×64 camera), one
-  process per robot on both sides, fps 30, chunk 10, a new chunk after 5 executed steps (ours:
-  `--h_min=5 --h_max=10`; stock: `chunk_size_threshold=0.5`, it asks when ≤ 5 of 10 actions are
+  process per robot on both sides, fps {fps}, chunk {chunk}, a new chunk after {h_min} executed steps (ours:
+  `--h_min={h_min} --h_max={chunk}`; stock: `chunk_size_threshold={threshold:g}`, it asks when ≤ {left} of {chunk} actions are
   left). Starvation = control ticks with no action to execute / ticks, per robot, counted from
   the robot's first chunk (the stock server's first forward pass is cold, ours is warmed by the
   start-up profiling); `starvation_with_startup_mean_pct` in the JSON counts every tick.
@@ -566,7 +599,7 @@ NOTES = """\
   what a user gets out of the box; `stock_nofilter` (the filter patched to "never similar" in
   `benchmarks/_stock_async.py`; the "timestep already predicted" check stays) measures the stock
   serving path itself. Both are reported so neither reading is hidden. Without the filter the
-  stock server computes more chunks than a robot consumes (a robot executes 6 chunks/s of 5
+  stock server computes more chunks than a robot consumes (a robot executes {chunks_per_s:.3g} chunks/s of {h_min}
   steps): while a chunk is in flight the client keeps sending an observation every tick, and the
   server turns the newest of them into one more chunk (chunks/s and server CPU columns).
 - **Stock timing.** The stock server holds every answer until `inference_latency` (default 1/fps
@@ -574,7 +607,7 @@ NOTES = """\
   unless the call had already waited. The stock control loop sleeps `1/fps − elapsed` with no
   catching up, so it ticks a little below 30 Hz (ticks/s column); a slower robot consumes its
   chunk more slowly, which lowers its starvation for the same serving. Ours ticks on a fixed
-  schedule. Once its queue holds ≤ 5 actions the stock client sends an observation (pickled, with
+  schedule. Once its queue holds ≤ {left} actions the stock client sends an observation (pickled, with
   the full image) every tick until a chunk arrives; the server keeps only the newest. Overlapping
   actions are merged with `weighted_average` (0.3 old + 0.7 new); ours switches to the newest chunk.
   The stock server logs several INFO lines per chunk (to stdout and `./logs/`), part of its CPU.
@@ -600,7 +633,7 @@ def markdown(report: dict[str, Any]) -> str:
         (
             f"Device: `{report['device']}`. Ours: `--scheduler.type={report['ours_scheduler']}`, "
             f"`--max_batch_size={report['max_batch_size']}`. {report['duration_s']:g} s per run. "
-            f"Policy: `{report['policy']}` ({report.get('policy_type', '?')}), chunk {CHUNK} (weights sha256 `{report['policy_sha256'][:16]}…`)."
+            f"Policy: `{report['policy']}` ({report.get('policy_type', '?')}), chunk {report.get('chunk', CHUNK)} (weights sha256 `{report['policy_sha256'][:16]}…`)."
         ),
         "",
         "```",
@@ -621,8 +654,18 @@ def markdown(report: dict[str, Any]) -> str:
             ),
             "",
         ]
-    lines += ["## Notes", "", NOTES.format(scene=report["scene"], stock_threads=report["stock_threads"])]
+    lines += ["## Notes", "", notes(report)]
     return "\n".join(lines)
+
+
+def notes(report: dict[str, Any]) -> str:
+    """``NOTES`` with this report's timing (a report without ``chunk`` ran the default)."""
+    chunk = int(report.get("chunk", CHUNK))
+    h_min = h_min_of(chunk)
+    return NOTES.format(
+        scene=report["scene"], stock_threads=report["stock_threads"], fps=FPS, chunk=chunk, h_min=h_min,
+        left=chunk - h_min, threshold=THRESHOLD, chunks_per_s=FPS / h_min,
+    )  # fmt: skip
 
 
 # ---- main --------------------------------------------------------------------------------------
@@ -655,7 +698,14 @@ def parse_args(argv: list[str] | None = None) -> Options:
         help="torch threads per stock server (0: torch's default, as stock runs)",
     )
     ap.add_argument("--scene", default="dynamic", choices=("static", "dynamic"), help="armory_sim scene of every robot")
-    ap.add_argument("--policy", default="", help="policy directory (default: build the demo ACT, chunk 10, under out/)")
+    ap.add_argument(
+        "--chunk",
+        type=int,
+        default=CHUNK,
+        help="the robots' chunk H: both sides execute at most H actions of a chunk and ask for the next after H/2; "
+        "the policy's chunk_size must be >= H",
+    )
+    ap.add_argument("--policy", default="", help="policy directory (default: the demo ACT built with --chunk, in out/)")
     ap.add_argument("--out", help="write <device>.md and <device>.json here (e.g. docs/results/vs_lerobot_async)")
     ap.add_argument("--work_dir", help="where logs and per-robot stats go (default: a temporary directory)")
     ap.add_argument(
@@ -671,29 +721,54 @@ def parse_args(argv: list[str] | None = None) -> Options:
         ap.error(f"--systems: unknown {unknown}; known: {', '.join(SYSTEMS)}")
     if not robots or min(robots) < 1 or a.duration_s <= 0:
         ap.error("--robots must be positive integers and --duration_s > 0")
+    if a.chunk < 2:
+        ap.error(f"--chunk must be >= 2 (a robot asks for the next chunk after half of it), got {a.chunk}")
     threads: list[int | None] = list(int_list(a.ours_cpu_threads)) or [None]
     if any(t is not None and t < 1 for t in threads):
         ap.error("--ours_cpu_threads: must be >= 1")
     return Options(
         robots, a.duration_s, systems, a.device, threads, a.ours_scheduler, a.max_batch_size, a.stock_cpu_threads,
-        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server, a.ours_server_args,
+        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server, a.ours_server_args, a.chunk,
     )  # fmt: skip
 
 
 def ensure_policy(opts: Options) -> str:
-    """The policy directory (absolute): the given one, or the demo ACT with chunk 10, built once."""
+    """The policy directory (absolute): the given one, or the demo ACT with ``--chunk``, built once
+    per chunk (the directory is named after it)."""
     if opts.policy:
         path = Path(opts.policy).resolve()
     else:
-        path = (Path("out") / f"vs-lerobot-act-H{CHUNK}").resolve()
+        path = (Path("out") / f"vs-lerobot-act-H{opts.chunk}").resolve()
         if not (path / "config.json").is_file():
             maker = Path(sys.executable).parent / "lerobot-armory-make-demo-policy"
             subprocess.run(
-                [str(maker), f"--output={path}", f"--chunk_size={CHUNK}", f"--image_size={IMAGE_SIZE}"], check=True
+                [str(maker), f"--output={path}", f"--chunk_size={opts.chunk}", f"--image_size={IMAGE_SIZE}"], check=True
             )
     if not (path / "config.json").is_file():
         raise RunFailed(f"{path}: not a policy directory (no config.json)")
     return str(path)
+
+
+def check_policy_chunk(policy: str, chunk: int) -> None:
+    """Refuse a policy whose chunks are shorter than ``--chunk``.
+
+    Both sides would run another timing than the one reported: stock cuts the model's chunk to
+    ``actions_per_chunk`` and asks relative to the longest chunk it received, ours executes at most
+    ``h_max`` of the model's chunk. A π0/π0.5 directory also names ``n_action_steps`` (what its
+    ``select_action`` executes); neither side reads it here, but a directory built for a shorter
+    chunk would show it, so it is held to the same bound.
+    """
+    config = json.loads((Path(policy) / "config.json").read_text())
+    keys = ["chunk_size"] + (["n_action_steps"] if config.get("type") in ("pi05", "pi0") else [])
+    if "chunk_size" not in config:  # e.g. diffusion (horizon): not refused, but said
+        print(f"warning: {policy}/config.json names no chunk_size: --chunk={chunk} not checked against it", flush=True)
+    short = [f"{key}={config[key]}" for key in keys if key in config and int(config[key]) < chunk]
+    if short:
+        raise RunFailed(
+            f"--chunk={chunk} needs a policy predicting at least {chunk} actions per chunk, but "
+            f"{policy}/config.json has {', '.join(short)}: build the policy with --chunk_size={chunk} (or more), "
+            "or pass a smaller --chunk"
+        )
 
 
 def weights_sha256(policy: str) -> str:
@@ -717,6 +792,7 @@ def report_header(opts: Options, command: str) -> dict[str, Any]:
         "duration_s": opts.duration_s, "ours_scheduler": opts.ours_scheduler, "ours_server_args": opts.ours_server_args, "max_batch_size": opts.max_batch_size,
         "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
         "policy_type": policy_type(opts.policy), "policy_sha256": weights_sha256(opts.policy),
+        "chunk": opts.chunk, "fps": FPS, "h_min": h_min_of(opts.chunk), "chunk_size_threshold": THRESHOLD,
     }  # fmt: skip
 
 
@@ -739,12 +815,14 @@ def main(argv: list[str] | None = None) -> None:
     )
     try:
         opts.policy = ensure_policy(opts)
+        check_policy_chunk(opts.policy, opts.chunk)
         work = Path(opts.work_dir or tempfile.mkdtemp(prefix="vs-lerobot-async-")).resolve()
         todo = [(v, n) for n in opts.robots for v in variants(opts)]  # systems interleaved per N: drift hits all alike
         print(
             f"{len(todo)} run(s) of {opts.duration_s:g} s on {opts.device}; policy {opts.policy}; logs in {work}",
             flush=True,
         )
+        print(f"chunk {opts.chunk}, a new one after {h_min_of(opts.chunk)} executed steps, at {FPS} fps", flush=True)
         header = report_header(opts, command)
         runs = []
         for k, (variant, n) in enumerate(todo):
@@ -753,7 +831,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"    starvation mean {record['starvation_mean_pct']:.1f} % max {record['starvation_max_pct']:.1f} %, "
                   f"{record['chunks_per_s']:.2f} chunks/s per robot, latency p50 {record['latency_p50_ms']:.0f} ms, "
                   f"servers {gib(record['server_rss_peak_bytes'])} GiB RSS, GPU memory {gib(record['gpu_memory_peak_bytes'])} GiB, "
-                  f"{record['server_cpu_pct']:.0f} % CPU", flush=True)  # fmt: skip
+                  f"{record['server_cpu_pct']:.0f} % CPU, ready in {record['ready_s']:.0f} s", flush=True)  # fmt: skip
             runs.append(record)
             write(opts, {**header, "runs": runs, "stock_shared_server": None})  # kept as each run ends: a call cut short loses only the run under way
             time.sleep(1.0)

@@ -11,6 +11,10 @@ OUT=${OUT:-out/gpu}
 mkdir -p "$OUT"
 LOG="$OUT/log.txt"
 touch /tmp/run_start
+# The device tool gives a command at most 600 s: every step's limit is cut to what is left of
+# CALL_S (from here, the wheels' install included), so the call returns with its log even when
+# a one-time build ran before a long step.
+CALL_END=$(( $(date +%s) + ${CALL_S:-585} ))
 if [ -d .whl ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
   export PYTHONPATH=/tmp/site:$PWD
@@ -20,8 +24,13 @@ fi
 export PYTHONUNBUFFERED=1 TOKENIZERS_PARALLELISM=false
 
 step() {  # step NAME SECONDS COMMAND... (COMMAND may be one of the functions below)
-  local name=$1 limit=$2
+  local name=$1 limit=$2 left=$(( CALL_END - $(date +%s) ))
   shift 2
+  if [ "$left" -lt 10 ]; then
+    echo "=== [$name] skipped: ${left} s left of the call" | tee -a "$LOG"
+    return 1
+  fi
+  [ "$left" -lt "$limit" ] && limit=$left
   # --line-buffered: a step the device tool kills must leave its lines in log.txt (grep into a
   # pipe buffers 4 KiB otherwise; a π0 step's whole output was lost that way on 2026-11-27).
   echo "=== [$name] $(date +%T) (limit ${limit} s): $*" | tee -a "$LOG"
@@ -50,16 +59,29 @@ live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, re
 }
 
 vs_async() {  # vs_async N,N,...: ours (graphed π0.5) against LeRobot's async server, one π0.5 per stock robot
+  # (stock with its observation filter off first: its serving path itself; then as it ships)
   sim_pi05 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim --robots="$1" \
-    --duration_s=30 --systems=ours,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
+    --duration_s=30 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
     --out="$OUT/vs_async" --work_dir=/tmp/vs
+}
+
+# The same π0.5 with chunk 50 (π0.5's own default; its builder sets n_action_steps = chunk_size),
+# for vs_async50: does the comparison hold when a chunk may take 25 steps (833 ms), not 5 (167 ms)?
+sim_pi05_50() {
+  [ -f /tmp/pi05-sim50/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=50', '--device=cuda', '--output=/tmp/pi05-sim50'])"
+}
+
+vs_async50() {  # vs_async50 N,N,...: vs_async at chunk 50 (a new chunk after 25 steps on both sides)
+  sim_pi05_50 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim50 --chunk=50 --robots="$1" \
+    --duration_s=30 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
+    --out="$OUT/vs_async50" --work_dir=/tmp/vs50
 }
 swap_gpu() {  # a live swap between two full π0.5 checkpoints (seeds 0 and 1) under 8 robots, b <= 8
   sim_pi05 && { [ -f /tmp/pi05-sim-b/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--seed=1', '--output=/tmp/pi05-sim-b'])"; } \
     && python3 benchmarks/swap.py --old=/tmp/pi05-sim --new=/tmp/pi05-sim-b --device=cuda --max_batch_size=8 \
       --image_size=64 --robots=8 --window_s=15 --out="$OUT/swap_gpu.json"
 }
-export -f env_report sim_pi05 live vs_async swap_gpu
+export -f env_report sim_pi05 sim_pi05_50 live vs_async vs_async50 swap_gpu
 export OUT
 
 for s in "$@"; do
@@ -81,9 +103,10 @@ for s in "$@"; do
     live[0-9]*) step sim 150 sim_pi05 && step "$s" 200 live "${s#live}" ;;  # liveN: N robots
     vs_async) step sim 150 sim_pi05 && step vs_async 560 vs_async 1,4 ;;
     vs_async8) step sim 150 sim_pi05 && step vs_async8 560 vs_async 8 ;;
+    vs_async50) step sim50 150 sim_pi05_50 && step vs_async50 560 vs_async50 1,4 ;;
     faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
     swap) step sim 150 sim_pi05 && step swap 400 swap_gpu ;;
-    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels micro buckets compiled efficiency liveN vs_async vs_async8 faults swap)" | tee -a "$LOG" ;;
+    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels micro buckets compiled efficiency liveN vs_async vs_async8 vs_async50 faults swap)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).
