@@ -35,7 +35,8 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   (before 2026-11-28 #10); all four (``-unaligned-stridedmlp-mixedresidual-notriton``): the
   sampler of 2026-11-27; a ``-notritonattention`` suffix: PyTorch's operations for the rotary
   embedding and attention's mask + softmax, which by default on a GPU two more Triton kernels run
-  (before 2026-11-28 #11: that day's measured default);
+  (before 2026-11-28 #11: that day's measured default); a ``-twopasssoftmax`` suffix: the Triton
+  softmax in two passes over each row (before 2026-11-28 #12; by default one where the row fits);
 - ``pi05-fp32-compiled`` / ``pi05-bf16-compiled``: LeRobot's ``--policy.compile_model=true``
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
@@ -86,6 +87,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import os
 import platform
@@ -110,7 +112,7 @@ CONFIGS = (
     "pi05-bf16-graphs-tf32-visionbf16-unaligned", "pi05-bf16-graphs-tf32-visionbf16-mixedresidual",
     "pi05-bf16-graphs-tf32-visionbf16-notriton", "pi05-bf16-graphs-tf32-visionbf16-stridedmlp-notriton",
     "pi05-bf16-graphs-tf32-visionbf16-unaligned-stridedmlp-mixedresidual-notriton",
-    "pi05-bf16-graphs-tf32-visionbf16-notritonattention",
+    "pi05-bf16-graphs-tf32-visionbf16-notritonattention", "pi05-bf16-graphs-tf32-visionbf16-twopasssoftmax",
     "pi0-bf16", "pi0-bf16-graphs-tf32",
     "smolvla-fp32", "smolvla-fp32-graphs-tf32-ordered", "smolvla-fp32-graphs-tf32", "smolvla-fp32-graphs-tf32-unaligned",
 )  # fmt: skip
@@ -155,7 +157,7 @@ def _flags(config: str) -> set[str]:
 
 # Suffixes that undo one of the default's kernel choices (``as_before``): a configuration with one
 # beside the same without says what the choice gives.
-BEFORE = ("unaligned", "stridedmlp", "mixedresidual", "notriton", "notritonattention")
+BEFORE = ("unaligned", "stridedmlp", "mixedresidual", "notriton", "notritonattention", "twopasssoftmax")
 
 
 @contextlib.contextmanager
@@ -178,7 +180,10 @@ def as_before(config: str) -> Iterator[None]:
       with it every Triton kernel is off;
     - ``-notritonattention``: PyTorch's operations for the rotary embedding and for attention's
       mask and softmax, as before 2026-11-28 #11, where on a GPU a Triton kernel runs each
-      (``Fused.triton_attention``); the MLP's and the norms' Triton kernels stay."""
+      (``Fused.triton_attention``); the MLP's and the norms' Triton kernels stay;
+    - ``-twopasssoftmax``: the Triton softmax reading each row twice (two passes), as before
+      2026-11-28 #12, where a row that fits its block is read once (``masked_softmax``'s
+      ``one_pass``)."""
     from lerobot_armory.policies import pi05_kernels
     from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
     from lerobot_armory.policies.pi05_static import StaticPi05
@@ -197,6 +202,8 @@ def as_before(config: str) -> Iterator[None]:
         patched.append((pi05_kernels, "hand_kernels_reason", lambda *args: "-notriton"))
     if "notritonattention" in flags:
         patched.append((Fused, "triton_attention", False))
+    if "twopasssoftmax" in flags:
+        patched.append((pi05_kernels, "masked_softmax", functools.partial(pi05_kernels.masked_softmax, one_pass=False)))
     saved = [vars(owner)[name] for owner, name, _ in patched]  # a class's or a module's own
     for cls, name, before in patched:
         setattr(cls, name, before)

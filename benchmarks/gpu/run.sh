@@ -93,8 +93,8 @@ for s in "$@"; do
     fused) step fused 520 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-ordered-fullprompt,pi05-bf16-graphs-tf32-fullprompt,pi05-bf16-graphs-tf32,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/fused.json" --work_dir=/tmp/gp ;;
     pi0) step pi0 400 python3 benchmarks/gpu_profile.py --configs=pi0-bf16,pi0-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --float32_reference --out="$OUT/pi0.json" --work_dir=/tmp/gp ;;
     smolvla) step smolvla 420 python3 benchmarks/gpu_profile.py --configs=smolvla-fp32,smolvla-fp32-graphs-tf32-unaligned,smolvla-fp32-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/smolvla.json" --work_dir=/tmp/gp ;;
-    stages) step stages 360 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-visionbf16-notritonattention,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --stages --float32_reference --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
-    kernels) step kernels 270 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16-notritonattention,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
+    stages) step stages 360 python3 benchmarks/gpu_profile.py --configs=pi05-bf16,pi05-bf16-graphs-tf32-visionbf16-twopasssoftmax,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,2,3,4,5,6,7,8 --stages --float32_reference --out="$OUT/stages.json" --work_dir=/tmp/gp ;;
+    kernels) step kernels 270 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs-tf32-visionbf16-twopasssoftmax,pi05-bf16-graphs-tf32-visionbf16 --graph_buckets=1,8 --reps=3 --kernels --out="$OUT/kernels.json" --work_dir=/tmp/gp ;;
     micro) step micro 90 python3 benchmarks/gpu/micro.py --out="$OUT/micro.json" ;;
     buckets) step buckets 110 python3 benchmarks/gpu_profile.py --configs=pi05-bf16-graphs,pi05-bf16-graphs-tf32 --graph_buckets=1,2,3,4,5,6,7,8 --out="$OUT/all_buckets.json" --work_dir=/tmp/gp ;;
     efficiency) step efficiency 170 python3 benchmarks/engine_efficiency.py --policy=pi05-full --sizes=1,4,8 --cuda_graphs=on ;;
@@ -104,9 +104,12 @@ for s in "$@"; do
     vs_async) step sim 150 sim_pi05 && step vs_async 560 vs_async 1,4 ;;
     vs_async8) step sim 150 sim_pi05 && step vs_async8 560 vs_async 8 ;;
     vs_async50) step sim50 150 sim_pi05_50 && step vs_async50 560 vs_async50 1,4 ;;
+    # vs_async_N / vs_async50_N: one fleet size a call (N = 4's four stock π0.5 servers load for minutes)
+    vs_async_[0-9]*) step sim 150 sim_pi05 && step "$s" 560 vs_async "${s#vs_async_}" ;;
+    vs_async50_[0-9]*) step sim50 150 sim_pi05_50 && step "$s" 560 vs_async50 "${s#vs_async50_}" ;;
     faults) step faults 120 python3 benchmarks/gpu/device_faults.py --out="$OUT/device_faults.json" ;;
     swap) step sim 150 sim_pi05 && step swap 400 swap_gpu ;;
-    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels micro buckets compiled efficiency liveN vs_async vs_async8 vs_async50 faults swap)" | tee -a "$LOG" ;;
+    *) echo "unknown step $s (env smoke graphs fused pi0 smolvla stages kernels micro buckets compiled efficiency liveN vs_async vs_async8 vs_async50 vs_async_N vs_async50_N faults swap)" | tee -a "$LOG" ;;
   esac
 done
 # Only what this call wrote (the files back are limited to 8).
