@@ -28,8 +28,9 @@ from lerobot_armory.robot.features import FeatureMap
 class TimedClient(ArmoryClient):
     """The armory client; the overrides only count, then call the client's own method."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, settle_chunks: int = 1, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.settle_chunks = settle_chunks  # ticks count as "after first" once this many chunks came
         self.latencies_s: list[float] = []
         self.first_chunk_time: float | None = None
         self.ticks_after_first = 0
@@ -44,7 +45,7 @@ class TimedClient(ArmoryClient):
                 self.first_chunk_time = chunk.arrival_time
 
     def step(self) -> bool:
-        had_chunk = self.chunks_received > 0
+        had_chunk = self.chunks_received >= self.settle_chunks
         executed = super().step()
         if had_chunk:
             self.ticks_after_first += 1
@@ -63,6 +64,7 @@ def run_robot(spec: dict[str, Any]) -> dict[str, Any]:
         observe=lambda: fmap.to_wire(robot.get_observation()),
         act=lambda vector: robot.send_action(fmap.to_action(vector)),
         backoff=Backoff(0.2, 1.0, give_up_s=30.0),
+        settle_chunks=int(spec.get("settle_chunks", 1)),
     )
     robot.connect()
     try:
@@ -82,6 +84,7 @@ def run_robot(spec: dict[str, Any]) -> dict[str, Any]:
         "starved_steps": base["starved_steps"],
         "executed_steps": base["executed_steps"],
         "starvation_pct_all": base["starvation_pct"] if ticks else 100.0,
+        "settle_chunks": client.settle_chunks,
         "ticks_after_first": after,
         "starved_after_first": client.starved_after_first,
         "starvation_pct": 100.0 * client.starved_after_first / after if after else 100.0,

@@ -38,6 +38,7 @@ class Tally:
 
     ticks: int = 0
     starved: int = 0
+    settle_chunks: int = 1  # ticks count as "after first" once this many chunks came (the spec's)
     ticks_after_first: int = 0
     starved_after_first: int = 0
     executed: int = 0
@@ -121,7 +122,7 @@ def make_client_class() -> type:
                 t.ticks += 1
                 t.starved += not available
                 t.executed += available
-                if t.chunks:
+                if t.chunks >= t.settle_chunks:
                     t.ticks_after_first += 1
                     t.starved_after_first += not available
             return available
@@ -156,6 +157,7 @@ def stats_of(tally: Tally, robot_id: str, wall_s: float, start: float) -> dict[s
         "starved_steps": tally.starved,
         "executed_steps": tally.executed,
         "starvation_pct_all": 100.0 * tally.starved / tally.ticks if tally.ticks else 100.0,
+        "settle_chunks": tally.settle_chunks,
         "ticks_after_first": tally.ticks_after_first,
         "starved_after_first": tally.starved_after_first,
         "starvation_pct": 100.0 * tally.starved_after_first / tally.ticks_after_first
@@ -179,6 +181,7 @@ def run_client(spec_path: str) -> None:
     spec = json.loads(Path(spec_path).read_text())
     cfg = draccus.parse(RobotClientConfig, args=client_args(spec))
     client = make_client_class()(cfg)
+    client.tally.settle_chunks = int(spec.get("settle_chunks", 1))
     if not client.start():
         raise SystemExit(f"stock client {spec['robot_id']}: could not reach the policy server at {spec['address']}")
     wait_for_go(Path(spec["ready_path"]), Path(spec["go_path"]))

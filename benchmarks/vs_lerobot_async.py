@@ -15,7 +15,7 @@ executed steps (5 of 10), for N robots:
 - ``stock_nofilter``: the same with the filter patched off in the launcher.
 
 Per system and N: per-robot starvation (mean, max over robots; counted from each robot's first
-chunk), control ticks/s, chunks/s per robot, chunk latency p50/p90 (observation capture -> chunk
+chunk, or its ``--settle_chunks``-th), control ticks/s, chunks/s per robot, chunk latency p50/p90 (observation capture -> chunk
 received), total server RSS (sum over server processes, peak over the run), server CPU (% of one
 core), the robot processes' CPU and the time the fleet took to become ready (servers up, robots
 connected: stock loads its policy then). ``--stock_shared_server`` adds a check that two stock
@@ -95,6 +95,7 @@ class Options:
     stock_shared_server: bool
     ours_server_args: str = ""
     chunk: int = CHUNK
+    settle_chunks: int = 1
 
 
 @dataclass
@@ -245,7 +246,7 @@ def robot_spec(opts: Options, k: int, address: str, run_dir: Path) -> dict[str, 
     return {
         "robot_id": f"robot{k}", "scene": opts.scene, "image_size": IMAGE_SIZE, "seed": k, "fps": FPS,
         "h_min": h_min_of(opts.chunk), "h_max": opts.chunk, "actions_per_chunk": opts.chunk, "chunk_size_threshold": THRESHOLD,
-        "address": address, "policy_path": opts.policy, "policy_type": policy_type(opts.policy), "device": opts.device,
+        "settle_chunks": opts.settle_chunks, "address": address, "policy_path": opts.policy, "policy_type": policy_type(opts.policy), "device": opts.device,
         "duration_s": opts.duration_s, "ready_path": str(run_dir / f"ready{k}"), "go_path": str(run_dir / "go"), "stats_path": str(run_dir / f"robot{k}.json"),
     }  # fmt: skip
 
@@ -582,7 +583,7 @@ NOTES = """\
   process per robot on both sides, fps {fps}, chunk {chunk}, a new chunk after {h_min} executed steps (ours:
   `--h_min={h_min} --h_max={chunk}`; stock: `chunk_size_threshold={threshold:g}`, it asks when ≤ {left} of {chunk} actions are
   left). Starvation = control ticks with no action to execute / ticks, per robot, counted from
-  the robot's first chunk (the stock server's first forward pass is cold, ours is warmed by the
+  the robot's {settle} (the stock server's first forward pass is cold, ours is warmed by the
   start-up profiling); `starvation_with_startup_mean_pct` in the JSON counts every tick.
 - **One stock server per robot.** A stock `policy_server` serves one client: a client's `Ready`
   resets it, and two clients on one server share its single observation queue, so each receives
@@ -660,11 +661,12 @@ def markdown(report: dict[str, Any]) -> str:
 
 def notes(report: dict[str, Any]) -> str:
     """``NOTES`` with this report's timing (a report without ``chunk`` ran the default)."""
-    chunk = int(report.get("chunk", CHUNK))
+    chunk, settle = int(report.get("chunk", CHUNK)), int(report.get("settle_chunks", 1))
     h_min = h_min_of(chunk)
     return NOTES.format(
         scene=report["scene"], stock_threads=report["stock_threads"], fps=FPS, chunk=chunk, h_min=h_min,
         left=chunk - h_min, threshold=THRESHOLD, chunks_per_s=FPS / h_min,
+        settle="first chunk" if settle == 1 else f"chunk number {settle} on (`--settle_chunks`)",
     )  # fmt: skip
 
 
@@ -705,6 +707,13 @@ def parse_args(argv: list[str] | None = None) -> Options:
         help="the robots' chunk H: both sides execute at most H actions of a chunk and ask for the next after H/2; "
         "the policy's chunk_size must be >= H",
     )
+    ap.add_argument(
+        "--settle_chunks",
+        type=int,
+        default=1,
+        help="starvation is counted from each robot's K-th chunk on, on both sides (1: from the first; more keeps a "
+        "system's cold first passes, e.g. stock's lazy CUDA set-up, out of the figure; every tick: starvation_with_startup)",
+    )
     ap.add_argument("--policy", default="", help="policy directory (default: the demo ACT built with --chunk, in out/)")
     ap.add_argument("--out", help="write <device>.md and <device>.json here (e.g. docs/results/vs_lerobot_async)")
     ap.add_argument("--work_dir", help="where logs and per-robot stats go (default: a temporary directory)")
@@ -721,6 +730,8 @@ def parse_args(argv: list[str] | None = None) -> Options:
         ap.error(f"--systems: unknown {unknown}; known: {', '.join(SYSTEMS)}")
     if not robots or min(robots) < 1 or a.duration_s <= 0:
         ap.error("--robots must be positive integers and --duration_s > 0")
+    if a.settle_chunks < 1:
+        ap.error(f"--settle_chunks must be >= 1, got {a.settle_chunks}")
     if a.chunk < 2:
         ap.error(f"--chunk must be >= 2 (a robot asks for the next chunk after half of it), got {a.chunk}")
     threads: list[int | None] = list(int_list(a.ours_cpu_threads)) or [None]
@@ -728,7 +739,7 @@ def parse_args(argv: list[str] | None = None) -> Options:
         ap.error("--ours_cpu_threads: must be >= 1")
     return Options(
         robots, a.duration_s, systems, a.device, threads, a.ours_scheduler, a.max_batch_size, a.stock_cpu_threads,
-        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server, a.ours_server_args, a.chunk,
+        a.scene, a.policy, a.out, a.work_dir, a.stock_shared_server, a.ours_server_args, a.chunk, a.settle_chunks,
     )  # fmt: skip
 
 
@@ -793,6 +804,7 @@ def report_header(opts: Options, command: str) -> dict[str, Any]:
         "scene": opts.scene, "stock_threads": opts.stock_cpu_threads or torch_default_threads(), "policy": opts.policy,
         "policy_type": policy_type(opts.policy), "policy_sha256": weights_sha256(opts.policy),
         "chunk": opts.chunk, "fps": FPS, "h_min": h_min_of(opts.chunk), "chunk_size_threshold": THRESHOLD,
+        "settle_chunks": opts.settle_chunks,
     }  # fmt: skip
 
 

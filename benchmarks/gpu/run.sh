@@ -59,9 +59,10 @@ live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, re
 }
 
 vs_async() {  # vs_async N,N,...: ours (graphed π0.5) against LeRobot's async server, one π0.5 per stock robot
-  # (stock with its observation filter off first: its serving path itself; then as it ships)
+  # (stock with its observation filter off first: its serving path itself; then as it ships;
+  # starvation from each robot's third chunk: a stock server's first passes on a GPU are cold)
   sim_pi05 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim --robots="$1" \
-    --duration_s=30 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
+    --duration_s=30 --settle_chunks=3 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
     --out="$OUT/vs_async" --work_dir=/tmp/vs
 }
 
@@ -73,7 +74,7 @@ sim_pi05_50() {
 
 vs_async50() {  # vs_async50 N,N,...: vs_async at chunk 50 (a new chunk after 25 steps on both sides)
   sim_pi05_50 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim50 --chunk=50 --robots="$1" \
-    --duration_s=30 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
+    --duration_s=30 --settle_chunks=3 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
     --out="$OUT/vs_async50" --work_dir=/tmp/vs50
 }
 swap_gpu() {  # a live swap between two full π0.5 checkpoints (seeds 0 and 1) under 8 robots, b <= 8
