@@ -45,11 +45,15 @@ env_report() {
   python3 -c "import torch, lerobot, transformers, grpc; print(torch.__version__, lerobot.__version__, transformers.__version__, grpc.__version__, torch.cuda.get_device_name())"
 }
 
-# The π0.5 that robots on armory_sim are served: its features (one 64² camera, 2-d state), chunk 10
-# (libero timing), full size, bf16 (built once per machine).
-sim_pi05() {
-  [ -f /tmp/pi05-sim/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--output=/tmp/pi05-sim'])"
+# The π0.5 that robots on armory_sim are served: its features (one 64² camera, 2-d state), full
+# size, bf16; chunk 10 (libero timing) unless said (built once per machine).
+build_pi05() {  # build_pi05 DIR CHUNK [SEED]: the robots' full bf16 π0.5 in DIR, once per machine
+  [ -f "$1/config.json" ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=$2', '--device=cuda', '--seed=${3:-0}', '--output=$1'])"
 }
+sim_pi05() { build_pi05 /tmp/pi05-sim 10; }
+# The same π0.5 with chunk 50 (π0.5's own default; its builder sets n_action_steps = chunk_size),
+# for vs_async50: does the comparison hold when a chunk may take 25 steps (833 ms), not 5 (167 ms)?
+sim_pi05_50() { build_pi05 /tmp/pi05-sim50 50; }
 
 live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, real timing
   sim_pi05 && python3 -m lerobot_armory.bench.live --preset=libero --mix=half-fast --robots="$1" \
@@ -58,31 +62,21 @@ live() {  # live N: EDF and Lookahead on the graphed π0.5, libero half-fast, re
     --output="$OUT/live_N$1.json" --work_dir=/tmp/live
 }
 
-vs_async() {  # vs_async N,N,...: ours (graphed π0.5) against LeRobot's async server, one π0.5 per stock robot
+vs_compare() {  # vs_compare POLICY CHUNK NAME N,N,...: ours (graphed π0.5) against LeRobot's async server, one π0.5 per stock robot
   # (stock with its observation filter off first: its serving path itself; then as it ships;
   # starvation from each robot's third chunk: a stock server's first passes on a GPU are cold)
-  sim_pi05 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim --robots="$1" \
+  python3 benchmarks/vs_lerobot_async.py --device=cuda --policy="$1" --chunk="$2" --robots="$4" \
     --duration_s=30 --settle_chunks=3 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
-    --out="$OUT/vs_async" --work_dir=/tmp/vs
+    --out="$OUT/$3" --work_dir="/tmp/$3"
 }
-
-# The same π0.5 with chunk 50 (π0.5's own default; its builder sets n_action_steps = chunk_size),
-# for vs_async50: does the comparison hold when a chunk may take 25 steps (833 ms), not 5 (167 ms)?
-sim_pi05_50() {
-  [ -f /tmp/pi05-sim50/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=50', '--device=cuda', '--output=/tmp/pi05-sim50'])"
-}
-
-vs_async50() {  # vs_async50 N,N,...: vs_async at chunk 50 (a new chunk after 25 steps on both sides)
-  sim_pi05_50 && python3 benchmarks/vs_lerobot_async.py --device=cuda --policy=/tmp/pi05-sim50 --chunk=50 --robots="$1" \
-    --duration_s=30 --settle_chunks=3 --systems=ours,stock_nofilter,stock --ours_server_args="--engine.cuda_graphs=on" --max_batch_size=8 \
-    --out="$OUT/vs_async50" --work_dir=/tmp/vs50
-}
+vs_async() { sim_pi05 && vs_compare /tmp/pi05-sim 10 vs_async "$1"; }  # vs_async N,N,...: chunk 10
+vs_async50() { sim_pi05_50 && vs_compare /tmp/pi05-sim50 50 vs_async50 "$1"; }  # a new chunk after 25 steps on both sides
 swap_gpu() {  # a live swap between two full π0.5 checkpoints (seeds 0 and 1) under 8 robots, b <= 8
-  sim_pi05 && { [ -f /tmp/pi05-sim-b/config.json ] || python3 -c "from lerobot_armory.policies.demo.build import main; main(['--kind=pi05', '--size=full', '--dtype=bfloat16', '--chunk_size=10', '--device=cuda', '--seed=1', '--output=/tmp/pi05-sim-b'])"; } \
+  sim_pi05 && build_pi05 /tmp/pi05-sim-b 10 1 \
     && python3 benchmarks/swap.py --old=/tmp/pi05-sim --new=/tmp/pi05-sim-b --device=cuda --max_batch_size=8 \
       --image_size=64 --robots=8 --window_s=15 --out="$OUT/swap_gpu.json"
 }
-export -f env_report sim_pi05 sim_pi05_50 live vs_async vs_async50 swap_gpu
+export -f env_report build_pi05 sim_pi05 sim_pi05_50 live vs_compare vs_async vs_async50 swap_gpu
 export OUT
 
 for s in "$@"; do
