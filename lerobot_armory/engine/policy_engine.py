@@ -282,7 +282,8 @@ class PolicyEngine:
         self.hand_kernels = bool(getattr(sampler.ops, "hand_kernels", False))  # π0 family, Triton
         if not self.hand_kernels and str(self.device).startswith("cuda") and sampler.fused and hasattr(sampler.ops, "hand_kernels"):
             log.info("PyTorch's operations serve where the Triton kernels would: %s", sampler.ops.hand_kernels_reason)
-        self.attention_kernels = self.hand_kernels and bool(getattr(sampler.ops, "attention_kernels", False))
+        # attention's kernels are refused wherever the other Triton kernels are (their reason comes first)
+        self.attention_kernels = bool(getattr(sampler.ops, "attention_kernels", False))
         if self.hand_kernels and not self.attention_kernels:
             log.info("PyTorch's operations serve the rotary embedding and attention's softmax: %s", sampler.ops.attention_kernels_reason)
         sample = sampler.sample_compiled if o.compile_sampler else sampler.sample
