@@ -68,6 +68,9 @@ FPS_TOLERANCE = 0.001
 # Sent chunks whose arrival report the mirror still awaits. A robot reports within a second or so
 # (several chunks); one that never reports must not grow the table, so the oldest are forgotten.
 MAX_AWAITING_REPORTS = 64
+# An episode boundary (a reset world) makes a robot's next observation worth serving at once, not
+# h_min steps later. Honest episodes last seconds; a robot that claims a boundary every tick would
+# be served every batch, so boundaries make it useful at most once per h_min ticks of server time.
 
 
 @dataclass(frozen=True)
@@ -176,6 +179,7 @@ class Chunk:
     capture_robot: float = math.nan
     obs_recv: float = math.nan
     t_sent: float = math.nan
+    episode: int = 0  # the episode of the observation it was computed from
 
     @property
     def end(self) -> int:
@@ -641,13 +645,21 @@ class RobotMirror:
     _unheld: list[Chunk] = field(default_factory=list)
     _in_flight: dict[int, Chunk] = field(default_factory=dict)  # dispatched, batch not finished
     ran_out: Chunk | None = None  # the newest chunk the robot ran past (RTC continues its plan)
+    episode: int = 0  # the robot's current episode (its latest observation's)
+    episodes_started: int = 0  # boundaries seen (a new episode after the first observation)
+    _episode_due: float | None = None  # server time from which a pending boundary makes the robot useful
+    _last_boundary: float = -math.inf  # server time the last boundary made the robot useful
 
     # ---- events ------------------------------------------------------------------------------
 
-    def on_observation(self, index: int, capture_time_robot: float, recv_time: float) -> bool:
+    def on_observation(self, index: int, capture_time_robot: float, recv_time: float, episode: int = 0) -> bool:
         """Record an observation. Returns False (and changes nothing) if it is older than the
-        latest one (out-of-order delivery). Raises ValueError if its index goes backwards in time
-        or a time is not finite.
+        latest one (out-of-order delivery). Raises ValueError if its index or episode goes
+        backwards in time or a time is not finite.
+
+        A higher ``episode`` than the latest is an episode boundary (see :meth:`_begin_episode`):
+        every chunk booked so far is void, and the robot is served again without waiting for
+        ``h_min`` executed steps.
 
         Nothing the robot claims is taken beyond what the server itself saw (docs/spec.md §2, edge
         checks): the capture instant is placed at most ``uplink_window_s`` before its receipt
@@ -665,6 +677,8 @@ class RobotMirror:
                         f"action index went backwards: {index} after {self.obs_index} "
                         f"(indices only increase when the robot executes)"
                     )
+                if episode < self.episode:
+                    raise ValueError(f"episode went backwards: {episode} after {self.episode} (episodes only increase)")
             else:
                 # Not newer: a reordered observation (drop it), unless it is far older than jitter
                 # explains, which is the robot's clock stepping back: after a run of those the
@@ -673,13 +687,38 @@ class RobotMirror:
                     return False
                 if not self._clock_fault(capture_time_robot, recv_time):
                     return False
+        elif episode < 0:
+            raise ValueError(f"episode must be >= 0, got {episode}")
         index = self._bounded_index(index, recv_time)
+        if episode > self.episode:
+            self._begin_episode(episode, recv_time, first=self.obs_index is None)
         self.obs_index = index
         self.obs_capture_robot = capture_time_robot
         self.obs_anchor = self._anchor(capture_time_robot, recv_time)
         self.obs_recv = recv_time
         self._prune(index)
+        if self._episode_due is not None and recv_time >= self._episode_due:
+            self._episode_due = None
+            self.last_served_index = None  # useful now: the robot holds nothing of this episode
         return True
+
+    def _begin_episode(self, episode: int, recv: float, first: bool) -> None:
+        """The robot reset its world: nothing booked for the old episode will be executed.
+
+        The queue empties (the prediction counts on no old chunk; a chunk still in flight is
+        delivered tagged with its old episode and dropped by the robot), RTC continues no old
+        plan, and the robot becomes useful at once, or once ``h_min`` ticks passed since the last
+        boundary did (a robot claiming boundaries every tick is not served every batch).
+        """
+        self.episode = episode
+        if first:
+            return  # a robot that registers mid-run: its first observation is useful anyway
+        self.episodes_started += 1
+        self.queue = []
+        self.ran_out = None
+        if self._episode_due is None:  # a boundary already pending keeps its time
+            self._episode_due = max(recv, self._last_boundary + self.spec.h_min / self.spec.fps)
+            self._last_boundary = self._episode_due
 
     def _anchor(self, capture_robot: float, recv: float) -> float:
         """The capture instant on the server clock, inside ``[recv - window, recv]``."""
@@ -774,7 +813,9 @@ class RobotMirror:
         """
         if self.obs_index is None:
             raise ValueError(f"robot {self.spec.robot_id!r} has no observation to serve")
-        chunk = Chunk(self._next_chunk_id, self.obs_index, self.spec.h_max, math.nan, self.obs_capture_robot, self.obs_recv)
+        chunk = Chunk(
+            self._next_chunk_id, self.obs_index, self.spec.h_max, math.nan, self.obs_capture_robot, self.obs_recv, episode=self.episode
+        )
         self._next_chunk_id += 1
         self._sent(chunk, t_done)
         self.queue.append(chunk)

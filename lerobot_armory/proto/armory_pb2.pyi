@@ -131,14 +131,16 @@ class ClockSyncRequest(_message.Message):
     def __init__(self, sync_id: _Optional[int] = ..., server_send_time: _Optional[float] = ...) -> None: ...
 
 class Observation(_message.Message):
-    __slots__ = ("index", "capture_time", "tensors")
+    __slots__ = ("index", "capture_time", "tensors", "episode")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
     TENSORS_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_FIELD_NUMBER: _ClassVar[int]
     index: int
     capture_time: float
     tensors: _containers.RepeatedCompositeFieldContainer[Tensor]
-    def __init__(self, index: _Optional[int] = ..., capture_time: _Optional[float] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ...) -> None: ...
+    episode: int
+    def __init__(self, index: _Optional[int] = ..., capture_time: _Optional[float] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., episode: _Optional[int] = ...) -> None: ...
 
 class ChunkReceipt(_message.Message):
     __slots__ = ("chunk_id", "arrival_time", "first_executed_index")
@@ -175,18 +177,20 @@ class RobotMessage(_message.Message):
     def __init__(self, observation: _Optional[_Union[Observation, _Mapping]] = ..., report: _Optional[_Union[ExecutionReport, _Mapping]] = ..., clock_sync: _Optional[_Union[ClockSync, _Mapping]] = ...) -> None: ...
 
 class ActionChunk(_message.Message):
-    __slots__ = ("chunk_id", "i_start", "actions", "server_send_time", "obs_capture_time")
+    __slots__ = ("chunk_id", "i_start", "actions", "server_send_time", "obs_capture_time", "episode")
     CHUNK_ID_FIELD_NUMBER: _ClassVar[int]
     I_START_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     SERVER_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
     OBS_CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
+    EPISODE_FIELD_NUMBER: _ClassVar[int]
     chunk_id: int
     i_start: int
     actions: Tensor
     server_send_time: float
     obs_capture_time: float
-    def __init__(self, chunk_id: _Optional[int] = ..., i_start: _Optional[int] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., server_send_time: _Optional[float] = ..., obs_capture_time: _Optional[float] = ...) -> None: ...
+    episode: int
+    def __init__(self, chunk_id: _Optional[int] = ..., i_start: _Optional[int] = ..., actions: _Optional[_Union[Tensor, _Mapping]] = ..., server_send_time: _Optional[float] = ..., obs_capture_time: _Optional[float] = ..., episode: _Optional[int] = ...) -> None: ...
 
 class Notice(_message.Message):
     __slots__ = ("kind", "message", "index")

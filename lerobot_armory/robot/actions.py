@@ -70,6 +70,21 @@ class ActionBuffer:
         self.chunks.append(BufferedChunk(chunk_id, i_start, actions, arrival_time, session=self.session))
         self.received += 1
 
+    def add_unused(self, chunk_id: int, arrival_time: float) -> None:
+        """A chunk arrived that will never be executed (computed for an earlier episode): only its
+        receipt is kept, so the server still learns when it arrived."""
+        self.received += 1
+        self.first_executed_index["unused"] += 1
+        self.pending_receipts.append((chunk_id, arrival_time, -1, self.session))
+
+    def drop_chunks(self) -> None:
+        """Forget every chunk held, keeping their receipts (an episode ended: the old world's
+        chunks must never run, but the server still wants to know when they arrived)."""
+        for c in self.chunks:
+            self._retire(c)
+        self.chunks = []
+        self._current = None  # the next episode's first chunk is no seam
+
     def action_for(self, index: int) -> np.ndarray | None:
         """The action to execute at ``index``, or None (the robot starves this tick).
 
@@ -138,9 +153,7 @@ class ActionBuffer:
         return [(c, a, f) for c, a, f, s in out if session is None or s == session]
 
     def clear(self) -> None:
-        """Forget every chunk (after a reconnect, old chunks must never run)."""
-        for c in self.chunks:
-            self._retire(c)
-        self.chunks = []
+        """Forget every chunk and every receipt (after a reconnect, old chunks must never run and
+        the new server knows none of them)."""
+        self.drop_chunks()
         self.pending_receipts = []
-        self._current = None  # the next session's first chunk is no seam

@@ -10,6 +10,12 @@ buffered chunk is dropped and the robot holds (starves) while a background threa
 with exponential back-off, registers again and resumes. Chunks of an earlier session are
 recognised by their session epoch and never executed.
 
+Episodes: a robot whose world resets (a new task attempt, a simulator's next episode) calls
+:meth:`ArmoryClient.new_episode` before its next tick. Every chunk held is dropped at once (the
+old world's plan must never move the new one), observations carry the new episode number, the
+server serves the first observation of the episode without waiting ``h_min`` steps, and a chunk
+computed from an older episode's observation that arrives afterwards is dropped, never executed.
+
 Against a cluster (``lerobot-armory-cluster``) ``address`` is the front: registration answers
 with the replica to stream to and the connection follows it. When that replica dies the robot
 holds as above and registers with the front again, which places it on a live replica. When the
@@ -99,6 +105,10 @@ class ArmoryClient:
             given back at once, before a single chunk can arrive.
         record_actions: keep ``(time, session epoch of the chunk, chunk_id, chunk i_start, index)``
             of every executed action in ``executed_log`` (tests and failover checks).
+        episode_of: the robot's own episode counter, read after every observation; when it
+            changes, :meth:`new_episode` is called before the observation is sent (a simulator
+            that resets itself; None: only explicit :meth:`new_episode` calls).
+        finished: :meth:`run` returns once it is True (e.g. a simulator ran its last episode).
     """
 
     def __init__(
@@ -117,6 +127,8 @@ class ArmoryClient:
         token: str = "",
         check_registration: Callable[[Registration], None] | None = None,
         record_actions: bool = False,
+        episode_of: Callable[[], int] | None = None,
+        finished: Callable[[], bool] | None = None,
     ) -> None:
         self.address = address
         self.identity = identity
@@ -131,6 +143,9 @@ class ArmoryClient:
         self.tls_ca = tls_ca
         self.token = token
         self.check_registration = check_registration
+        self.episode_of = episode_of
+        self._robot_episode = episode_of() if episode_of is not None else 0
+        self.finished = finished
         self.buffer = ActionBuffer(identity.h_max)
         self._lock = threading.Lock()
         self._epoch = 0
@@ -140,6 +155,8 @@ class ArmoryClient:
         self._stop = threading.Event()
         self.fatal: BaseException | None = None
         self.index = 0
+        self.episode = 0
+        self.stale_episode_chunks = 0  # chunks of an earlier episode that arrived after its end (dropped)
         self.ticks = 0
         self.executed = 0
         self.starved = 0
@@ -266,8 +283,21 @@ class ArmoryClient:
         with self._lock:
             if epoch != self._epoch or self.connection is None:
                 return  # a chunk of a dead session: never executed
-            self.buffer.add(chunk.chunk_id, chunk.i_start, chunk.actions, chunk.arrival_time)
             self.chunks_received += 1
+            if chunk.episode != self.episode:
+                # Computed from the old world: reported (its arrival is a delay sample) as never executed.
+                self.stale_episode_chunks += 1
+                self.buffer.add_unused(chunk.chunk_id, chunk.arrival_time)
+                return
+            self.buffer.add(chunk.chunk_id, chunk.i_start, chunk.actions, chunk.arrival_time)
+
+    def new_episode(self) -> int:
+        """The robot's world was reset: drop every chunk held and number the next observations
+        with a new episode (see the module's docstring). Returns the new episode number."""
+        with self._lock:
+            self.episode += 1
+            self.buffer.drop_chunks()
+            return self.episode
 
     def _on_notice(self, notice: pb.Notice, epoch: int | None = None) -> None:
         self.notices.append(notice.message)
@@ -326,9 +356,12 @@ class ArmoryClient:
         """One control tick: observe, push, execute or starve. Returns True if it executed."""
         t = self.clock()
         obs = self.observe()
+        if self.episode_of is not None and (e := self.episode_of()) != self._robot_episode:
+            self._robot_episode = e
+            self.new_episode()
         conn = self.connection
         if conn is not None:
-            conn.send_observation(self.index, obs, capture_time=t, jpeg_quality=self.jpeg_quality)
+            conn.send_observation(self.index, obs, capture_time=t, jpeg_quality=self.jpeg_quality, episode=self.episode)
         with self._lock:
             live = self.connection is not None or self._moving
             action = self.buffer.action_for(self.index) if live else None
@@ -372,7 +405,7 @@ class ArmoryClient:
             if self.fatal is not None:
                 raise self.fatal
             now = self.clock()
-            if duration_s and now - start >= duration_s:
+            if (duration_s and now - start >= duration_s) or (self.finished is not None and self.finished()):
                 break
             if now < next_tick:
                 self.sleep(min(next_tick - now, 0.05))
@@ -414,6 +447,8 @@ class ArmoryClient:
             "starved_steps": self.starved,
             "starvation_pct": 100.0 * self.starved / self.ticks if self.ticks else 0.0,
             "chunks_received": self.chunks_received,
+            "episodes": self.episode + 1,
+            "stale_episode_chunks": self.stale_episode_chunks,
             "first_executed_index": first,
             "reconnects": self.reconnects,
             "outages_s": list(self.outages),

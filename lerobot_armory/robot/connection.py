@@ -36,6 +36,7 @@ class ReceivedChunk:
     server_send_time: float
     arrival_time: float  # robot clock
     obs_capture_time: float
+    episode: int = 0  # the episode of the observation it was computed from
 
 
 @dataclass
@@ -197,7 +198,9 @@ class Connection:
                         actions = decode(c.actions)
 
                         def deliver(c=c, actions=actions) -> None:  # arrival is when the robot sees it
-                            on_chunk(ReceivedChunk(c.chunk_id, c.i_start, actions, c.server_send_time, self.clock(), c.obs_capture_time))
+                            on_chunk(
+                                ReceivedChunk(c.chunk_id, c.i_start, actions, c.server_send_time, self.clock(), c.obs_capture_time, c.episode)
+                            )
 
                         if self.network is None:
                             deliver()
@@ -276,15 +279,20 @@ class Connection:
             yield item
 
     def send_observation(
-        self, index: int, arrays: Mapping[str, np.ndarray], capture_time: float | None = None, jpeg_quality: int | None = None
+        self,
+        index: int,
+        arrays: Mapping[str, np.ndarray],
+        capture_time: float | None = None,
+        jpeg_quality: int | None = None,
+        episode: int = 0,
     ) -> None:
-        """Queue one observation (images JPEG-encoded when ``jpeg_quality`` is set)."""
+        """Queue one observation (images JPEG-encoded when ``jpeg_quality`` is set) of ``episode``."""
         tensors = []
         for name, arr in arrays.items():
             q = jpeg_quality if (jpeg_quality is not None and arr.dtype == np.uint8 and arr.ndim == 3) else None
             tensors.append(encode(name, arr, q))
         t = self.clock() if capture_time is None else capture_time
-        self._enqueue(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors)))
+        self._enqueue(pb.RobotMessage(observation=pb.Observation(index=index, capture_time=t, tensors=tensors, episode=episode)))
 
     def _enqueue(self, msg: pb.RobotMessage | Callable[[], pb.RobotMessage]) -> None:
         """Send ``msg`` after the emulated uplink delay, if any.

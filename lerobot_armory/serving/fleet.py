@@ -213,15 +213,30 @@ class Fleet:
     # ---- events from the network -------------------------------------------------------------
 
     def on_observation(
-        self, session: RobotSession, index: int, capture_robot: float, arrays: dict[str, np.ndarray], recv: float
+        self,
+        session: RobotSession,
+        index: int,
+        capture_robot: float,
+        arrays: dict[str, np.ndarray],
+        recv: float,
+        episode: int = 0,
     ) -> bool:
         """Store the latest observation and update the mirror. Returns False if it was older than
-        the latest (reordered) and ignored. Raises ValueError if the index went backwards."""
+        the latest (reordered) and ignored. Raises ValueError if the index or episode went backwards.
+
+        At an episode boundary the observation history and RTC's kept chunks belong to the old
+        world: both are dropped with the mirror's queue.
+        """
         with self.cond:
             mirror = session.mirror
             mirror.estimator.seed_offset(capture_robot, recv)  # only until the first clock sync
-            if not mirror.on_observation(index, capture_robot, recv):
+            before = mirror.episode
+            if not mirror.on_observation(index, capture_robot, recv, episode):
                 return False
+            if mirror.episode != before:
+                session.model_chunks.clear()
+                if session.recent is not None:
+                    session.recent.clear()
             session.latest = arrays
             if session.recent is not None:
                 session.remember(index, arrays)

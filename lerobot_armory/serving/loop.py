@@ -351,7 +351,8 @@ class ServingLoop:
                 if model_actions is not None:
                     _keep_model_chunk(session, chunk.chunk_id, model_actions[k])
                 msg = ChunkOut(
-                    chunk.chunk_id, chunk.i_start, np.ascontiguousarray(actions[k], dtype=np.float32), t_done, chunk.capture_robot
+                    chunk.chunk_id, chunk.i_start, np.ascontiguousarray(actions[k], dtype=np.float32), t_done, chunk.capture_robot,
+                    chunk.episode,
                 )
                 fleet.record_sent(session, t_done)
                 session.outbox.put(msg)

@@ -47,6 +47,7 @@ class ChunkOut:
     actions: np.ndarray
     server_send_time: float
     obs_capture_time: float
+    episode: int = 0  # the robot's episode the observation belonged to
 
 
 @dataclass(frozen=True)

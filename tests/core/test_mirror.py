@@ -738,3 +738,73 @@ def test_simulated_honest_robots_are_never_clamped(scheduler, monkeypatch):
     result = FleetSimulator(specs, sched, 20.0, net, net, seed=5).run()
     assert len(made) == 12 and sum(r.chunks_received for r in result.robots) > 100
     assert [m.clamped_indices for m in made] == [0] * 12
+
+
+# ------------------------------------------------------------------------------------------
+# episode boundaries (a robot's world was reset)
+
+
+class TestEpisodes:
+    def test_a_boundary_voids_the_queue_and_makes_the_robot_useful_before_h_min(self):
+        m = mirror(fps=10.0, h_min=5, h_max=10)
+        m.on_observation(0, 0.0, 0.0)
+        chunk = served(m, 0.05)
+        assert [c.chunk_id for c in m.queue] == [chunk.chunk_id] and chunk.episode == 0
+        m.on_observation(2, 0.25, 0.25)  # two steps executed: not useful yet (h_min = 5)
+        assert not m.is_useful()
+        m.on_observation(2, 0.35, 0.35, episode=1)  # the world reset; the robot dropped its chunk
+        assert m.episode == 1 and m.episodes_started == 1
+        assert m.queue == [] and m.ran_out is None
+        assert m.is_useful()  # served now, not 3 steps later (which a starved robot never reaches)
+        assert m.deadline() <= 0.35 + 1e-9  # nothing held: it runs dry at once
+        fresh = served(m, 0.4)
+        assert fresh.episode == 1 and fresh.i_start == 2
+
+    def test_without_a_boundary_a_held_robot_would_never_be_served_again(self):
+        # The failure the boundary exists for: a robot that dropped its chunks but said nothing
+        # is held at an index the mirror thinks it still covers, so h_min is never reached.
+        m = mirror(fps=10.0, h_min=5, h_max=10)
+        m.on_observation(0, 0.0, 0.0)
+        served(m, 0.05)
+        for k in range(1, 30):
+            m.on_observation(2, 0.2 + 0.1 * k, 0.2 + 0.1 * k)
+            assert not m.is_useful()
+
+    def test_episode_going_backwards_is_refused(self):
+        m = mirror()
+        m.on_observation(0, 0.0, 0.0, episode=3)
+        with pytest.raises(ValueError, match="episode went backwards"):
+            m.on_observation(1, 0.1, 0.1, episode=2)
+        with pytest.raises(ValueError, match="episode must be >= 0"):
+            mirror().on_observation(0, 0.0, 0.0, episode=-1)
+
+    def test_a_first_observation_of_a_later_episode_is_no_boundary(self):
+        m = mirror()
+        m.on_observation(0, 0.0, 0.0, episode=7)  # a robot reconnecting mid-run
+        assert m.episode == 7 and m.episodes_started == 0 and m.is_useful()
+
+    def test_a_reordered_observation_of_the_old_episode_is_dropped(self):
+        m = mirror(fps=10.0, h_min=5)
+        m.on_observation(0, 0.0, 0.0)
+        m.on_observation(1, 0.2, 0.2, episode=1)
+        assert m.on_observation(0, 0.1, 0.21, episode=0) is False  # older capture: out of order
+        assert m.episode == 1
+
+    def test_boundaries_every_tick_buy_at_most_one_chunk_per_h_min_ticks(self):
+        # A robot claiming a new episode at every tick is served no more often than an honest
+        # robot that executes h_min actions per chunk.
+        fps, h_min = 10.0, 5
+        m = mirror(fps=fps, h_min=h_min, h_max=10)
+        m.on_observation(0, 0.0, 0.0)
+        served(m, 0.0)
+        served_at = []
+        for k in range(1, 101):
+            t = k / fps
+            m.on_observation(0, t, t, episode=k)
+            if m.is_useful():
+                served(m, t)
+                served_at.append(t)
+        assert served_at, "a boundary must make the robot useful"
+        gaps = [b - a for a, b in zip(served_at, served_at[1:])]
+        assert min(gaps) >= h_min / fps - 1e-9
+        assert len(served_at) <= 100 // h_min + 1

@@ -538,3 +538,73 @@ def test_armory_sim_reports_the_jerk_of_its_commanded_actions():
     stats = robot.task_stats()
     assert stats["action_jerk_max"] == pytest.approx(0.5)
     assert stats["action_jerk_mean"] == pytest.approx(0.5 / 3)
+
+
+# ---- episodes ----------------------------------------------------------------------------------
+
+
+def test_buffer_drop_chunks_keeps_their_receipts_and_an_unused_arrival_is_reported():
+    buf = ActionBuffer(h_max=5)
+    buf.add(0, 0, np.zeros((5, 1)), 0.0)
+    buf.action_for(0)
+    buf.add(1, 1, np.ones((5, 1)), 0.1)
+    buf.drop_chunks()
+    assert buf.action_for(1) is None and buf.current is None
+    buf.add_unused(2, 0.3)
+    receipts = buf.take_receipts()
+    assert (0, 0.0, 0) in receipts and (1, 0.1, -1) in receipts and (2, 0.3, -1) in receipts
+
+
+class EpisodeEchoEngine(UnguidedEngine):
+    """Chunks whose every action is the observation's first state value (the robot's episode)."""
+
+    def __init__(self, delay_s: float = 0.0) -> None:
+        self.delay_s = delay_s
+
+    def infer(self, observations, tasks, noise_seeds=None, history=None):
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        values = np.array([obs["observation.state"][0] for obs in observations], np.float32)
+        return np.repeat(values[:, None, None], 10, axis=1).repeat(2, axis=2)
+
+
+@pytest.mark.parametrize(("delay_s", "h_min"), [(0.0, 8), (0.12, 2)])
+def test_after_an_episode_boundary_no_old_chunk_runs_and_a_fresh_one_comes_at_once(delay_s, h_min):
+    """A robot that resets its world every 0.5 s: every action it executes carries the episode
+    it was executed in (none of the old world's), and each new episode is served without waiting
+    for h_min executed actions. With a slow engine and h_min = 2 a chunk is nearly always in
+    flight, so some arrive after a reset, tagged with their old episode, and are dropped."""
+    features = [FeatureSpec("observation.state", "float32", (2,))]
+    info = PolicyInfo("episode echo", features, ["x", "y"], 10)
+    server = ArmoryServer(EpisodeEchoEngine(delay_s), info, LatencyProfile("t", (5.0, 6.0)), EarliestDeadlineConfig(), 2, port=0).start()
+    fps = 20.0
+    world = {"episode": 0, "start": time.monotonic()}
+    executed: list[tuple[int, float]] = []
+
+    def observe():
+        if time.monotonic() - world["start"] > 0.5:  # the world resets (a success or a time limit)
+            world["episode"] += 1
+            world["start"] = time.monotonic()
+        return {"observation.state": np.array([world["episode"], 0.0], np.float32)}
+
+    client = ArmoryClient(
+        server.address,
+        RobotIdentity("resetter", fps=fps, h_min=h_min, h_max=10),
+        {"observation.state": ("float32", (2,))},
+        observe=observe,
+        act=lambda vector: executed.append((world["episode"], float(vector[0]))),
+        episode_of=lambda: world["episode"],
+    )
+    try:
+        stats = client.run(4.0)
+    finally:
+        client.close()
+        server.stop(grace_s=0.5)
+    assert stats["episodes"] >= 6
+    assert executed and all(episode == value for episode, value in executed), "an old episode's action ran"
+    # Each episode lasts 10 ticks; one inference and one tick of delay later it acts again, so a
+    # robot made to wait for h_min = 8 executed actions (which it never gets) would starve on.
+    by_episode = {e: sum(1 for ep, _ in executed if ep == e) for e in range(1, stats["episodes"] - 1)}
+    assert all(n >= 3 for n in by_episode.values()), by_episode
+    if delay_s:
+        assert stats["stale_episode_chunks"] >= 1

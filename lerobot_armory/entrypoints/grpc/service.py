@@ -277,7 +277,7 @@ class ArmoryService(ArmoryServicer):
             for name, arr in arrays.items():
                 if arr.dtype.kind == "f" and not np.isfinite(arr).all():
                     raise WireError(f"{name} contains NaN or inf")
-            self.fleet.on_observation(session, int(obs.index), float(obs.capture_time), arrays, recv)
+            self.fleet.on_observation(session, int(obs.index), float(obs.capture_time), arrays, recv, int(obs.episode))
         except (WireError, ValueError) as exc:
             session.counters.rejected += 1
             self._notice(session, NoticeKind.REJECTED_OBSERVATION, f"observation {obs.index} dropped: {exc}", obs.index)

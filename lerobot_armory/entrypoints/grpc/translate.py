@@ -30,6 +30,7 @@ def to_wire(msg: ServerMessage) -> pb.ServerMessage:
             actions=encode("action", np.ascontiguousarray(msg.actions, dtype=np.float32)),
             server_send_time=msg.server_send_time,
             obs_capture_time=msg.obs_capture_time,
+            episode=msg.episode,
         )
         return pb.ServerMessage(chunk=chunk)
     if isinstance(msg, Notice):
