@@ -1,8 +1,9 @@
-"""A group of ``armory_sim`` robots in one process (``python -m lerobot_armory.bench.robots SPEC.json``).
+"""A group of simulated robots in one process (``python -m lerobot_armory.bench.robots SPEC.json``).
 
-The live benchmark starts a few of these so that a 2-core machine is not drowned in processes;
-each robot runs the real :class:`~lerobot_armory.robot.client.ArmoryClient` loop in its own
-thread, with the emulated network of the spec, and writes its stats JSON.
+The live benchmarks start a few of these so that a 2-core machine is not drowned in processes;
+each robot (``armory_sim``, or ``metaworld`` where the group's ``kind`` says so) runs the real
+:class:`~lerobot_armory.robot.client.ArmoryClient` loop in its own thread, with the emulated
+network of the spec, and writes its stats JSON.
 """
 
 from __future__ import annotations
@@ -23,20 +24,30 @@ from lerobot_armory.robot.netem import NetworkEmulator
 
 
 def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:
-    robot = ArmorySim(ArmorySimConfig(scene=spec["scene"], image_size=group["image_size"], seed=spec["seed"]))
+    if group.get("kind", "armory_sim") == "metaworld":
+        from lerobot_armory.robot.metaworld import MetaWorldRobot, MetaWorldRobotConfig
+
+        robot = MetaWorldRobot(MetaWorldRobotConfig(task=spec["task"], seed=spec["seed"], episodes=spec.get("episodes", 0)))
+        task_text = robot.config.task
+    else:
+        robot = ArmorySim(ArmorySimConfig(scene=spec["scene"], image_size=group["image_size"], seed=spec["seed"]))
+        task_text = spec["scene"]
+    robot.connect()
     fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
     net = LogNormalDelay(group["net_median_ms"] / 1000.0, group["net_sigma"])
     network = (lambda: NetworkEmulator(net, net, seed=spec["seed"])) if group["net_median_ms"] > 0 else None
+    episodes = isinstance(getattr(robot, "episode", None), int) and not group.get("no_episode_boundaries", False)
     client = ArmoryClient(
         group["address"],
-        RobotIdentity(spec["robot_id"], spec["fps"], spec["h_min"], spec["h_max"], spec["weight"], spec["tier"], spec["scene"]),
+        RobotIdentity(spec["robot_id"], spec["fps"], spec["h_min"], spec["h_max"], spec["weight"], spec["tier"], task_text),
         fmap.wire_features(),
         observe=lambda: fmap.to_wire(robot.get_observation()),
         act=lambda vector: robot.send_action(fmap.to_action(vector)),
         backoff=Backoff(0.2, 1.0, give_up_s=30.0),
         network=network,
+        episode_of=(lambda: robot.episode) if episodes else None,
+        finished=(lambda: robot.finished) if hasattr(robot, "finished") else None,
     )
-    robot.connect()
     try:
         stats = client.run(group["duration_s"])
     finally:
@@ -45,7 +56,7 @@ def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:
     stats.update(robot.task_stats())
     minutes = stats["ticks"] / spec["fps"] / 60.0
     stats["successes_per_min"] = stats["successes"] / minutes if minutes else 0.0
-    stats.update({k: spec[k] for k in ("scene", "fps", "h_min", "h_max", "weight")})
+    stats.update({k: spec[k] for k in ("scene", "task", "fps", "h_min", "h_max", "weight") if k in spec})
     return stats
 
 

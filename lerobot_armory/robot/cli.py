@@ -247,6 +247,9 @@ def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, An
             tls_ca=tls_ca,
             token=token,
             check_registration=check_registration,
+            # A robot that counts its own episodes (a simulator's resets) tells the server of each.
+            episode_of=(lambda: int(robot.episode)) if isinstance(getattr(robot, "episode", None), int) else None,
+            finished=(lambda: bool(robot.finished)) if hasattr(robot, "finished") else None,
         )
         try:
             stats = client.run(cfg.duration_s)

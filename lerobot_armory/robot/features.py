@@ -9,6 +9,10 @@ feature), and produce one action vector whose entries follow the robot's float
 ``action_features`` order — exactly how LeRobot's ``hw_to_dataset_features`` builds a dataset's
 ``observation.state`` and ``action`` names, so a policy trained on a LeRobot dataset of the robot
 lines up entry by entry.
+
+A simulated robot may also report the world's state (``environment_state.<k>`` floats: object
+poses, the goal), which goes out as ``observation.environment_state`` in declared order, the
+feature LeRobot's state-based policies (ACT, diffusion) read beside or instead of images.
 """
 
 from __future__ import annotations
@@ -20,7 +24,11 @@ from typing import Any
 import numpy as np
 
 STATE = "observation.state"
+ENV_STATE = "observation.environment_state"
 IMAGES = "observation.images."
+# Float features named with this prefix are a simulator's privileged state (object poses, the
+# goal): LeRobot's policies read them as ``observation.environment_state``, not as robot state.
+ENV_STATE_PREFIX = "environment_state."
 
 
 @dataclass(frozen=True)
@@ -30,11 +38,14 @@ class FeatureMap:
     state_keys: tuple[str, ...]
     cameras: dict[str, tuple[int, int, int]]
     action_keys: tuple[str, ...]
+    env_state_keys: tuple[str, ...] = ()
 
     @classmethod
     def for_robot(cls, observation_features: Mapping[str, Any], action_features: Mapping[str, Any]) -> FeatureMap:
         """Read a robot's declared features (after ``connect()``: cameras may learn their size then)."""
-        state = tuple(k for k, v in observation_features.items() if v is float)
+        floats = [k for k, v in observation_features.items() if v is float]
+        state = tuple(k for k in floats if not k.startswith(ENV_STATE_PREFIX))
+        env_state = tuple(k for k in floats if k.startswith(ENV_STATE_PREFIX))
         cams: dict[str, tuple[int, int, int]] = {}
         for k, v in observation_features.items():
             if isinstance(v, tuple):
@@ -46,7 +57,7 @@ class FeatureMap:
         actions = tuple(k for k, v in action_features.items() if v is float)
         if not actions:
             raise ValueError("the robot declares no float action features")
-        return cls(state, cams, actions)
+        return cls(state, cams, actions, env_state)
 
     def action_mismatch(self, policy_action_dim: int, robot: str) -> str | None:
         """Why a policy with actions of ``policy_action_dim`` cannot drive this robot (None: it can)."""
@@ -62,6 +73,8 @@ class FeatureMap:
         out: dict[str, tuple[str, tuple[int, ...]]] = {}
         if self.state_keys:
             out[STATE] = ("float32", (len(self.state_keys),))
+        if self.env_state_keys:
+            out[ENV_STATE] = ("float32", (len(self.env_state_keys),))
         for name, shape in self.cameras.items():
             out[IMAGES + name] = ("uint8", shape)
         return out
@@ -71,6 +84,8 @@ class FeatureMap:
         out: dict[str, np.ndarray] = {}
         if self.state_keys:
             out[STATE] = np.array([raw[k] for k in self.state_keys], dtype=np.float32)
+        if self.env_state_keys:
+            out[ENV_STATE] = np.array([raw[k] for k in self.env_state_keys], dtype=np.float32)
         for name in self.cameras:
             frame = np.asarray(raw[name])
             if frame.dtype != np.uint8:

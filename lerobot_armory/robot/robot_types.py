@@ -5,7 +5,7 @@ command line is parsed are choices. LeRobot's own scripts import their robots by
 list in ``lerobot/async_inference/robot_client.py``); here the ``lerobot.robots`` package is
 walked instead, so a newer LeRobot's robots appear by themselves. Then come third-party
 ``lerobot_robot_*`` plugins (LeRobot's ``register_third_party_plugins()``), then the robots shipped
-here (``armory_sim``, ``piper``). LeRobot's camera configs are found the same way, so
+here (``armory_sim``, ``piper``, ``metaworld``). LeRobot's camera configs are found the same way, so
 ``--robot.cameras='{"wrist": {"type": "opencv", ...}}'`` parses for every robot.
 """
 
@@ -26,6 +26,7 @@ LEROBOT_PACKAGES: tuple[str, ...] = ("lerobot.robots", "lerobot.cameras")
 OWN_CONFIG_MODULES: tuple[str, ...] = (
     "lerobot_armory.robot.armory_sim.config_armory_sim",
     "lerobot_armory.robot.piper.config_piper",
+    "lerobot_armory.robot.metaworld.config_metaworld",
 )
 
 #: ``{module: reason}`` of everything that could not be imported by the last registration

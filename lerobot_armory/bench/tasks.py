@@ -1,0 +1,318 @@
+"""``lerobot-armory-tasks``: a trained policy's task success, run locally and served to a fleet.
+
+    lerobot-armory-tasks --policy_path=examples/checkpoints/metaworld-push-act --task=push --episodes=20
+
+Two ways to run the same checkpoint on the same MetaWorld seeds:
+
+- ``local``: LeRobot's own evaluation loop (what ``lerobot-eval`` does: the checkpoint's saved
+  pre/post processors, ``policy.reset()`` at every episode, ``select_action`` every tick), in
+  simulated time, as fast as the CPU allows;
+- ``served``: the real ``lerobot-armory-server`` serving the checkpoint (optionally with an
+  emulated GPU latency profile) to ``--robots`` ``metaworld`` robots, each stepping its simulator
+  at ``--fps`` on the wall clock over the real gRPC protocol, holding when starved.
+
+It prints, per robot and for the fleet, episodes, successes, the success rate with its 95 %
+(Wilson) interval, successes per minute and starvation; with ``--mode=both`` it says whether the
+served success rate lies inside the local run's 95 % interval (the correctness anchor: serving
+must not cost a checkpoint its task success). Robot ``k`` runs seeds ``seed + k·episodes`` on,
+so a fleet covers exactly the seeds a local run of ``robots · episodes`` episodes does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lerobot_armory.cli_util import parse_or_exit, run_or_exit
+from lerobot_armory.errors import ConfigError
+from lerobot_armory.robot.metaworld.tasks import TASKS
+
+MODES = ("local", "served", "both")
+
+
+@dataclass
+class TasksConfig:
+    """Options of ``lerobot-armory-tasks``.
+
+    Attributes:
+        policy_path: the checkpoint (a LeRobot policy directory or hub id), trained on the task.
+        task: the MetaWorld task (``push``: static; ``reach-moving``: dynamic).
+        mode: ``local`` (LeRobot's loop), ``served`` (through the fleet) or ``both``.
+        robots: fleet size N (served).
+        episodes: episodes per robot (local: ``robots · episodes`` in all).
+        seed: the first episode's seed (evaluation seeds are 1000 and up).
+        fps: the robots' control rate (served).
+        h_min / h_max: the robots' horizons (served): served again after ``h_min`` executed
+            actions, at most ``h_max`` actions of a chunk executed.
+        n_action_steps: actions executed per chunk in the local loop (default: ``h_min``, so the
+            two runs re-plan equally often).
+        scheduler: ``--scheduler.type`` of the server.
+        max_batch_size: the server's batch cap.
+        emulate_profile: a latency profile the server replays (``l40s-pi05``, ``h200-pi05``, a
+            file); empty: the checkpoint's real timing on this CPU.
+        server_args: more server options, space-separated.
+        groups: robot processes (robots are spread over them).
+        max_minutes: give up a served run after this long (its robots' partial results are kept).
+        output: write the results as JSON here.
+    """
+
+    policy_path: str = ""
+    task: str = "push"
+    mode: str = "both"
+    robots: int = 1
+    episodes: int = 20
+    seed: int = 1000
+    fps: float = 30.0
+    h_min: int = 10
+    h_max: int = 20
+    n_action_steps: int | None = None
+    scheduler: str = "edf"
+    max_batch_size: int = 8
+    emulate_profile: str = ""
+    server_args: str = ""
+    groups: int = 1
+    max_minutes: float = 30.0
+    output: str | None = None
+
+    def validate(self) -> None:
+        if not self.policy_path:
+            raise ConfigError("policy_path", "name the checkpoint to evaluate (a LeRobot policy directory or hub id)")
+        if self.task not in TASKS:
+            raise ConfigError("task", f"unknown task {self.task!r}: known tasks are {', '.join(sorted(TASKS))}")
+        if self.mode not in MODES:
+            raise ConfigError("mode", f"must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.robots < 1 or self.episodes < 1:
+            raise ConfigError("robots", "robots and episodes must be >= 1")
+        if not 0 < self.fps <= 1000:
+            raise ConfigError("fps", f"must be in (0, 1000], got {self.fps}")
+        if not 1 <= self.h_min <= self.h_max:
+            raise ConfigError("h_min", f"need 1 <= h_min <= h_max, got {self.h_min}, {self.h_max}")
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a success rate (``(0, 1)`` for no episodes)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+# ---- local: LeRobot's own loop ---------------------------------------------------------------
+
+
+def run_local(cfg: TasksConfig) -> dict[str, Any]:
+    """The checkpoint in LeRobot's evaluation loop, one episode per seed (simulated time)."""
+    import torch
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
+
+    config = PreTrainedConfig.from_pretrained(cfg.policy_path)
+    config.device = "cpu"
+    if hasattr(config, "n_action_steps"):
+        config.n_action_steps = cfg.n_action_steps or cfg.h_min
+    policy = get_policy_class(config.type).from_pretrained(cfg.policy_path, config=config)
+    policy.eval()
+    pre, post = make_pre_post_processors(config, pretrained_path=cfg.policy_path)
+    task = MetaWorldTask(cfg.task)
+    results = []
+    t0 = time.monotonic()
+    total = cfg.robots * cfg.episodes
+    for k in range(total):
+        seed = cfg.seed + k
+        task.reset(seed)
+        policy.reset()
+        pre.reset() if hasattr(pre, "reset") else None
+        while True:
+            obs = {
+                "observation.state": torch.from_numpy(task.agent_state()).unsqueeze(0),
+                "observation.environment_state": torch.from_numpy(task.environment_state()).unsqueeze(0),
+                "task": [task.spec.description],
+            }
+            with torch.inference_mode():
+                action = post(policy.select_action(pre(obs)))
+            if task.step(action.squeeze(0).cpu().numpy()).done:
+                break
+        results.append({"seed": seed, "success": bool(task.success), "ticks": task.ticks})
+        if (k + 1) % 10 == 0 or k + 1 == total:
+            wins = sum(r["success"] for r in results)
+            print(f"  local: {k + 1}/{total} episodes, {wins} successes ({time.monotonic() - t0:.0f} s)", flush=True)
+    wins = sum(r["success"] for r in results)
+    return {
+        "mode": "local",
+        "episodes": len(results),
+        "successes": wins,
+        "success_rate": wins / len(results),
+        "interval95": wilson(wins, len(results)),
+        "n_action_steps": config.n_action_steps if hasattr(config, "n_action_steps") else None,
+        "episode_results": results,
+    }
+
+
+# ---- served: the fleet -----------------------------------------------------------------------
+
+
+def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
+    from lerobot_armory.bench.live import _start_server as start
+
+    return start(args)
+
+
+def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) -> dict[str, Any]:
+    """The checkpoint served to ``cfg.robots`` MetaWorld robots over the real protocol."""
+    run_dir = work / f"{cfg.task}-N{cfg.robots}-{cfg.scheduler}-{cfg.emulate_profile or 'cpu'}"
+    (run_dir / "stats").mkdir(parents=True, exist_ok=True)
+    batch_log = run_dir / "batches.jsonl"
+    args = [
+        f"--policy.path={cfg.policy_path}", "--policy.device=cpu", "--port=0", f"--scheduler.type={cfg.scheduler}",
+        f"--max_batch_size={cfg.max_batch_size}", f"--batch_log={batch_log}", "--status_interval_s=0", "--log_level=warning",
+        *shlex.split(cfg.server_args),
+    ]  # fmt: skip
+    if cfg.emulate_profile:
+        args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
+    server, address = _start_server(args)
+    groups = max(1, min(cfg.groups, cfg.robots))
+    procs = []
+    t0 = time.monotonic()
+    try:
+        for g in range(groups):
+            robots = [
+                {
+                    "robot_id": f"{cfg.task}-{k}", "tier": "fast" if TASKS[cfg.task].kind == "dynamic" else "slow",
+                    "task": cfg.task, "fps": cfg.fps, "h_min": cfg.h_min, "h_max": cfg.h_max, "weight": 1.0,
+                    "seed": cfg.seed + k * cfg.episodes, "episodes": cfg.episodes,
+                }
+                for k in range(cfg.robots) if k % groups == g
+            ]  # fmt: skip
+            spec = run_dir / f"group{g}.json"
+            spec.write_text(json.dumps({
+                "kind": "metaworld", "address": address, "duration_s": cfg.max_minutes * 60.0,
+                "stats_dir": str(run_dir / "stats"), "robots": robots, "net_median_ms": 0.0, "net_sigma": 0.0,
+                "image_size": 0, "no_episode_boundaries": not episode_boundaries,
+            }))  # fmt: skip
+            procs.append(subprocess.Popen([sys.executable, "-m", "lerobot_armory.bench.robots", str(spec)]))
+        codes = [p.wait(timeout=cfg.max_minutes * 60.0 + 120) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    if any(codes):
+        raise RuntimeError(f"robot group(s) failed with exit codes {codes}; see the messages above")
+    wall = time.monotonic() - t0
+    stats = [json.loads(p.read_text()) for p in sorted((run_dir / "stats").glob("*.json"))]
+    batches = [json.loads(line) for line in batch_log.read_text().splitlines() if line.strip()]
+    per_robot = []
+    for s in stats:
+        minutes = s["ticks"] / s["fps"] / 60.0
+        s["successes_per_min"] = s["successes"] / minutes if minutes else 0.0
+        per_robot.append(s)
+    episodes = sum(s["episodes_done"] for s in stats)
+    wins = sum(s["successes"] for s in stats)
+    sizes: dict[str, int] = {}
+    for b in batches:
+        sizes[str(len(b["robots"]))] = sizes.get(str(len(b["robots"])), 0) + 1
+    return {
+        "mode": "served",
+        "episode_boundaries": episode_boundaries,
+        "robots": cfg.robots,
+        "episodes": episodes,
+        "successes": wins,
+        "success_rate": wins / episodes if episodes else 0.0,
+        "interval95": wilson(wins, episodes),
+        "successes_per_min": float(sum(s["successes_per_min"] for s in stats)),
+        "successes_per_min_per_robot": float(np.mean([s["successes_per_min"] for s in stats])),
+        "starvation_pct": float(np.mean([s["starvation_pct"] for s in stats])),
+        "stale_episode_chunks": int(sum(s.get("stale_episode_chunks", 0) for s in stats)),
+        "batch_sizes": dict(sorted(sizes.items(), key=lambda kv: int(kv[0]))),
+        "wall_s": wall,
+        "per_robot": per_robot,
+    }
+
+
+def robot_table(served: dict[str, Any]) -> str:
+    """One row per robot, then the fleet."""
+    header = f"{'robot':<16} {'episodes':>8} {'successes':>9} {'rate':>6} {'95% interval':>14} {'succ/min':>8} {'starved %':>9}"
+    lines = [header, "-" * len(header)]
+    for s in served["per_robot"]:
+        lo, hi = wilson(s["successes"], s["episodes_done"])
+        rate = s["successes"] / s["episodes_done"] if s["episodes_done"] else 0.0
+        lines.append(
+            f"{s['robot_id']:<16} {s['episodes_done']:>8} {s['successes']:>9} {rate:>6.2f} {f'{lo:.2f}-{hi:.2f}':>14} "
+            f"{s['successes_per_min']:>8.2f} {s['starvation_pct']:>9.1f}"
+        )
+    lo, hi = served["interval95"]
+    lines.append(
+        f"{'fleet':<16} {served['episodes']:>8} {served['successes']:>9} {served['success_rate']:>6.2f} {f'{lo:.2f}-{hi:.2f}':>14} "
+        f"{served['successes_per_min']:>8.2f} {served['starvation_pct']:>9.1f}"
+    )
+    return "\n".join(lines)
+
+
+def run(cfg: TasksConfig) -> dict[str, Any]:
+    """Run the modes asked for, print the tables, write JSON; returns the results."""
+    cfg.validate()
+    warnings.filterwarnings("ignore", message="Constant")  # MetaWorld's experts, if imported
+    from lerobot_armory.robot.metaworld.tasks import _import_metaworld
+
+    _import_metaworld()  # one line if the simulator is missing, before any server starts
+    out: dict[str, Any] = {"command": "lerobot-armory-tasks " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "task": cfg.task}
+    total = cfg.robots * cfg.episodes
+    print(f"task {cfg.task} ({TASKS[cfg.task].kind}), checkpoint {cfg.policy_path}, {total} episodes, seeds {cfg.seed}..{cfg.seed + total - 1}")
+    if cfg.mode in ("local", "both"):
+        local = run_local(cfg)
+        lo, hi = local["interval95"]
+        print(f"local (LeRobot's select_action loop): {local['successes']}/{local['episodes']} = {local['success_rate']:.2f} [{lo:.2f}, {hi:.2f}]")
+        out["local"] = local
+    if cfg.mode in ("served", "both"):
+        prof = cfg.emulate_profile or "the checkpoint's real timing on this CPU"
+        print(f"served: {cfg.robots} metaworld robot(s) at {cfg.fps:g} Hz, h_min {cfg.h_min}, h_max {cfg.h_max}, {cfg.scheduler}, {prof}", flush=True)
+        work = Path(tempfile.mkdtemp(prefix="armory-tasks-"))
+        served = run_served(cfg, work)
+        print(robot_table(served))
+        out["served"] = served
+    if "local" in out and "served" in out:
+        lo, hi = out["local"]["interval95"]
+        inside = lo <= out["served"]["success_rate"] <= hi
+        out["anchor_holds"] = inside
+        print(
+            f"anchor: served {out['served']['success_rate']:.2f} is {'inside' if inside else 'OUTSIDE'} "
+            f"local's 95 % interval [{lo:.2f}, {hi:.2f}]"
+        )
+    if cfg.output:
+        Path(cfg.output).parent.mkdir(parents=True, exist_ok=True)
+        Path(cfg.output).write_text(json.dumps(out, indent=2, default=float) + "\n")
+        print(f"wrote {cfg.output}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    cfg = parse_or_exit(TasksConfig, argv, "lerobot-armory-tasks")
+    run_or_exit(run, cfg, "lerobot-armory-tasks")
+
+
+if __name__ == "__main__":
+    main()
