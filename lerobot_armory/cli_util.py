@@ -39,7 +39,12 @@ def parse_or_exit(config_class: type[T], argv: list[str] | None, prog: str) -> T
     except ConfigError as exc:
         _die(prog, str(exc))
     except Exception as exc:  # draccus raises assorted decoding errors; none deserve a traceback
-        _die(prog, _first_line(exc))
+        # A config's own check (__post_init__) raised inside draccus, which wraps it in "Couldn't
+        # instantiate class ...": the check's line names the field and what is wrong, so show it.
+        cause: BaseException | None = exc
+        while cause is not None and not isinstance(cause, ConfigError):
+            cause = cause.__cause__ or cause.__context__
+        _die(prog, str(cause) if cause is not None else _first_line(exc))
     raise AssertionError("unreachable")
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import shutil
 import sys
 import time
@@ -30,11 +31,15 @@ from lerobot_armory.robot.metaworld.tasks import ACTION_NAMES, STATE_NAMES, Meta
 
 
 def dataset_sha256(root: Path) -> str:
-    """sha256 over every file of the dataset (relative path and bytes, in sorted order)."""
+    """sha256 over every file of the dataset (relative path and bytes, in sorted order; JSON files
+    with sorted keys, since LeRobot writes meta/stats.json's keys in no fixed order)."""
     h = hashlib.sha256()
     for path in sorted(p for p in root.rglob("*") if p.is_file()):
         h.update(str(path.relative_to(root)).encode())
-        h.update(path.read_bytes())
+        data = path.read_bytes()
+        if path.suffix == ".json":
+            data = json.dumps(json.loads(data), sort_keys=True).encode()
+        h.update(data)
     return h.hexdigest()
 
 

@@ -39,7 +39,10 @@ def run_robot(spec: dict[str, Any], group: dict[str, Any]) -> dict[str, Any]:
     episodes = isinstance(getattr(robot, "episode", None), int) and not group.get("no_episode_boundaries", False)
     client = ArmoryClient(
         group["address"],
-        RobotIdentity(spec["robot_id"], spec["fps"], spec["h_min"], spec["h_max"], spec["weight"], spec["tier"], task_text),
+        RobotIdentity(
+            spec["robot_id"], spec["fps"], spec["h_min"], spec["h_max"], spec["weight"], spec["tier"], task_text,
+            policy_name=spec.get("policy_name", ""),
+        ),
         fmap.wire_features(),
         observe=lambda: fmap.to_wire(robot.get_observation()),
         act=lambda vector: robot.send_action(fmap.to_action(vector)),

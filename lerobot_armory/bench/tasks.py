@@ -48,11 +48,19 @@ class TasksConfig:
     """Options of ``lerobot-armory-tasks``.
 
     Attributes:
-        policy_path: the checkpoint (a LeRobot policy directory or hub id), trained on the task.
-        task: the MetaWorld task (``push``: static; ``reach-moving``: dynamic).
+        policy_path: the checkpoint (a LeRobot policy directory or hub id), trained on the task;
+            with several tasks, one per task: ``push=DIR,reach-moving=DIR`` (served as
+            ``--policies``, each robot registering for its task's policy).
+        task: the MetaWorld task (``push``: static; ``reach-moving``: dynamic), or several,
+            comma-separated: robot ``k`` runs the ``k mod n``-th (a mixed fleet; dynamic robots
+            are the fast tier).
         mode: ``local`` (LeRobot's loop), ``served`` (through the fleet) or ``both``.
         robots: fleet size N (served).
-        episodes: episodes per robot (local: ``robots · episodes`` in all).
+        episodes: episodes per robot (local: ``robots · episodes`` in all); 0 with
+            ``duration_s``: as many as fit.
+        duration_s: served: stop every robot after this many seconds (0: after its episodes).
+        fast_weight: the weight dynamic-task robots ask for (Lookahead's), granted by the
+            server's fleet policy.
         seed: the first episode's seed (evaluation seeds are 1000 and up).
         fps: the robots' control rate (served).
         h_min / h_max: the robots' horizons (served): served again after ``h_min`` executed
@@ -74,6 +82,8 @@ class TasksConfig:
     mode: str = "both"
     robots: int = 1
     episodes: int = 20
+    duration_s: float = 0.0
+    fast_weight: float = 1.0
     seed: int = 1000
     fps: float = 30.0
     h_min: int = 10
@@ -90,16 +100,43 @@ class TasksConfig:
     def validate(self) -> None:
         if not self.policy_path:
             raise ConfigError("policy_path", "name the checkpoint to evaluate (a LeRobot policy directory or hub id)")
-        if self.task not in TASKS:
-            raise ConfigError("task", f"unknown task {self.task!r}: known tasks are {', '.join(sorted(TASKS))}")
         if self.mode not in MODES:
             raise ConfigError("mode", f"must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.robots < 1 or self.episodes < 1:
-            raise ConfigError("robots", "robots and episodes must be >= 1")
+        for task in self.tasks:
+            if task not in TASKS:
+                raise ConfigError("task", f"unknown task {task!r}: known tasks are {', '.join(sorted(TASKS))}")
+        paths = self.policy_paths  # raises on a bad mapping
+        missing = [t for t in self.tasks if t not in paths]
+        if missing:
+            raise ConfigError("policy_path", f"no checkpoint for task(s) {', '.join(missing)}: write task=DIR for each")
+        if self.robots < 1 or self.episodes < 0 or (self.episodes == 0 and self.duration_s <= 0):
+            raise ConfigError("robots", "robots must be >= 1 and episodes >= 1 (or 0 with duration_s > 0)")
+        if self.mode != "served" and (self.episodes == 0 or len(self.tasks) > 1):
+            raise ConfigError("mode", "a local run needs one task and episodes >= 1: use --mode=served")
+        if not self.fast_weight > 0:
+            raise ConfigError("fast_weight", f"must be > 0, got {self.fast_weight}")
         if not 0 < self.fps <= 1000:
             raise ConfigError("fps", f"must be in (0, 1000], got {self.fps}")
         if not 1 <= self.h_min <= self.h_max:
             raise ConfigError("h_min", f"need 1 <= h_min <= h_max, got {self.h_min}, {self.h_max}")
+
+
+    @property
+    def tasks(self) -> list[str]:
+        return [t.strip() for t in self.task.split(",") if t.strip()]
+
+    @property
+    def policy_paths(self) -> dict[str, str]:
+        """``{task: checkpoint}``: one path for every task, or ``task=path`` pairs."""
+        if "=" not in self.policy_path:
+            return dict.fromkeys(self.tasks, self.policy_path)
+        out = {}
+        for pair in self.policy_path.split(","):
+            task, sep, path = pair.partition("=")
+            if not sep or not path.strip():
+                raise ConfigError("policy_path", f"expected task=DIR pairs, got {pair!r}")
+            out[task.strip()] = path.strip()
+        return out
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -124,14 +161,15 @@ def run_local(cfg: TasksConfig) -> dict[str, Any]:
 
     from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
 
-    config = PreTrainedConfig.from_pretrained(cfg.policy_path)
+    path = cfg.policy_paths[cfg.tasks[0]]
+    config = PreTrainedConfig.from_pretrained(path)
     config.device = "cpu"
     if hasattr(config, "n_action_steps"):
         config.n_action_steps = cfg.n_action_steps or cfg.h_min
-    policy = get_policy_class(config.type).from_pretrained(cfg.policy_path, config=config)
+    policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.eval()
-    pre, post = make_pre_post_processors(config, pretrained_path=cfg.policy_path)
-    task = MetaWorldTask(cfg.task)
+    pre, post = make_pre_post_processors(config, pretrained_path=path)
+    task = MetaWorldTask(cfg.tasks[0])
     results = []
     t0 = time.monotonic()
     total = cfg.robots * cfg.episodes
@@ -176,39 +214,52 @@ def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
 
 
 def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) -> dict[str, Any]:
-    """The checkpoint served to ``cfg.robots`` MetaWorld robots over the real protocol."""
-    run_dir = work / f"{cfg.task}-N{cfg.robots}-{cfg.scheduler}-{cfg.emulate_profile or 'cpu'}"
+    """The checkpoint(s) served to ``cfg.robots`` MetaWorld robots over the real protocol."""
+    tasks, paths = cfg.tasks, cfg.policy_paths
+    run_dir = work / f"{'+'.join(tasks)}-N{cfg.robots}-{cfg.scheduler}-{cfg.emulate_profile or 'cpu'}-h{cfg.h_min}-{cfg.h_max}"
     (run_dir / "stats").mkdir(parents=True, exist_ok=True)
     batch_log = run_dir / "batches.jsonl"
     args = [
-        f"--policy.path={cfg.policy_path}", "--policy.device=cpu", "--port=0", f"--scheduler.type={cfg.scheduler}",
-        f"--max_batch_size={cfg.max_batch_size}", f"--batch_log={batch_log}", "--status_interval_s=0", "--log_level=warning",
-        *shlex.split(cfg.server_args),
+        "--policy.device=cpu", "--port=0", f"--scheduler.type={cfg.scheduler}", f"--max_batch_size={cfg.max_batch_size}",
+        f"--batch_log={batch_log}", "--status_interval_s=0", "--log_level=warning", *shlex.split(cfg.server_args),
     ]  # fmt: skip
+    if len(tasks) > 1:
+        (run_dir / "policies.json").write_text(json.dumps({t: {"path": paths[t]} for t in tasks}))
+        args.append(f"--policies={run_dir / 'policies.json'}")
+    else:
+        args.append(f"--policy.path={paths[tasks[0]]}")
+    specs = []
+    for k in range(cfg.robots):
+        task = tasks[k % len(tasks)]
+        fast = TASKS[task].kind == "dynamic"
+        specs.append({
+            "robot_id": f"{task}-{k}", "tier": "fast" if fast else "slow", "task": task,
+            "policy_name": task if len(tasks) > 1 else "", "fps": cfg.fps, "h_min": cfg.h_min, "h_max": cfg.h_max,
+            "weight": cfg.fast_weight if fast else 1.0, "seed": cfg.seed + k * (cfg.episodes or 1000),
+            "episodes": cfg.episodes,
+        })  # fmt: skip
+    if any(s["weight"] != 1.0 for s in specs):  # the operator grants the weights the fast robots ask for
+        (run_dir / "fleet_policy.json").write_text(
+            json.dumps({"robots": {s["robot_id"]: {"max_weight": s["weight"]} for s in specs if s["weight"] != 1.0}})
+        )
+        args.append(f"--fleet.policy={run_dir / 'fleet_policy.json'}")
     if cfg.emulate_profile:
         args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
     server, address = _start_server(args)
     groups = max(1, min(cfg.groups, cfg.robots))
+    limit_s = cfg.duration_s or cfg.max_minutes * 60.0
     procs = []
     t0 = time.monotonic()
     try:
         for g in range(groups):
-            robots = [
-                {
-                    "robot_id": f"{cfg.task}-{k}", "tier": "fast" if TASKS[cfg.task].kind == "dynamic" else "slow",
-                    "task": cfg.task, "fps": cfg.fps, "h_min": cfg.h_min, "h_max": cfg.h_max, "weight": 1.0,
-                    "seed": cfg.seed + k * cfg.episodes, "episodes": cfg.episodes,
-                }
-                for k in range(cfg.robots) if k % groups == g
-            ]  # fmt: skip
             spec = run_dir / f"group{g}.json"
             spec.write_text(json.dumps({
-                "kind": "metaworld", "address": address, "duration_s": cfg.max_minutes * 60.0,
-                "stats_dir": str(run_dir / "stats"), "robots": robots, "net_median_ms": 0.0, "net_sigma": 0.0,
+                "kind": "metaworld", "address": address, "duration_s": limit_s, "stats_dir": str(run_dir / "stats"),
+                "robots": [s for k, s in enumerate(specs) if k % groups == g], "net_median_ms": 0.0, "net_sigma": 0.0,
                 "image_size": 0, "no_episode_boundaries": not episode_boundaries,
             }))  # fmt: skip
             procs.append(subprocess.Popen([sys.executable, "-m", "lerobot_armory.bench.robots", str(spec)]))
-        codes = [p.wait(timeout=cfg.max_minutes * 60.0 + 120) for p in procs]
+        codes = [p.wait(timeout=limit_s + 120) for p in procs]
     finally:
         for p in procs:
             if p.poll() is None:
@@ -233,8 +284,23 @@ def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) ->
     sizes: dict[str, int] = {}
     for b in batches:
         sizes[str(len(b["robots"]))] = sizes.get(str(len(b["robots"])), 0) + 1
+    tiers = {}
+    for tier in ("fast", "slow"):
+        rows = [s for s in stats if s["tier"] == tier]
+        if rows:
+            n, w = sum(r["episodes_done"] for r in rows), sum(r["successes"] for r in rows)
+            tiers[tier] = {
+                "robots": len(rows), "episodes": n, "successes": w, "success_rate": w / n if n else 0.0,
+                "interval95": wilson(w, n), "successes_per_min_per_robot": float(np.mean([r["successes_per_min"] for r in rows])),
+                "starvation_pct": float(np.mean([r["starvation_pct"] for r in rows])),
+            }  # fmt: skip
     return {
         "mode": "served",
+        "tiers": tiers,
+        "scheduler": cfg.scheduler,
+        "emulate_profile": cfg.emulate_profile,
+        "h_min": cfg.h_min,
+        "h_max": cfg.h_max,
         "episode_boundaries": episode_boundaries,
         "robots": cfg.robots,
         "episodes": episodes,
@@ -278,8 +344,9 @@ def run(cfg: TasksConfig) -> dict[str, Any]:
 
     _import_metaworld()  # one line if the simulator is missing, before any server starts
     out: dict[str, Any] = {"command": "lerobot-armory-tasks " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "task": cfg.task}
-    total = cfg.robots * cfg.episodes
-    print(f"task {cfg.task} ({TASKS[cfg.task].kind}), checkpoint {cfg.policy_path}, {total} episodes, seeds {cfg.seed}..{cfg.seed + total - 1}")
+    kinds = ", ".join(f"{t} ({TASKS[t].kind})" for t in cfg.tasks)
+    size = f"{cfg.robots * cfg.episodes} episodes" if cfg.episodes else f"{cfg.duration_s:g} s"
+    print(f"task {kinds}, checkpoint {cfg.policy_path}, {cfg.robots} robot(s), {size}, seeds from {cfg.seed}")
     if cfg.mode in ("local", "both"):
         local = run_local(cfg)
         lo, hi = local["interval95"]

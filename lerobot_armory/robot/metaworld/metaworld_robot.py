@@ -138,6 +138,9 @@ class MetaWorldRobot(Robot):
 
     def disconnect(self) -> None:
         self._connected = False
+        if self.task is not None:
+            self.task.close()
+            self.task = None
 
     def task_stats(self) -> dict[str, Any]:
         """Episodes finished, successes, the success rate, and each episode's result."""

@@ -73,12 +73,15 @@ def task_spec(name: str) -> TaskSpec:
 
 
 def _import_metaworld() -> Any:
+    """MetaWorld, or one line saying what is missing (the package, the right MuJoCo, a renderer)."""
     try:
         import mujoco
     except ImportError:
         raise SimulatorUnavailable(
             "the metaworld robot needs MuJoCo: pip install 'lerobot-armory[metaworld]' (metaworld==3.0.0, mujoco==3.3.2)"
         ) from None
+    except Exception as exc:  # noqa: BLE001 - e.g. MUJOCO_GL naming a backend that does not exist
+        raise SimulatorUnavailable(f"MuJoCo cannot start: {_first_line(exc)} (MUJOCO_GL=egl renders offscreen without a display)") from None
     try:
         import metaworld
     except ImportError:
@@ -109,9 +112,9 @@ class MetaWorldTask:
     def __init__(self, name: str, render_size: int = 0) -> None:
         self.spec = task_spec(name)
         self.render_size = render_size
-        metaworld = _import_metaworld()
         if render_size:
-            os.environ.setdefault("MUJOCO_GL", "egl")
+            os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen, no display needed (read when MuJoCo is imported)
+        metaworld = _import_metaworld()
         mt1 = metaworld.MT1(self.spec.env_name, seed=0)
         kwargs: dict[str, Any] = {}
         if render_size:
@@ -198,10 +201,16 @@ class MetaWorldTask:
             frame = self.env.render()
         except Exception as exc:  # noqa: BLE001 - the renderer's own error, in one line
             raise SimulatorUnavailable(
-                f"MuJoCo cannot render here ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
-                "set MUJOCO_GL=egl or osmesa, or run state-only (image_size=0)"
+                f"MuJoCo cannot render here ({_first_line(exc)}); set MUJOCO_GL=egl or osmesa, or run state-only (image_size=0)"
             ) from None
         return np.ascontiguousarray(np.flip(frame, (0, 1)))  # MetaWorld's corner2 camera is upside down
+
+    def close(self) -> None:
+        """Release the simulator (and its renderer's context, which otherwise complains at exit)."""
+        try:
+            self.env.close()
+        except Exception:  # noqa: BLE001 - a renderer that never started has nothing to close
+            pass
 
     # ---- the scripted expert -----------------------------------------------------------------
 
@@ -214,3 +223,8 @@ class MetaWorldTask:
         aim = self.env._target_pos + self._target_velocity()
         delta = np.clip((aim - hand) * 40.0, -1.0, 1.0)
         return np.array([*delta, 0.0], dtype=np.float32)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
