@@ -15,7 +15,7 @@ dynamic tier, evaluation seeds from 1000; the checkpoints of examples/checkpoint
   profile (the paper's L40S π0.5; our H200 π0.5 graphs), for RR, EDF and Lookahead (w = 3):
   success rate (Wilson 95 %), successes per minute and starvation per tier, per run.
 
-Writes ``horizon.json``, ``fleet.json`` and ``README.md`` tables under ``--out``; exits 1 if a
+Writes ``horizon.json`` and ``fleet.json`` (after every run) under ``--out`` and prints their tables; exits 1 if a
 run fails. Figures come from one machine in one call; compare rows of one table only.
 """
 
@@ -56,7 +56,7 @@ def horizon_part(episodes: int) -> list[dict]:
     return rows
 
 
-def fleet_part(sizes: list[int], duration_s: float, profiles: list[str], schedulers: list[str]) -> list[dict]:
+def fleet_part(sizes: list[int], duration_s: float, profiles: list[str], schedulers: list[str], out: Path) -> list[dict]:
     base = TasksConfig(
         policy_path=",".join(f"{t}={p}" for t, p in CHECKPOINTS.items()), task="reach-moving,push", mode="served",
         episodes=0, duration_s=duration_s, groups=2,
@@ -84,6 +84,8 @@ def fleet_part(sizes: list[int], duration_s: float, profiles: list[str], schedul
                     for t, v in r["tiers"].items()
                 )
                 print(f"N={n} {profile} {scheduler}: {tiers}", flush=True)
+                # Written after every run: a run that fails later keeps the ones before it.
+                (out / "fleet.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2) + "\n")
     return rows
 
 
@@ -142,9 +144,8 @@ def main() -> int:
         print(horizon_table(rows))
     if "fleet" in parts:
         rows = fleet_part(
-            [int(n) for n in args.robots.split(",")], args.duration_s, args.profiles.split(","), args.schedulers.split(",")
+            [int(n) for n in args.robots.split(",")], args.duration_s, args.profiles.split(","), args.schedulers.split(","), args.out
         )
-        (args.out / "fleet.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2) + "\n")
         print(fleet_table(rows))
     return 0
 

@@ -67,6 +67,11 @@ class TasksConfig:
             actions, at most ``h_max`` actions of a chunk executed.
         n_action_steps: actions executed per chunk in the local loop (default: ``h_min``, so the
             two runs re-plan equally often).
+        latency_ticks: local: LeRobot's loop made asynchronous as a served robot is: a chunk is
+            asked for after ``h_min`` executed actions and arrives this many ticks later,
+            meanwhile the arm executes the chunk it holds (or holds, starved), then switches at
+            the current index, up to ``h_max`` actions of a chunk (0: LeRobot's synchronous
+            ``select_action`` loop). The served run at that delay should match it.
         scheduler: ``--scheduler.type`` of the server.
         max_batch_size: the server's batch cap.
         emulate_profile: a latency profile the server replays (``l40s-pi05``, ``h200-pi05``, a
@@ -89,6 +94,7 @@ class TasksConfig:
     h_min: int = 10
     h_max: int = 20
     n_action_steps: int | None = None
+    latency_ticks: int = 0
     scheduler: str = "edf"
     max_batch_size: int = 8
     emulate_profile: str = ""
@@ -113,6 +119,8 @@ class TasksConfig:
             raise ConfigError("robots", "robots must be >= 1 and episodes >= 1 (or 0 with duration_s > 0)")
         if self.mode != "served" and (self.episodes == 0 or len(self.tasks) > 1):
             raise ConfigError("mode", "a local run needs one task and episodes >= 1: use --mode=served")
+        if self.latency_ticks < 0:
+            raise ConfigError("latency_ticks", f"must be >= 0, got {self.latency_ticks}")
         if not self.fast_weight > 0:
             raise ConfigError("fast_weight", f"must be > 0, got {self.fast_weight}")
         if not 0 < self.fps <= 1000:
@@ -177,17 +185,22 @@ def run_local(cfg: TasksConfig) -> dict[str, Any]:
         seed = cfg.seed + k
         task.reset(seed)
         policy.reset()
-        pre.reset() if hasattr(pre, "reset") else None
-        while True:
-            obs = {
+
+        def observation() -> dict[str, Any]:
+            return {
                 "observation.state": torch.from_numpy(task.agent_state()).unsqueeze(0),
                 "observation.environment_state": torch.from_numpy(task.environment_state()).unsqueeze(0),
                 "task": [task.spec.description],
             }
-            with torch.inference_mode():
-                action = post(policy.select_action(pre(obs)))
-            if task.step(action.squeeze(0).cpu().numpy()).done:
-                break
+
+        if cfg.latency_ticks == 0:
+            while True:
+                with torch.inference_mode():
+                    action = post(policy.select_action(pre(observation())))
+                if task.step(action.squeeze(0).cpu().numpy()).done:
+                    break
+        else:
+            _run_delayed(cfg, task, lambda: _chunk(policy, pre, post, observation()))
         results.append({"seed": seed, "success": bool(task.success), "ticks": task.ticks})
         if (k + 1) % 10 == 0 or k + 1 == total:
             wins = sum(r["success"] for r in results)
@@ -200,11 +213,48 @@ def run_local(cfg: TasksConfig) -> dict[str, Any]:
         "success_rate": wins / len(results),
         "interval95": wilson(wins, len(results)),
         "n_action_steps": config.n_action_steps if hasattr(config, "n_action_steps") else None,
+        "latency_ticks": cfg.latency_ticks,
         "episode_results": results,
     }
 
 
 # ---- served: the fleet -----------------------------------------------------------------------
+
+
+def _chunk(policy: Any, pre: Any, post: Any, obs: dict[str, Any]) -> np.ndarray:
+    """The policy's whole chunk for one observation, in the robot's action space."""
+    import torch
+
+    with torch.inference_mode():
+        chunk = policy.predict_action_chunk(pre(obs))  # (1, H, action_dim), normalised
+        return post(chunk).squeeze(0).cpu().numpy()
+
+
+def _run_delayed(cfg: TasksConfig, task: Any, chunk_of: Any) -> None:
+    """One episode executed as a served robot executes it, with a constant delay of
+    ``cfg.latency_ticks`` ticks from an observation to its chunk (the robot's own action buffer)."""
+    from lerobot_armory.robot.actions import ActionBuffer
+
+    buffer = ActionBuffer(cfg.h_max)
+    pending: list[tuple[int, int, np.ndarray]] = []  # (arrival tick, i_start, actions)
+    index, tick, last_asked = 0, 0, None
+    grip = 0.0
+    while True:
+        if last_asked is None or index - last_asked >= cfg.h_min:  # the mirror's usefulness rule
+            pending.append((tick + cfg.latency_ticks, index, chunk_of()))
+            last_asked = index
+        for arrival, start, actions in [p for p in pending if p[0] <= tick]:
+            buffer.add(start, start, actions, float(arrival))
+        pending = [p for p in pending if p[0] > tick]
+        action = buffer.action_for(index)
+        if action is None:
+            action = np.array([0.0, 0.0, 0.0, grip])  # starved: the arm holds
+        else:
+            index += 1
+            grip = float(action[3])
+        tick += 1
+        if task.step(action).done:
+            return
 
 
 def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +42,11 @@ CIRCLE_RADIUS_M = 0.08
 TARGET_SPEED_M = 0.004
 HOLD_RADIUS_M = 0.03
 HOLD_TICKS = 8
+
+
+# metaworld.MT1 draws its tasks from numpy's global generator (seeded, then sampled): two robots
+# of one process building theirs at once interleave the draws ("Only generated 49 unique goals").
+_BUILD_LOCK = threading.Lock()
 
 
 class SimulatorUnavailable(RuntimeError):
@@ -115,12 +121,13 @@ class MetaWorldTask:
         if render_size:
             os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen, no display needed (read when MuJoCo is imported)
         metaworld = _import_metaworld()
-        mt1 = metaworld.MT1(self.spec.env_name, seed=0)
         kwargs: dict[str, Any] = {}
         if render_size:
             kwargs = {"render_mode": "rgb_array", "camera_name": "corner2", "width": render_size, "height": render_size}
-        env = mt1.train_classes[self.spec.env_name](**kwargs)
-        env.set_task(mt1.train_tasks[0])
+        with _BUILD_LOCK:
+            mt1 = metaworld.MT1(self.spec.env_name, seed=0)
+            env = mt1.train_classes[self.spec.env_name](**kwargs)
+            env.set_task(mt1.train_tasks[0])
         env._freeze_rand_vec = False  # each reset draws a new layout ...
         env.seeded_rand_vec = True  # ... from the env's own seeded generator (reset(seed) decides it)
         self.env = env
