@@ -137,7 +137,8 @@ def cpu_seconds(pid: int) -> float:
         return 0.0
 
 
-def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
+def start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
+    """``lerobot-armory-server`` with ``args`` in a subprocess; returns it and its address once it listens."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "lerobot_armory.entrypoints.server", *args],
         stdout=subprocess.PIPE,
@@ -156,6 +157,18 @@ def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
             return proc, line.split("listening on")[1].strip()
     proc.kill()
     raise RuntimeError("the server did not start:\n" + "".join(lines[-20:]))
+
+
+def stop_all(server: subprocess.Popen, procs: list[subprocess.Popen]) -> None:
+    """Kill the robot processes still running, then stop the server (SIGTERM, killed after 30 s)."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        server.kill()
 
 
 def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[str, Any]:
@@ -186,7 +199,7 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
     else:
         measured.unlink(missing_ok=True)
         args.append(f"--latency_profile={measured}")
-    server, address = _start_server(args)
+    server, address = start_server(args)
     before = os.times()
     reaped_before = before.children_user + before.children_system
     groups = max(1, min(cfg.groups, cfg.robots))
@@ -226,14 +239,7 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
         # The whole machine, not just our processes: anything else running skews the robots' clocks.
         machine_pct = 100.0 * (machine_end[0] - machine_mid[0]) / max(1e-9, machine_end[1] - machine_mid[1])
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_all(server, procs)
     if any(codes):
         raise RuntimeError(f"robot group(s) failed with exit codes {codes}; see the messages above")
     stats = [json.loads(p.read_text()) for p in sorted((run_dir / "stats").glob("*.json"))]

@@ -24,7 +24,6 @@ import json
 import math
 import os
 import shlex
-import signal
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from lerobot_armory.bench.live import start_server, stop_all
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.robot.metaworld.tasks import TASKS
@@ -257,12 +257,6 @@ def _run_delayed(cfg: TasksConfig, task: Any, chunk_of: Any) -> None:
             return
 
 
-def _start_server(args: list[str]) -> tuple[subprocess.Popen, str]:
-    from lerobot_armory.bench.live import _start_server as start
-
-    return start(args)
-
-
 def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) -> dict[str, Any]:
     """The checkpoint(s) served to ``cfg.robots`` MetaWorld robots over the real protocol."""
     tasks, paths = cfg.tasks, cfg.policy_paths
@@ -295,7 +289,7 @@ def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) ->
         args.append(f"--fleet.policy={run_dir / 'fleet_policy.json'}")
     if cfg.emulate_profile:
         args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
-    server, address = _start_server(args)
+    server, address = start_server(args)
     groups = max(1, min(cfg.groups, cfg.robots))
     limit_s = cfg.duration_s or cfg.max_minutes * 60.0
     procs = []
@@ -311,14 +305,7 @@ def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) ->
             procs.append(subprocess.Popen([sys.executable, "-m", "lerobot_armory.bench.robots", str(spec)]))
         codes = [p.wait(timeout=limit_s + 120) for p in procs]
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_all(server, procs)
     if any(codes):
         raise RuntimeError(f"robot group(s) failed with exit codes {codes}; see the messages above")
     wall = time.monotonic() - t0

@@ -116,10 +116,10 @@ def test_served_chunks_equal_each_robots_chunk_computed_alone(pi05):
 def test_end_to_end_build_serve_two_armory_sim_robots_with_their_own_tasks(pi05_dir, tmp_path):
     """The commands a user types: the built directory served by lerobot-armory-server, two
     lerobot-armory-client armory_sim robots with different --task, chunks received and executed."""
-    from lerobot_armory.bench.live import _start_server
+    from lerobot_armory.bench.live import start_server
 
     batch_log = tmp_path / "batches.jsonl"
-    server, address = _start_server(
+    server, address = start_server(
         [f"--policy.path={pi05_dir}", "--policy.device=cpu", "--port=0", "--max_batch_size=2", "--scheduler.type=edf",
          "--latency_profile=l40s-pi05", "--status_interval_s=0", f"--batch_log={batch_log}"]
     )  # fmt: skip
