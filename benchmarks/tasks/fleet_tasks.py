@@ -1,14 +1,19 @@
 """The reference paper's experiment on real tasks: trained policies, a mixed MetaWorld fleet.
 
     python benchmarks/tasks/fleet_tasks.py --out=docs/results/tasks            # everything (~30 min)
+    python benchmarks/tasks/fleet_tasks.py --parts=delay --out=docs/results/tasks
     python benchmarks/tasks/fleet_tasks.py --parts=horizon --out=/tmp/tasks    # the local part (~5 min)
 
-Two parts, settings fixed before any run (h_min 10, h_max 20, 30 Hz, Lookahead weight 3 for the
+Three parts, settings fixed before any run (h_min 10, h_max 20, 30 Hz, Lookahead weight 3 for the
 dynamic tier, evaluation seeds from 1000; the checkpoints of examples/checkpoints):
 
 - ``horizon``: each task's checkpoint in LeRobot's own loop (simulated time, no serving) with
   ``n_action_steps`` = 1, 5, 10, 20 actions executed per chunk, ``--episodes`` each: how much a
   long execution horizon costs the static and the dynamic task (the paper's second effect).
+- ``delay``: the same loop made asynchronous as a served robot is (``--latency_ticks`` = 1..4: a
+  chunk asked after 10 executed actions arrives that many ticks later; the arm executes the chunk
+  it holds meanwhile and switches at the current index), no server: what a GPU's latency alone
+  costs each task, the reference for the ``fleet`` part's served runs at the same delay.
 - ``fleet``: the real server serving both checkpoints (``--policies``) to N MetaWorld robots,
   half on the dynamic task (``reach-moving``, fast tier), half on the static one (``push``, slow
   tier), each stepping its simulator at 30 Hz on the wall clock, under an emulated GPU latency
@@ -51,6 +56,21 @@ def horizon_part(episodes: int) -> list[dict]:
                 "task": task, "n_action_steps": steps, "episodes": r["episodes"], "successes": r["successes"],
                 "success_rate": r["success_rate"], "interval95": list(r["interval95"]),
                 "mean_ticks": sum(e["ticks"] for e in r["episode_results"]) / r["episodes"], "seconds": time.monotonic() - t0,
+            })  # fmt: skip
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def delay_part(episodes: int) -> list[dict]:
+    rows = []
+    for task, path in CHECKPOINTS.items():
+        for ticks in (0, 1, 2, 3, 4):
+            cfg = TasksConfig(policy_path=str(path), task=task, mode="local", episodes=episodes, latency_ticks=ticks)
+            r = run_local(cfg)
+            rows.append({
+                "task": task, "latency_ticks": ticks, "episodes": r["episodes"], "successes": r["successes"],
+                "success_rate": r["success_rate"], "interval95": list(r["interval95"]),
+                "mean_ticks": sum(e["ticks"] for e in r["episode_results"]) / r["episodes"],
             })  # fmt: skip
             print(json.dumps(rows[-1]), flush=True)
     return rows
@@ -99,6 +119,17 @@ def horizon_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def delay_table(rows: list[dict]) -> str:
+    lines = ["| task | delay (ticks at 30 Hz) | successes | rate [95 % interval] | mean ticks per episode |", "|---|---|---|---|---|"]
+    for r in rows:
+        lo, hi = r["interval95"]
+        delay = "0 (LeRobot's synchronous loop)" if r["latency_ticks"] == 0 else str(r["latency_ticks"])
+        lines.append(
+            f"| {r['task']} | {delay} | {r['successes']}/{r['episodes']} | {r['success_rate']:.2f} [{lo:.2f}, {hi:.2f}] | {r['mean_ticks']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
 def fleet_table(rows: list[dict]) -> str:
     lines = [
         "| N | profile | scheduler | fast: successes | fast: rate [95 %] | fast: succ/min/robot | fast: starved % "
@@ -124,7 +155,7 @@ def fleet_table(rows: list[dict]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--parts", default="horizon,fleet")
+    ap.add_argument("--parts", default="horizon,delay,fleet")
     ap.add_argument("--episodes", type=int, default=50, help="episodes per horizon setting")
     ap.add_argument("--robots", default="4,8")
     ap.add_argument("--duration_s", type=float, default=60.0)
@@ -142,6 +173,10 @@ def main() -> int:
         rows = horizon_part(args.episodes)
         (args.out / "horizon.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2) + "\n")
         print(horizon_table(rows))
+    if "delay" in parts:
+        rows = delay_part(args.episodes)
+        (args.out / "delay.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2) + "\n")
+        print(delay_table(rows))
     if "fleet" in parts:
         rows = fleet_part(
             [int(n) for n in args.robots.split(",")], args.duration_s, args.profiles.split(","), args.schedulers.split(","), args.out
