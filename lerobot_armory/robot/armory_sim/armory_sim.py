@@ -8,16 +8,16 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-from lerobot.robots.robot import Robot
 
 from lerobot_armory.robot.armory_sim.config_armory_sim import ArmorySimConfig
 from lerobot_armory.robot.armory_sim.world import ArmorySimEnv, WorldParams
+from lerobot_armory.robot.simulated import SimulatedRobot
 
 # Longest stretch integrated in one go: a stalled process must not teleport the target.
 MAX_DT_S = 0.2
 
 
-class ArmorySim(Robot):
+class ArmorySim(SimulatedRobot):
     """Observation: ``x.pos``, ``y.pos`` (effector, workspace units) and one camera image.
     Action: ``x.pos``, ``y.pos`` (where the effector should go). The world advances in real time
     at every :meth:`get_observation`, whether or not an action came (a starving robot's target
@@ -60,16 +60,6 @@ class ArmorySim(Robot):
         self.env.reset(seed=self.config.seed)
         self._last_time = self.clock()
         self._connected = True
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        """Nothing to calibrate in simulation."""
-
-    def configure(self) -> None:
-        """Nothing to configure in simulation."""
 
     def get_observation(self) -> dict[str, Any]:
         self._require_connected()

@@ -18,15 +18,15 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-from lerobot.robots.robot import Robot
 
 from lerobot_armory.robot.features import ENV_STATE_PREFIX
 from lerobot_armory.robot.metaworld.config_metaworld import MetaWorldRobotConfig
 from lerobot_armory.robot.metaworld.tasks import ACTION_NAMES, STATE_NAMES, MetaWorldTask
+from lerobot_armory.robot.simulated import SimulatedRobot
 
 
 
-class MetaWorldRobot(Robot):
+class MetaWorldRobot(SimulatedRobot):
     """Observation: hand xyz and gripper (``observation.state``), the simulator's full state
     (``observation.environment_state``) and, with ``image_size``, the corner camera. Action:
     ``dx, dy, dz, grip`` (MetaWorld's, in [-1, 1])."""
@@ -74,16 +74,6 @@ class MetaWorldRobot(Robot):
             self.task.render()  # a missing renderer fails here, in one line, not mid-run
         self._start_episode()
         self._connected = True
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        """Nothing to calibrate in simulation."""
-
-    def configure(self) -> None:
-        """Nothing to configure in simulation."""
 
     @property
     def seed(self) -> int:
