@@ -277,6 +277,8 @@ def run_client(cfg: ClientConfig, robot_type: str | None = None) -> dict[str, An
     )
     if "successes" in stats:
         summary += f", successes {stats['successes']} ({stats['successes_per_min']:.1f}/min)"
+    if stats.get("episodes_done"):  # a robot with episodes (metaworld): the success rate per episode
+        summary += f" in {stats['episodes_done']} episodes ({100.0 * stats['success_rate']:.0f}%)"
     print(summary)
     return stats
 
