@@ -1,11 +1,12 @@
-"""One ``armory_sim`` robot on the armory client, instrumented for ``benchmarks/vs_lerobot_async.py``.
+"""One robot (``armory_sim``, or ``metaworld`` where the spec says so) on the armory client, instrumented for ``benchmarks/vs_lerobot_async.py``.
 
 ``python benchmarks/_ours_robot.py SPEC.json``: connects (registers) to the armory server, says
 it is ready, waits for the benchmark's start signal, runs the real
 :class:`~lerobot_armory.robot.client.ArmoryClient` loop for ``duration_s`` and writes a stats JSON
 with the same keys as the stock side (``benchmarks/_stock_async.py``): ticks, starved ticks (also
 counted from the first chunk on), chunks received and chunk latency (observation capture -> chunk
-received, both on the robot's clock).
+received, both on the robot's clock), and the robot's task results (episodes, successes) where it
+has them.
 """
 
 from __future__ import annotations
@@ -53,9 +54,18 @@ class TimedClient(ArmoryClient):
         return executed
 
 
+def make_robot(spec: dict[str, Any]) -> Any:
+    """The spec's robot (not connected)."""
+    if spec.get("robot_kind", "armory_sim") == "metaworld":
+        from lerobot_armory.robot.metaworld import MetaWorldRobot, MetaWorldRobotConfig
+
+        return MetaWorldRobot(MetaWorldRobotConfig(id=spec["robot_id"], task=spec["task"], seed=spec["seed"], episodes=spec.get("episodes", 0)))
+    return ArmorySim(ArmorySimConfig(scene=spec["scene"], image_size=spec["image_size"], seed=spec["seed"]))
+
+
 def run_robot(spec: dict[str, Any]) -> dict[str, Any]:
     """Connect, wait for the start signal, run ``duration_s``; returns the stats."""
-    robot = ArmorySim(ArmorySimConfig(scene=spec["scene"], image_size=spec["image_size"], seed=spec["seed"]))
+    robot = make_robot(spec)
     fmap = FeatureMap.for_robot(robot.observation_features, robot.action_features)
     client = TimedClient(
         spec["address"],
@@ -65,6 +75,8 @@ def run_robot(spec: dict[str, Any]) -> dict[str, Any]:
         act=lambda vector: robot.send_action(fmap.to_action(vector)),
         backoff=Backoff(0.2, 1.0, give_up_s=30.0),
         settle_chunks=int(spec.get("settle_chunks", 1)),
+        episode_of=(lambda: robot.episode) if hasattr(robot, "task_stats") else None,
+        finished=(lambda: robot.finished) if hasattr(robot, "finished") else None,
     )
     robot.connect()
     try:
@@ -77,7 +89,9 @@ def run_robot(spec: dict[str, Any]) -> dict[str, Any]:
         client.close()
         robot.disconnect()
     ticks, after = base["ticks"], client.ticks_after_first
+    task = robot.task_stats() if hasattr(robot, "task_stats") else {}
     return {
+        **task,
         "robot_id": spec["robot_id"],
         "wall_s": wall,
         "ticks": ticks,

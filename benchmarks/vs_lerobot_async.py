@@ -218,8 +218,10 @@ def start_ours_server(opts: Options, threads: int | None, run_dir: Path) -> tupl
     return proc, wait_ours_address(proc)
 
 
-def start_stock_servers(opts: Options, n: int, no_filter: bool, run_dir: Path) -> list[tuple[Proc, str]]:
-    """``n`` stock policy servers, each on its own port."""
+def start_stock_servers(
+    opts: Options, n: int, no_filter: bool, run_dir: Path, extra: tuple[str, ...] = ()
+) -> list[tuple[Proc, str]]:
+    """``n`` stock policy servers, each on its own port (``extra``: more launcher options)."""
     started: list[tuple[Proc, int]] = []
     for k in range(n):
         port = free_port()
@@ -230,6 +232,7 @@ def start_stock_servers(opts: Options, n: int, no_filter: bool, run_dir: Path) -
             cmd.append("--no_filter")
         if opts.stock_cpu_threads:
             cmd.append(f"--cpu_threads={opts.stock_cpu_threads}")
+        cmd += extra
         started.append((start(f"stock server {k}", cmd, run_dir / f"server{k}.log", run_dir), port))
     for proc, port in started:
         wait_port(proc, port)

@@ -9,7 +9,10 @@ Two ways to run the same checkpoint on the same MetaWorld seeds:
   simulated time, as fast as the CPU allows;
 - ``served``: the real ``lerobot-armory-server`` serving the checkpoint (optionally with an
   emulated GPU latency profile) to ``--robots`` ``metaworld`` robots, each stepping its simulator
-  at ``--fps`` on the wall clock over the real gRPC protocol, holding when starved.
+  at ``--fps`` on the wall clock over the real gRPC protocol, holding when starved;
+- ``openpi``: the real server's openpi endpoint (``--openpi.port``), driven as openpi's own client
+  drives a policy in its LIBERO evaluation: one ``infer`` per ``h_min`` actions, the world
+  waiting for each answer (simulated time), over openpi's websocket + msgpack wire.
 
 It prints, per robot and for the fleet, episodes, successes, the success rate with its 95 %
 (Wilson) interval, successes per minute and starvation; with ``--mode=both`` it says whether the
@@ -40,7 +43,8 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.robot.metaworld.tasks import TASKS
 
-MODES = ("local", "served", "both")
+MODES = ("local", "served", "openpi", "both")
+OPENPI_MAX_BYTES = 64 << 20  # the largest reply this evaluation accepts
 
 
 @dataclass
@@ -54,7 +58,8 @@ class TasksConfig:
         task: the MetaWorld task (``push``: static; ``reach-moving``: dynamic), or several,
             comma-separated: robot ``k`` runs the ``k mod n``-th (a mixed fleet; dynamic robots
             are the fast tier).
-        mode: ``local`` (LeRobot's loop), ``served`` (through the fleet) or ``both``.
+        mode: ``local`` (LeRobot's loop), ``served`` (through the fleet), ``both``, or
+            ``openpi`` (through the server's openpi endpoint, as openpi's client asks).
         robots: fleet size N (served).
         episodes: episodes per robot (local: ``robots · episodes`` in all); 0 with
             ``duration_s``: as many as fit.
@@ -118,7 +123,7 @@ class TasksConfig:
         if self.robots < 1 or self.episodes < 0 or (self.episodes == 0 and self.duration_s <= 0):
             raise ConfigError("robots", "robots must be >= 1 and episodes >= 1 (or 0 with duration_s > 0)")
         if self.mode != "served" and (self.episodes == 0 or len(self.tasks) > 1):
-            raise ConfigError("mode", "a local run needs one task and episodes >= 1: use --mode=served")
+            raise ConfigError("mode", f"a {self.mode} run needs one task and episodes >= 1: use --mode=served")
         if self.latency_ticks < 0:
             raise ConfigError("latency_ticks", f"must be >= 0, got {self.latency_ticks}")
         if not self.fast_weight > 0:
@@ -161,22 +166,40 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
 # ---- local: LeRobot's own loop ---------------------------------------------------------------
 
 
-def run_local(cfg: TasksConfig) -> dict[str, Any]:
-    """The checkpoint in LeRobot's evaluation loop, one episode per seed (simulated time)."""
-    import torch
+def load_local(path: str, n_action_steps: int) -> tuple[Any, Any, Any, Any]:
+    """``(policy, pre, post, config)``: a checkpoint as LeRobot's evaluation loads it, on the CPU,
+    executing ``n_action_steps`` actions per chunk through ``select_action``."""
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
-    from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
-
-    path = cfg.policy_paths[cfg.tasks[0]]
     config = PreTrainedConfig.from_pretrained(path)
     config.device = "cpu"
     if hasattr(config, "n_action_steps"):
-        config.n_action_steps = cfg.n_action_steps or cfg.h_min
+        config.n_action_steps = n_action_steps
     policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.eval()
     pre, post = make_pre_post_processors(config, pretrained_path=path)
+    return policy, pre, post, config
+
+
+def observation_of(task: Any) -> dict[str, Any]:
+    """A MetaWorld task's current observation as the checkpoints read it (a batch of one)."""
+    import torch
+
+    return {
+        "observation.state": torch.from_numpy(task.agent_state()).unsqueeze(0),
+        "observation.environment_state": torch.from_numpy(task.environment_state()).unsqueeze(0),
+        "task": [task.spec.description],
+    }
+
+
+def run_local(cfg: TasksConfig) -> dict[str, Any]:
+    """The checkpoint in LeRobot's evaluation loop, one episode per seed (simulated time)."""
+    import torch
+
+    from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
+
+    policy, pre, post, config = load_local(cfg.policy_paths[cfg.tasks[0]], cfg.n_action_steps or cfg.h_min)
     task = MetaWorldTask(cfg.tasks[0])
     results = []
     t0 = time.monotonic()
@@ -185,43 +208,41 @@ def run_local(cfg: TasksConfig) -> dict[str, Any]:
         seed = cfg.seed + k
         task.reset(seed)
         policy.reset()
-
-        def observation() -> dict[str, Any]:
-            return {
-                "observation.state": torch.from_numpy(task.agent_state()).unsqueeze(0),
-                "observation.environment_state": torch.from_numpy(task.environment_state()).unsqueeze(0),
-                "task": [task.spec.description],
-            }
-
         if cfg.latency_ticks == 0:
             while True:
                 with torch.inference_mode():
-                    action = post(policy.select_action(pre(observation())))
+                    action = post(policy.select_action(pre(observation_of(task))))
                 if task.step(action.squeeze(0).cpu().numpy()).done:
                     break
         else:
-            _run_delayed(cfg, task, lambda: _chunk(policy, pre, post, observation()))
+            _run_delayed(cfg, task, lambda: chunk_of(policy, pre, post, observation_of(task)))
         results.append({"seed": seed, "success": bool(task.success), "ticks": task.ticks})
-        if (k + 1) % 10 == 0 or k + 1 == total:
-            wins = sum(r["success"] for r in results)
-            print(f"  local: {k + 1}/{total} episodes, {wins} successes ({time.monotonic() - t0:.0f} s)", flush=True)
-    wins = sum(r["success"] for r in results)
+        _progress("local", results, total, t0)
+    steps = config.n_action_steps if hasattr(config, "n_action_steps") else None
+    return episode_summary("local", results, n_action_steps=steps, latency_ticks=cfg.latency_ticks)
+
+
+def episode_summary(mode: str, results: list[dict[str, Any]], **extra: Any) -> dict[str, Any]:
+    """A run's record: episodes, successes, the success rate with its 95 % interval, ``extra``,
+    and each episode's result (seed, success, ticks)."""
+    wins, n = sum(r["success"] for r in results), len(results)
     return {
-        "mode": "local",
-        "episodes": len(results),
-        "successes": wins,
-        "success_rate": wins / len(results),
-        "interval95": wilson(wins, len(results)),
-        "n_action_steps": config.n_action_steps if hasattr(config, "n_action_steps") else None,
-        "latency_ticks": cfg.latency_ticks,
-        "episode_results": results,
-    }
+        "mode": mode, "episodes": n, "successes": wins, "success_rate": wins / n if n else 0.0,
+        "interval95": wilson(wins, n), **extra, "episode_results": results,
+    }  # fmt: skip
+
+
+def _progress(label: str, results: list[dict[str, Any]], total: int, t0: float) -> None:
+    """A progress line every 10 episodes and at the last."""
+    if len(results) % 10 == 0 or len(results) == total:
+        wins = sum(r["success"] for r in results)
+        print(f"  {label}: {len(results)}/{total} episodes, {wins} successes ({time.monotonic() - t0:.0f} s)", flush=True)
 
 
 # ---- served: the fleet -----------------------------------------------------------------------
 
 
-def _chunk(policy: Any, pre: Any, post: Any, obs: dict[str, Any]) -> np.ndarray:
+def chunk_of(policy: Any, pre: Any, post: Any, obs: dict[str, Any]) -> np.ndarray:
     """The policy's whole chunk for one observation, in the robot's action space."""
     import torch
 
@@ -354,6 +375,77 @@ def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) ->
     }
 
 
+# ---- openpi: the server's openpi endpoint, asked as openpi's client asks ---------------------
+
+
+def run_openpi(cfg: TasksConfig) -> dict[str, Any]:
+    """The checkpoint served by ``lerobot-armory-server --openpi.port`` to one openpi-protocol
+    client that evaluates it as openpi's LIBERO example does: one ``infer`` per ``h_min`` actions
+    (``--openpi.replan_steps``), the simulator waiting for each answer; the same seeds as ``local``.
+
+    The client speaks openpi's wire (websocket, msgpack frames, the server's metadata first) with
+    the observation keys openpi's examples use (``observation/state``, ...), so the run covers the
+    endpoint's key mapping, its codec and its mirror bookkeeping, not only the policy."""
+    from websockets.sync.client import connect
+
+    from lerobot_armory.entrypoints.openpi.codec import pack, unpack
+    from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
+
+    path = cfg.policy_paths[cfg.tasks[0]]
+    server, _ = start_server([
+        f"--policy.path={path}", "--policy.device=cpu", "--port=0", "--max_batch_size=1", "--status_interval_s=0",
+        "--log_level=warning", "--openpi.port=0", f"--openpi.fps={cfg.fps}", f"--openpi.replan_steps={cfg.h_min}",
+        *shlex.split(cfg.server_args),
+    ])  # fmt: skip
+    try:
+        url = _openpi_url(server)
+        task = MetaWorldTask(cfg.tasks[0])
+        results = []
+        t0 = time.monotonic()
+        total = cfg.robots * cfg.episodes
+        with connect(url, max_size=OPENPI_MAX_BYTES, compression=None, open_timeout=30) as ws:
+            unpack(ws.recv(timeout=30), OPENPI_MAX_BYTES)  # the server's metadata, sent first
+
+            def infer(obs: dict[str, Any]) -> np.ndarray:
+                ws.send(pack(obs))
+                reply = ws.recv(timeout=60)
+                if isinstance(reply, str):  # openpi's server answers an error as a text frame
+                    raise RuntimeError(f"the openpi endpoint refused the observation: {reply}")
+                return np.asarray(unpack(reply, OPENPI_MAX_BYTES)["actions"])
+
+            for k in range(total):
+                seed = cfg.seed + k
+                task.reset(seed)
+                done = False
+                while not done:
+                    actions = infer({
+                        "observation/state": task.agent_state().astype(np.float32),
+                        "observation/environment_state": task.environment_state().astype(np.float32),
+                        "prompt": task.spec.description,
+                    })  # fmt: skip
+                    for action in actions[: cfg.h_min]:
+                        if done := task.step(action).done:
+                            break
+                results.append({"seed": seed, "success": bool(task.success), "ticks": task.ticks})
+                _progress("openpi", results, total, t0)
+        task.close()
+    finally:
+        stop_all(server, [])
+    return episode_summary("openpi", results, replan_steps=cfg.h_min)
+
+
+def _openpi_url(server: subprocess.Popen) -> str:
+    """The openpi endpoint's address, from the start-up summary the server prints after it listens."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and server.stdout is not None:
+        line = server.stdout.readline()
+        if not line:
+            break
+        if "openpi clients:" in line:
+            return line.split("openpi clients:")[1].split()[0]
+    raise RuntimeError("the server printed no openpi endpoint address")
+
+
 def robot_table(served: dict[str, Any]) -> str:
     """One row per robot, then the fleet."""
     header = f"{'robot':<16} {'episodes':>8} {'successes':>9} {'rate':>6} {'95% interval':>14} {'succ/min':>8} {'starved %':>9}"
@@ -396,6 +488,11 @@ def run(cfg: TasksConfig) -> dict[str, Any]:
         served = run_served(cfg, work)
         print(robot_table(served))
         out["served"] = served
+    if cfg.mode == "openpi":
+        openpi = run_openpi(cfg)
+        lo, hi = openpi["interval95"]
+        print(f"openpi endpoint (replan {cfg.h_min}): {openpi['successes']}/{openpi['episodes']} = {openpi['success_rate']:.2f} [{lo:.2f}, {hi:.2f}]")
+        out["openpi"] = openpi
     if "local" in out and "served" in out:
         lo, hi = out["local"]["interval95"]
         inside = lo <= out["served"]["success_rate"] <= hi

@@ -69,3 +69,32 @@ def test_without_a_gpu_the_gpu_memory_column_reads_not_measured(vs, monkeypatch)
     monkeypatch.setattr(subprocess, "run", no_nvidia_smi)
     assert vs.gpu_memory_used_bytes() is None
     assert vs.gib(None) == "–" and vs.gib(3 * 2**30) == "3.00"
+
+
+def test_the_stock_server_adapter_hands_a_metaworld_policy_its_environment_state(vs):
+    """Stock's client packs every float into ``observation.state``; the launcher's adapter splits
+    the ``environment_state.*`` floats back out, in the robot's order, as our FeatureMap does."""
+    pytest.importorskip("metaworld", reason="the metaworld extra is not installed")
+    import _stock_async
+    import numpy as np
+    from lerobot.async_inference.helpers import map_robot_keys_to_lerobot_features, raw_observation_to_observation
+
+    from lerobot_armory.robot.features import ENV_STATE, STATE, FeatureMap
+    from lerobot_armory.robot.metaworld import MetaWorldRobot, MetaWorldRobotConfig
+
+    robot = MetaWorldRobot(MetaWorldRobotConfig(task="push"))
+    robot.connect()
+    try:
+        raw = robot.get_observation()
+    finally:
+        robot.disconnect()
+    features = map_robot_keys_to_lerobot_features(robot)
+    assert features[STATE]["shape"] == (43,)  # stock: 4 hand floats + 39 of the world, all "state"
+    split = _stock_async.split_environment_state(raw_observation_to_observation)({**raw, "task": ""}, features, {})
+    ours = FeatureMap.for_robot(robot.observation_features, robot.action_features).to_wire(raw)
+    np.testing.assert_array_equal(split[STATE].numpy()[0], ours[STATE])
+    np.testing.assert_array_equal(split[ENV_STATE].numpy()[0], ours[ENV_STATE])
+    spec = {"robot_kind": "metaworld", "task": "push", "episodes": 3, "robot_id": "r0", "seed": 1000}
+    assert _stock_async.robot_args(spec) == [
+        "--robot.type=metaworld", "--robot.task=push", "--robot.episodes=3", "--robot.id=r0", "--robot.seed=1000",
+    ]  # fmt: skip

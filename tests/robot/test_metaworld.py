@@ -50,6 +50,27 @@ def test_a_starved_tick_still_steps_the_world_with_the_arm_held():
         robot.disconnect()
 
 
+def test_a_loop_that_observes_only_some_ticks_steps_the_world_once_per_tick():
+    # LeRobot's async robot_client observes only when its queue runs low; on a tick without an
+    # action it calls hold(). Every tick is one physics step, however acting and observing mix.
+    robot = MetaWorldRobot(MetaWorldRobotConfig(task="push"))
+    robot.connect()
+    try:
+        act = {"dx": 0.0, "dy": 0.0, "dz": 0.0, "grip": 0.0}
+        robot.get_observation()
+        robot.send_action(act)  # tick 1: acted and observed
+        robot.get_observation()
+        robot.send_action(act)  # tick 2: acted, not observed
+        robot.hold()  # tick 3: starved, then observed
+        robot.get_observation()
+        robot.hold()  # tick 4: starved, observed
+        robot.get_observation()
+        robot.send_action(act)  # tick 5
+        assert robot.task.ticks == 5
+    finally:
+        robot.disconnect()
+
+
 def test_episodes_end_at_the_time_limit_and_restart_with_the_next_seed():
     limit = TASKS["push"].max_ticks
     robot = MetaWorldRobot(MetaWorldRobotConfig(task="push", seed=1234, episodes=2))

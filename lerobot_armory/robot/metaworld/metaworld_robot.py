@@ -25,7 +25,6 @@ from lerobot_armory.robot.metaworld.tasks import ACTION_NAMES, STATE_NAMES, Meta
 from lerobot_armory.robot.simulated import SimulatedRobot
 
 
-
 class MetaWorldRobot(SimulatedRobot):
     """Observation: hand xyz and gripper (``observation.state``), the simulator's full state
     (``observation.environment_state``) and, with ``image_size``, the corner camera. Action:
@@ -89,7 +88,7 @@ class MetaWorldRobot(SimulatedRobot):
     def get_observation(self) -> dict[str, Any]:
         task = self._require_connected()
         if not self._acted:
-            self._step(np.array([0.0, 0.0, 0.0, self._grip]))  # starved last tick: the arm held
+            self.hold()  # no action since the last observation: the robot starved a tick
         self._acted = False
         out: dict[str, Any] = dict(zip(STATE_NAMES, map(float, task.agent_state()), strict=True))
         out.update({f"{ENV_STATE_PREFIX}{k}": float(v) for k, v in enumerate(task.environment_state())})
@@ -106,6 +105,18 @@ class MetaWorldRobot(SimulatedRobot):
         self._step(vector)
         self._acted = True
         return dict(zip(ACTION_NAMES, map(float, vector), strict=True))
+
+    def hold(self) -> None:
+        """One control tick without an action (the robot starved): the world steps, the arm holds
+        still with the gripper as last commanded.
+
+        :meth:`get_observation` calls it when no action came since the previous observation, which
+        covers a loop that observes every tick (ours). A loop that observes only some ticks
+        (LeRobot's async ``robot_client``) calls it on each tick it has no action for.
+        """
+        self._require_connected()
+        self._step(np.array([0.0, 0.0, 0.0, self._grip]))
+        self._acted = True
 
     def _step(self, vector: np.ndarray) -> None:
         task = self.task
