@@ -17,8 +17,9 @@ dynamic tier, evaluation seeds from 1000; the checkpoints of examples/checkpoint
 - ``fleet``: the real server serving both checkpoints (``--policies``) to N MetaWorld robots,
   half on the dynamic task (``reach-moving``, fast tier), half on the static one (``push``, slow
   tier), each stepping its simulator at 30 Hz on the wall clock, under an emulated GPU latency
-  profile (the paper's L40S π0.5; our H200 π0.5 graphs), for RR, EDF and Lookahead (w = 3):
-  success rate (Wilson 95 %), successes per minute and starvation per tier, per run.
+  profile (the paper's L40S π0.5; our H200 π0.5 graphs), for RR, EDF, Lookahead and Rollout (both
+  w = 3 for the fast tier): success rate (Wilson 95 %), successes per minute and starvation per
+  tier, per run. ``--append`` adds the runs to the ``fleet.json`` already in ``--out``.
 
 Writes ``horizon.json`` and ``fleet.json`` (after every run) under ``--out`` and prints their tables; exits 1 if a
 run fails. Figures come from one machine in one call; compare rows of one table only.
@@ -42,7 +43,7 @@ CHECKPOINTS = {
     "reach-moving": ROOT / "examples/checkpoints/metaworld-reach-moving-act",
 }
 PROFILES = {"l40s-pi05": 5, "h200-pi05-graphs": 8}  # profile -> batch cap (the profile's longest batch)
-SCHEDULERS = {"rr": 1.0, "edf": 1.0, "lookahead": 3.0}  # scheduler -> the fast tier's weight
+SCHEDULERS = {"rr": 1.0, "edf": 1.0, "lookahead": 3.0, "rollout": 3.0}  # scheduler -> the fast tier's weight
 
 
 def horizon_part(episodes: int) -> list[dict]:
@@ -76,13 +77,18 @@ def delay_part(episodes: int) -> list[dict]:
     return rows
 
 
-def fleet_part(sizes: list[int], duration_s: float, profiles: list[str], schedulers: list[str], out: Path) -> list[dict]:
+def fleet_part(
+    sizes: list[int], duration_s: float, profiles: list[str], schedulers: list[str], out: Path, append: bool = False
+) -> list[dict]:
     base = TasksConfig(
         policy_path=",".join(f"{t}={p}" for t, p in CHECKPOINTS.items()), task="reach-moving,push", mode="served",
         episodes=0, duration_s=duration_s, groups=2,
     )  # fmt: skip
     work = Path(tempfile.mkdtemp(prefix="armory-fleet-tasks-"))
-    rows = []
+    rows, command = [], " ".join(sys.argv)
+    if append and (out / "fleet.json").is_file():
+        before = json.loads((out / "fleet.json").read_text())
+        rows, command = before["rows"], f"{before['command']} ; then {command}"
     for n in sizes:
         for profile in profiles:
             for scheduler in schedulers:
@@ -105,7 +111,7 @@ def fleet_part(sizes: list[int], duration_s: float, profiles: list[str], schedul
                 )
                 print(f"N={n} {profile} {scheduler}: {tiers}", flush=True)
                 # Written after every run: a run that fails later keeps the ones before it.
-                (out / "fleet.json").write_text(json.dumps({"command": " ".join(sys.argv), "rows": rows}, indent=2) + "\n")
+                (out / "fleet.json").write_text(json.dumps({"command": command, "rows": rows}, indent=2) + "\n")
     return rows
 
 
@@ -162,6 +168,7 @@ def main() -> int:
     ap.add_argument("--profiles", default=",".join(PROFILES))
     ap.add_argument("--schedulers", default=",".join(SCHEDULERS))
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--append", action="store_true", help="fleet: add the runs to OUT/fleet.json's rows")
     args = ap.parse_args()
     missing = [str(p) for p in CHECKPOINTS.values() if not (p / "config.json").is_file()]
     if missing:
@@ -179,7 +186,8 @@ def main() -> int:
         print(delay_table(rows))
     if "fleet" in parts:
         rows = fleet_part(
-            [int(n) for n in args.robots.split(",")], args.duration_s, args.profiles.split(","), args.schedulers.split(","), args.out
+            [int(n) for n in args.robots.split(",")], args.duration_s, args.profiles.split(","), args.schedulers.split(","), args.out,
+            args.append,
         )
         print(fleet_table(rows))
     return 0
