@@ -2,9 +2,10 @@
 
     python benchmarks/tasks/tick_order.py --episodes=100 --out=docs/results/tasks      # ~3 min on 2 cores
 
-The side-by-side at the task level found LeRobot's async ``robot_client`` a few points ahead of
-ours on the dynamic task at equal seeds. The two clients order a tick differently, which matters
-only when the world jumps at ``send_action`` (a simulator stepped once per action):
+The side by side at the task level found LeRobot's async ``robot_client`` far behind ours on push
+even when given our episode boundary, and a few points ahead on the dynamic task. The two clients
+order a tick differently, which matters only when the world jumps at ``send_action`` (a simulator
+stepped once per action):
 
 - **observe, then act** (``lerobot-armory-client``): the observation stamped ``i`` is taken before
   the tick's action ``i``; with a chunk back within the tick, the robot executes action ``i`` of
