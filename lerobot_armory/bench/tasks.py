@@ -397,6 +397,7 @@ def run_openpi(cfg: TasksConfig) -> dict[str, Any]:
         "--log_level=warning", "--openpi.port=0", f"--openpi.fps={cfg.fps}", f"--openpi.replan_steps={cfg.h_min}",
         *shlex.split(cfg.server_args),
     ])  # fmt: skip
+    task = None
     try:
         url = _openpi_url(server)
         task = MetaWorldTask(cfg.tasks[0])
@@ -428,8 +429,9 @@ def run_openpi(cfg: TasksConfig) -> dict[str, Any]:
                             break
                 results.append({"seed": seed, "success": bool(task.success), "ticks": task.ticks})
                 _progress("openpi", results, total, t0)
-        task.close()
     finally:
+        if task is not None:
+            task.close()
         stop_all(server, [])
     return episode_summary("openpi", results, replan_steps=cfg.h_min)
 
