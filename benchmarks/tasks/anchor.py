@@ -25,12 +25,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from lerobot_armory.bench.tasks import TasksConfig, run_local, run_openpi, run_served
+from _checkpoints import CHECKPOINTS  # benchmarks/tasks/: the script's own directory
 
-ROOT = Path(__file__).resolve().parents[2]
-CHECKPOINTS = {
-    "push": ROOT / "examples/checkpoints/metaworld-push-act",
-    "reach-moving": ROOT / "examples/checkpoints/metaworld-reach-moving-act",
-}
 
 
 def main() -> int:

@@ -36,12 +36,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from lerobot_armory.bench.tasks import TasksConfig, run_local, run_served
+from _checkpoints import CHECKPOINTS  # benchmarks/tasks/: the script's own directory
 
-ROOT = Path(__file__).resolve().parents[2]
-CHECKPOINTS = {
-    "push": ROOT / "examples/checkpoints/metaworld-push-act",
-    "reach-moving": ROOT / "examples/checkpoints/metaworld-reach-moving-act",
-}
 PROFILES = {"l40s-pi05": 5, "h200-pi05-graphs": 8}  # profile -> batch cap (the profile's longest batch)
 SCHEDULERS = {"rr": 1.0, "edf": 1.0, "lookahead": 3.0, "rollout": 3.0}  # scheduler -> the fast tier's weight
 

@@ -33,12 +33,8 @@ from typing import Any
 
 from lerobot_armory.bench.tasks import TasksConfig, chunk_of, episode_summary, load_local, observation_of, run_local
 from lerobot_armory.robot.metaworld.tasks import MetaWorldTask
+from _checkpoints import CHECKPOINTS  # benchmarks/tasks/: the script's own directory
 
-ROOT = Path(__file__).resolve().parents[2]
-CHECKPOINTS = {
-    "push": ROOT / "examples/checkpoints/metaworld-push-act",
-    "reach-moving": ROOT / "examples/checkpoints/metaworld-reach-moving-act",
-}
 H_MIN = 10
 
 

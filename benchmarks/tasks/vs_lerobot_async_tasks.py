@@ -48,13 +48,10 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import vs_lerobot_async as vs  # noqa: E402  the side-by-side machinery (processes, /proc sampling)
+from _checkpoints import CHECKPOINTS  # noqa: E402  benchmarks/tasks/: the script's own directory
 
 from lerobot_armory.bench.tasks import wilson  # noqa: E402
 
-CHECKPOINTS = {
-    "reach-moving": ROOT / "examples/checkpoints/metaworld-reach-moving-act",
-    "push": ROOT / "examples/checkpoints/metaworld-push-act",
-}
 FPS, H_MIN, H_MAX = 30, 10, 20
 THRESHOLD = 0.5  # stock asks with <= 10 of 20 actions left: after 10 executed, as ours
 SEED_STRIDE = 100  # robot k's seeds start at seed + 100 k: no two robots share an episode's seed
