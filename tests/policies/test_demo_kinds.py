@@ -26,12 +26,16 @@ from lerobot_armory.errors import ConfigError
 
 pytest.importorskip("diffusers", reason="diffusion and multi_task_dit need lerobot[diffusion,multi-task-dit]")
 
+# One worker builds and checks every kind (pytest-xdist): the module's fixtures run once.
+pytestmark = pytest.mark.xdist_group("demo_kinds")
+
 KINDS = ("diffusion", "pi0", "pi0_fast", "vqbet", "multi_task_dit", "xvla")
 CHUNK, STATE, N_OBS = 10, 2, 2
 ENGINE_KINDS = ("pi0", "pi0_fast", "xvla")  # served by today's engine (one observation, no queues)
 
-# Run in a fresh interpreter: load DIR as a user would, predict a chunk for a batch of two, and
-# print one JSON line. Every socket connection is refused (nothing may come from the hub).
+# Run in a fresh interpreter (one for every kind: none was built in it): for each KIND DIR pair of
+# its arguments, load DIR as a user would, predict a chunk for a batch of two and print one JSON
+# line. Every socket connection is refused (nothing may come from the hub).
 _CHECK = r"""
 import json, socket, statistics, sys, time
 def refuse(*a, **k):
@@ -40,71 +44,75 @@ socket.socket.connect = refuse
 socket.create_connection = refuse
 import torch
 torch.set_num_threads(1)
-kind, path = sys.argv[1], sys.argv[2]
-out = {}
 
-def timed(fn, reps=5):
-    fn()
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter(); fn(); times.append(time.perf_counter() - t)
-    return 1000 * statistics.median(times)
+def check(kind, path):
+    out = {}
 
-if kind in ("pi0", "pi0_fast", "xvla"):
-    from lerobot_armory.engine.policy_engine import PolicyEngine
-    from lerobot_armory.engine.options import PolicyOptions
-    engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
-    obs = [engine.example_observation(k) for k in range(2)]
-    tasks = ["pick up the red block", "sort the bricks"]
-    a = engine.infer(obs, tasks, [1, 2])
-    b = engine.infer(obs, tasks, [1, 2])
-    c = engine.infer(obs, tasks, [3, 4])
-    out.update(type=engine.config.type, policy=type(engine.policy).__name__, shape=list(a.shape),
-               same_noise_equal=bool((a == b).all()), other_noise_differs=bool((a != c).any()),
-               finite=bool(torch.isfinite(torch.as_tensor(a)).all()), rows_nonzero=bool((a != 0).any(axis=(1, 2)).all()),
-               ms_b1=timed(lambda: engine.infer(obs[:1], tasks[:1], [1])))
-else:
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-    from lerobot.policies.utils import populate_queues
-    config = PreTrainedConfig.from_pretrained(path)
-    policy = get_policy_class(config.type).from_pretrained(path, config=config).eval()
-    pre, post = make_pre_post_processors(config, pretrained_path=path)
-    g = torch.Generator().manual_seed(0)
-    def history(b):  # n_obs_steps observations of b robots, oldest first
-        steps = []
-        for _ in range(config.n_obs_steps):
-            o = {k: (torch.rand(b, *f.shape, generator=g) if f.type.name == "VISUAL" else torch.randn(b, *f.shape, generator=g))
-                 for k, f in config.input_features.items()}
-            o["task"] = ["pick up the red block"] * b
-            steps.append(o)
-        return steps
-    def chunk(steps, **kw):
-        with torch.no_grad():
-            if kind == "diffusion":  # reads the history from the batch: (B, n_obs_steps, ...)
-                batch = {k: torch.stack([s[k] for s in steps], dim=1) for k in config.input_features}
-                batch["task"] = steps[-1]["task"]
-                return post(policy.predict_action_chunk(pre(batch), **kw))
-            policy.reset()  # vqbet, multi_task_dit: read the history from the policy's queues
-            for s in steps:
-                p = {k: v for k, v in pre(s).items() if k != "action"}
-                p["observation.images"] = torch.stack([p[k] for k in config.image_features], dim=-4)
-                policy._queues = populate_queues(policy._queues, p)
-            return post(policy.predict_action_chunk(dict(p)))
-    steps, one = history(2), history(1)
-    kw, kw1 = {}, {}
-    if kind == "diffusion":
-        kw = {"noise": torch.randn(2, config.horizon, config.action_feature.shape[0], generator=g)}
-        kw1 = {"noise": kw["noise"][:1]}
-    a, b = chunk(steps, **kw), chunk(steps, **kw)
-    out.update(type=config.type, policy=type(policy).__name__, shape=list(a.shape),
-               same_noise_equal=bool((a == b).all()), finite=bool(torch.isfinite(a).all()),
-               rows_nonzero=bool((a != 0).any(dim=2).any(dim=1).all()),
-               ms_b1=timed(lambda: chunk(one, **kw1)))
-    if kind == "diffusion":
-        c = chunk(steps, noise=torch.randn(kw["noise"].shape, generator=g))
-        out["other_noise_differs"] = bool((a != c).any())
-print(json.dumps(out))
+    def timed(fn, reps=5):
+        fn()
+        times = []
+        for _ in range(reps):
+            t = time.perf_counter(); fn(); times.append(time.perf_counter() - t)
+        return 1000 * statistics.median(times)
+
+    if kind in ("pi0", "pi0_fast", "xvla"):
+        from lerobot_armory.engine.policy_engine import PolicyEngine
+        from lerobot_armory.engine.options import PolicyOptions
+        engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))
+        obs = [engine.example_observation(k) for k in range(2)]
+        tasks = ["pick up the red block", "sort the bricks"]
+        a = engine.infer(obs, tasks, [1, 2])
+        b = engine.infer(obs, tasks, [1, 2])
+        c = engine.infer(obs, tasks, [3, 4])
+        out.update(type=engine.config.type, policy=type(engine.policy).__name__, shape=list(a.shape),
+                   same_noise_equal=bool((a == b).all()), other_noise_differs=bool((a != c).any()),
+                   finite=bool(torch.isfinite(torch.as_tensor(a)).all()), rows_nonzero=bool((a != 0).any(axis=(1, 2)).all()),
+                   ms_b1=timed(lambda: engine.infer(obs[:1], tasks[:1], [1])))
+    else:
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.policies.utils import populate_queues
+        config = PreTrainedConfig.from_pretrained(path)
+        policy = get_policy_class(config.type).from_pretrained(path, config=config).eval()
+        pre, post = make_pre_post_processors(config, pretrained_path=path)
+        g = torch.Generator().manual_seed(0)
+        def history(b):  # n_obs_steps observations of b robots, oldest first
+            steps = []
+            for _ in range(config.n_obs_steps):
+                o = {k: (torch.rand(b, *f.shape, generator=g) if f.type.name == "VISUAL" else torch.randn(b, *f.shape, generator=g))
+                     for k, f in config.input_features.items()}
+                o["task"] = ["pick up the red block"] * b
+                steps.append(o)
+            return steps
+        def chunk(steps, **kw):
+            with torch.no_grad():
+                if kind == "diffusion":  # reads the history from the batch: (B, n_obs_steps, ...)
+                    batch = {k: torch.stack([s[k] for s in steps], dim=1) for k in config.input_features}
+                    batch["task"] = steps[-1]["task"]
+                    return post(policy.predict_action_chunk(pre(batch), **kw))
+                policy.reset()  # vqbet, multi_task_dit: read the history from the policy's queues
+                for s in steps:
+                    p = {k: v for k, v in pre(s).items() if k != "action"}
+                    p["observation.images"] = torch.stack([p[k] for k in config.image_features], dim=-4)
+                    policy._queues = populate_queues(policy._queues, p)
+                return post(policy.predict_action_chunk(dict(p)))
+        steps, one = history(2), history(1)
+        kw, kw1 = {}, {}
+        if kind == "diffusion":
+            kw = {"noise": torch.randn(2, config.horizon, config.action_feature.shape[0], generator=g)}
+            kw1 = {"noise": kw["noise"][:1]}
+        a, b = chunk(steps, **kw), chunk(steps, **kw)
+        out.update(type=config.type, policy=type(policy).__name__, shape=list(a.shape),
+                   same_noise_equal=bool((a == b).all()), finite=bool(torch.isfinite(a).all()),
+                   rows_nonzero=bool((a != 0).any(dim=2).any(dim=1).all()),
+                   ms_b1=timed(lambda: chunk(one, **kw1)))
+        if kind == "diffusion":
+            c = chunk(steps, noise=torch.randn(kw["noise"].shape, generator=g))
+            out["other_noise_differs"] = bool((a != c).any())
+    return out
+
+for kind, path in zip(sys.argv[1::2], sys.argv[2::2]):
+    print(json.dumps({"kind": kind, **check(kind, path)}), flush=True)
 """
 
 
@@ -133,22 +141,29 @@ def build(tmp_path_factory):
     return get
 
 
-def _fresh_check(kind: str, path: Path) -> dict:
+@pytest.fixture(scope="module")
+def fresh(build) -> dict[str, dict]:
+    """Every kind built, then loaded back in one fresh process: kind -> what the check printed.
+    One process for all kinds (importing torch and LeRobot is most of a check's time)."""
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
-    proc = subprocess.run([sys.executable, "-c", _CHECK, kind, str(path)], capture_output=True, text=True, timeout=120, env=env)
+    args = [str(a) for kind in KINDS for a in (kind, build(kind))]
+    proc = subprocess.run([sys.executable, "-c", _CHECK, *args], capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    results = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith('{"kind"')]
+    return {r["kind"]: r for r in results}
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.parametrize("kind", KINDS)
-def test_kind_builds_offline_and_loads_in_a_fresh_process(kind, build):
+def test_kind_builds_offline_and_loads_in_a_fresh_process(kind, build, fresh):
     path = build(kind)
     saved = json.loads((path / "config.json").read_text())
     assert saved["type"] == kind
     assert json.loads((path / "armory.json").read_text())["kind"] == kind
     assert set(saved["input_features"]) == {"observation.state", "observation.images.front"}
     assert saved["output_features"]["action"]["shape"] == [STATE]
-    res = _fresh_check(kind, path)
+    res = fresh[kind]
     print(f"{kind}: built in {build.seconds[kind]:.2f} s, {res['ms_b1']:.1f} ms per chunk at b=1 (fresh process)")
     assert res["type"] == kind
     assert res["shape"] == [2, CHUNK, STATE] and res["finite"] and res["rows_nonzero"]

@@ -34,6 +34,11 @@ def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
 
 KERNELS = ("gelu_tanh_mul", "add_rms_norm", "rope_qkv", "masked_softmax")
+# Two denoising steps, not the policy's ten: each step runs the same layers with the same kernels,
+# and the interpreter runs every program of every launch in Python (ten steps took ~1 min a test).
+# bf16 keeps the ten: the interpreter's own bf16 rounding puts π0 0.011-0.012 off at two or four
+# steps, over the 0.01 bound that holds at ten.
+STEPS = "num_inference_steps=2"
 
 
 def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
@@ -124,6 +129,7 @@ def test_the_rotary_and_softmax_kernels_compute_what_pytorchs_operations_do(inte
         masked_softmax(scores, mask, one_pass=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
 def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_kernels(kind, request, interpreted, monkeypatch):
     """Float32: the fused sampler with the Triton kernels gives LeRobot's chunks (1e-5, with RTC),
@@ -138,11 +144,11 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
     sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
     horizon = 8
     guided = rtc.RTCOptions(enabled=True, execution_horizon=horizon, delay_margin=0)
-    engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu"), guided, EngineOptions(static_sampler=True))
-    reference = sampler(engine.policy, guided=True, fused=False)
     with monkeypatch.context() as off_cpu:
-        off_cpu.delenv("TRITON_INTERPRET")
+        off_cpu.delenv("TRITON_INTERPRET")  # the engine's own dry run without the interpreted kernels
+        engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu", overrides=[STEPS]), guided, EngineOptions(static_sampler=True))
         plain = sampler(engine.policy, guided=True)
+    reference = sampler(engine.policy, guided=True, fused=False)
     assert not plain.ops.hand_kernels and "CUDA only" in plain.ops.hand_kernels_reason
     fused = sampler(engine.policy, guided=True)
     assert fused.ops.hand_kernels, fused.ops.hand_kernels_reason
@@ -164,6 +170,7 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
         assert not after.host_syncs
 
 
+@pytest.mark.slow
 def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi05_dir, interpreted, monkeypatch):
     """``--engine.compile_sampler=true``: inside a compiled layer the operations are PyTorch's
     (inductor fuses them; an opaque kernel would stand between its fusions), between layers — a
@@ -176,7 +183,7 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     real_compile = torch.compile
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: real_compile(fn, **{**kw, "backend": "eager"}))
     torch._dynamo.reset()
-    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+    engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=[STEPS]), engine=EngineOptions(static_sampler=True))
     reference, sampler = StaticPi05(engine.policy, fused=False), StaticPi05(engine.policy)
     sampler.compile_layers()
     assert sampler.ops.hand_kernels
@@ -191,6 +198,7 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     torch._dynamo.reset()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["pi05", "pi0"])
 @pytest.mark.parametrize("float32_products", [False, True], ids=["bf16-products", "float32-products"])
 def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_near(kind, float32_products, request, interpreted, monkeypatch):
@@ -237,9 +245,9 @@ def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_ne
     recorded = tuple(Recorded(kernel, name) for kernel, name in zip(jitted, ("gelu", "norm", "rope", "softmax"), strict=True))
     monkeypatch.setattr(triton_kernels, "_kernels", lambda: recorded)
     sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
-    engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
     with monkeypatch.context() as off_cpu:
-        off_cpu.delenv("TRITON_INTERPRET")
+        off_cpu.delenv("TRITON_INTERPRET")  # the engine's own dry run without the interpreted kernels
+        engine = PolicyEngine(PolicyOptions(str(request.getfixturevalue(f"{kind}_dir")), "cpu", overrides=["dtype=bfloat16"]), engine=EngineOptions(static_sampler=True))
         plain = sampler(engine.policy)
     launches.clear()  # the engine's own sampler launched some: only this one's load-time check counts
     fused = sampler(engine.policy)
@@ -256,6 +264,7 @@ def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_ne
         torch.testing.assert_close(ours, theirs, atol=1e-2, rtol=0)
 
 
+@pytest.mark.subprocess
 def test_every_kernel_compiles_for_hopper_with_vector_loads_and_no_spills(tmp_path):
     """No GPU here: each kernel compiled for sm_90a (an H100's / H200's) at the full π0.5's shapes,
     in bf16 and float32, through Triton's own code generator and ``ptxas`` — the check that the
@@ -307,6 +316,7 @@ def test_every_kernel_compiles_for_hopper_with_vector_loads_and_no_spills(tmp_pa
     triton_kernels._kernels.cache_clear()
 
 
+@pytest.mark.slow
 def test_attention_kernels_that_fail_their_check_turn_off_alone_and_are_told(pi05_dir, interpreted, monkeypatch, caplog):
     """The rotary and softmax kernels are checked apart from the first two: where their check fails
     PyTorch's operations serve them, the activation and norm kernels stay, the engine logs why and
@@ -320,7 +330,7 @@ def test_attention_kernels_that_fail_their_check_turn_off_alone_and_are_told(pi0
 
     monkeypatch.setattr(pi05_kernels, "attention_kernels_reason", lambda *args: "a stand-in failure")
     with caplog.at_level(logging.INFO):
-        engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), engine=EngineOptions(static_sampler=True))
+        engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=[STEPS]), engine=EngineOptions(static_sampler=True))
     assert engine.hand_kernels and not engine.attention_kernels
     assert "Triton kernels (not attention's)" in engine.description
     assert any("attention's softmax: a stand-in failure" in r.getMessage() for r in caplog.records)
