@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test bench sweep research research-bench research-frontier proto clean
+.PHONY: setup demo test test-fast bench sweep research research-bench research-frontier proto clean
 
 setup: $(STAMP)
 
@@ -37,8 +37,18 @@ demo: setup
 	    --schedulers=rr,edf,lookahead@3 --emulate_profile=l40s-pi05 --duration_s=20 --output=out/demo/live.json
 	$(VENV)/bin/lerobot-armory-sweep --profile=demo --out_dir=out/demo
 
+# Every test CI runs, on WORKERS pytest-xdist workers (two on the 2-core reference machine; about
+# 12 minutes there). --dist=loadgroup keeps each xdist_group (the Ray tests, the demo kinds) on one
+# worker. test-fast: the inner loop, without the slow, subprocess, Ray, openpi and GPU tiers
+# (docs/testing.md).
+WORKERS ?= 2
+FAST := not slow and not subprocess and not ray and not openpi and not gpu
+
 test: setup
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(WORKERS) --dist=loadgroup
+
+test-fast: setup
+	$(PY) -m pytest -n $(WORKERS) --dist=loadgroup -m "$(FAST)"
 
 bench: setup
 	$(PY) benchmarks/sim_speed.py

@@ -109,6 +109,8 @@ def test_planner_solves_both_tasks_fresh_and_dynamic_success_falls_when_stale(pl
     assert stale_dynamic < 0.8 * fresh_dynamic
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_short_live_bench_matches_the_simulator(tmp_path):
     from lerobot_armory.bench.live import BenchConfig, run
 

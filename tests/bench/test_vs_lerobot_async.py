@@ -40,6 +40,7 @@ def test_ours_asks_after_the_steps_stock_asks_after_for_any_chunk(vs):
     assert (vs.h_min_of(10), vs.h_min_of(50), vs.h_min_of(7)) == (5, 25, 4)
 
 
+@pytest.mark.subprocess
 def test_both_sides_get_the_runs_timing_and_window(vs, tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"type": "pi05", "chunk_size": 50, "n_action_steps": 50}))
     opts = vs.parse_args(["--chunk=50", "--settle_chunks=3", f"--policy={tmp_path}", "--robots=1"])

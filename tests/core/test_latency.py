@@ -431,6 +431,7 @@ def serve_for(engine, profile: LatencyProfile, learn: bool, seconds: float = 3.0
     return server
 
 
+@pytest.mark.slow
 def test_server_learns_the_measured_latency_from_a_wrong_profile(engine, caplog):
     wrong = LatencyProfile("wrong", (200.0, 300.0, 400.0))
     with caplog.at_level("WARNING", logger="lerobot_armory.serving.loop"):

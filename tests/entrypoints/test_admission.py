@@ -110,6 +110,7 @@ def test_one_host_cannot_register_faster_than_its_limit_on_grpc_or_openpi(small_
         small_server.service.admission, small_server.openpi.admission = old
 
 
+@pytest.mark.slow
 def test_openpi_clients_that_never_read_their_replies_are_served_as_any_client_and_hurt_nobody(small_server):
     """benchmarks/adversarial.py's openpi_never_reads attacker (valid requests as fast as the server
     takes them, replies never read) beside an openpi client that reads: the attacker's requests

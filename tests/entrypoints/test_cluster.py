@@ -35,6 +35,7 @@ def cluster(planner_dir):
         replicas.kill(rid)
 
 
+@pytest.mark.slow
 def test_robots_are_placed_balanced_and_follow_the_redirect(cluster):
     front, replicas = cluster
     robots = start_fleet(front.address, duration_s=5.0)
@@ -53,6 +54,7 @@ def test_robots_are_placed_balanced_and_follow_the_redirect(cluster):
         assert r.client.connection is None or r.client.connection.address != front.address
 
 
+@pytest.mark.slow
 def test_a_dead_replica_s_robots_resume_elsewhere_within_3_s_and_never_run_a_stale_action(cluster):
     front, replicas = cluster
     robots = start_fleet(front.address, duration_s=9.0)
@@ -71,6 +73,7 @@ def test_a_dead_replica_s_robots_resume_elsewhere_within_3_s_and_never_run_a_sta
         assert stale_actions(r.client) == []
 
 
+@pytest.mark.slow
 def test_a_restarted_front_loses_no_running_robot(cluster, planner_dir):
     front, replicas = cluster
     robots = start_fleet(front.address, duration_s=7.0)
@@ -91,6 +94,7 @@ def test_a_restarted_front_loses_no_running_robot(cluster, planner_dir):
         again.stop(0)
 
 
+@pytest.mark.slow
 def test_a_move_happens_between_chunks_and_costs_the_robot_no_action(cluster):
     front, replicas = cluster
     robots = start_fleet(front.address, n=2, duration_s=6.0)
@@ -140,6 +144,7 @@ def test_a_chunk_through_the_cluster_equals_a_single_server_s(cluster, planner_d
         single.stop()
 
 
+@pytest.mark.slow
 def test_a_replica_gone_silent_is_detected_by_keepalive_and_its_robot_resumes_elsewhere(planner_dir):
     """No reset, no close: the replica's host just stops answering. gRPC keepalive breaks the
     stream (5 s pings, 3 s timeout) and the robot fails over through the front."""
@@ -213,6 +218,7 @@ def test_lying_and_absurd_registrations_are_refused_by_the_replica_and_hurt_nobo
     conn.close()
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(__import__("shutil").which("openssl") is None, reason="openssl not installed")
 def test_with_tls_the_front_and_the_replicas_speak_tls_end_to_end(planner_dir, tmp_path):
     """The front forwards over TLS (trusting the shared certificate), the robot follows the

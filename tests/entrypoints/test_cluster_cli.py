@@ -18,6 +18,8 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("ray")
+# ``ray start --head`` and the cluster command: one worker of pytest-xdist runs the Ray tests.
+pytestmark = [pytest.mark.ray, pytest.mark.slow, pytest.mark.subprocess, pytest.mark.xdist_group("ray")]
 
 from tests.support.cluster import make_planner, sim_robot, wait_for  # noqa: E402
 

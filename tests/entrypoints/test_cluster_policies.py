@@ -164,6 +164,7 @@ def _run(clients: list[ArmoryClient], seconds: float) -> list[threading.Thread]:
     return threads
 
 
+@pytest.mark.slow
 def test_robots_of_two_policies_stream_through_the_front_each_charged_at_its_own_policy(two_policy_cluster):
     front, replicas, _, _ = two_policy_cluster
     info = replicas.replicas["r0"].info()
@@ -221,6 +222,7 @@ def _admin(address: str):
     return swap, status
 
 
+@pytest.mark.slow
 def test_a_rolling_swap_of_one_policy_leaves_the_other_on_every_replica(two_policy_cluster):
     from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
 

@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 ray = pytest.importorskip("ray")
+# A Ray cluster in this process (its workers in others): one worker of pytest-xdist runs them all.
+pytestmark = [pytest.mark.ray, pytest.mark.slow, pytest.mark.subprocess, pytest.mark.xdist_group("ray")]
 
 from lerobot_armory.entrypoints.cluster.cli import ClusterConfig, RayOptions, ReplicaOptions, start_replicas
 from lerobot_armory.entrypoints.cluster.front import ClusterFront, FrontOptions, FrontServer

@@ -62,6 +62,7 @@ def admin(address: str, token: str | None = OPERATOR):
     return swap, status
 
 
+@pytest.mark.slow
 def test_a_rolling_swap_switches_one_replica_at_a_time_under_streaming_robots(cluster, engine, new_engine, new_dir, demo_policy_dir):
     front, replicas, cfg = cluster
     assert not np.allclose(_expected(engine, 0, 0), _expected(new_engine, 0, 0), atol=1e-3)

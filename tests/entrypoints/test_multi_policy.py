@@ -70,6 +70,7 @@ def test_a_robot_must_name_a_served_policy_and_send_its_features(two_policy_serv
         conn.close()
 
 
+@pytest.mark.slow
 def test_two_policies_serve_one_fleet_each_batch_of_one_policy(two_policy_server):
     server, _, records, _ = two_policy_server
     got: dict[str, set[int]] = {}

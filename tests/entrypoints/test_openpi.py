@@ -67,6 +67,8 @@ def run_clients(
     return json.loads((out / "results.json").read_text())
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_four_unchanged_openpi_clients_are_served_in_shared_batches_with_the_right_chunks(server, openpi_env, tmp_path):
     first = len(server.batch_log)
     results = run_clients(openpi_env, server.openpi.port, tmp_path, "infer", 4, 25)
@@ -83,6 +85,7 @@ def test_four_unchanged_openpi_clients_are_served_in_shared_batches_with_the_rig
         np.testing.assert_allclose(saved["actions"], alone, rtol=1e-6, atol=1e-6)  # the chunk for that observation
 
 
+@pytest.mark.subprocess
 def test_action_chunk_broker_runs_its_loop(server, openpi_env, tmp_path):
     results = run_clients(openpi_env, server.openpi.port, tmp_path, "broker", 1, 20)
     broker = results["broker"]
@@ -90,6 +93,8 @@ def test_action_chunk_broker_runs_its_loop(server, openpi_env, tmp_path):
     assert broker["action_shapes"] == [[2]] * 20
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_malformed_request_gets_an_error_frame_and_the_others_continue(server, openpi_env, tmp_path):
     results = run_clients(openpi_env, server.openpi.port, tmp_path, "bad", 4, 20)
     bad = results["bad"]
@@ -99,6 +104,8 @@ def test_a_malformed_request_gets_an_error_frame_and_the_others_continue(server,
     assert all(len(results[str(k)]["latencies_s"]) == 20 for k in range(3))  # every good request answered
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_openpi_and_grpc_robots_share_batches(server, openpi_env, tmp_path):
     first = len(server.batch_log)
     robot = sim_robot(f"127.0.0.1:{server.port}", "grpc-robot", fast=False, seed=3)
@@ -197,6 +204,7 @@ def test_a_slow_client_or_a_hung_one_does_not_hold_the_others(server, tmp_path):
             assert reply["actions"].shape == (10, 2) and time.monotonic() - t < 5
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
 def test_with_tls_and_tokens_the_endpoint_is_wss_and_checks_the_api_key(tmp_path, monkeypatch):
     """The gRPC port's certificate serves wss://; openpi's ``api_key`` (``Authorization: Api-Key``)

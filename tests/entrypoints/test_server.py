@@ -46,6 +46,7 @@ def version(text: str) -> tuple[int, ...]:
     return tuple(int(part) for part in text.split("."))
 
 
+@pytest.mark.subprocess
 def test_generated_code_is_up_to_date_with_the_proto(tmp_path):
     """The committed armory_pb2*.py(i) are byte for byte what `make proto` makes from armory.proto."""
     pytest.importorskip("grpc_tools.protoc", reason="grpcio-tools (the dev extra) is not installed")
@@ -114,6 +115,7 @@ def test_batches_form_and_each_robot_gets_its_own_chunk(server, engine):
             assert not np.allclose(c.actions, other, atol=1e-4), "chunk does not depend on the robot's own observation"
 
 
+@pytest.mark.slow
 def test_mirror_prediction_follows_a_real_control_loop(server, engine):
     rng = np.random.default_rng(0)
     executed = []
@@ -338,6 +340,8 @@ def test_lookahead_serves_live_too(engine):
         srv.stop(grace_s=0.5)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_server_command_profiles_serves_and_exits_0_on_sigterm(demo_policy_dir, engine, tmp_path):
     """The real console entry point: start-up summary, saved profile, a robot served, SIGTERM -> exit 0."""
     import os

@@ -331,6 +331,7 @@ def test_connection_cap_stays_below_the_fd_limit():
     assert service._connection_cap(64, -1) == service.MAX_INCOMING_CONNECTIONS
 
 
+@pytest.mark.slow
 def test_idle_sockets_do_not_block_registration_and_are_closed_after_the_handshake_timeout():
     hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
     if hard != resource.RLIM_INFINITY and hard < 2 * IDLE_SOCKETS + 600:
@@ -384,6 +385,7 @@ def test_a_connection_holding_no_rpc_is_closed_after_the_idle_timeout(monkeypatc
         server.stop(0.5)
 
 
+@pytest.mark.slow
 def test_a_quiet_stream_outlives_the_idle_connection_timeout(monkeypatch):
     monkeypatch.setattr(service, "MAX_CONNECTION_IDLE_MS", 500)
     server = echo_server()

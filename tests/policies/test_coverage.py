@@ -51,6 +51,7 @@ def checks(tmp_path_factory) -> dict[str, tuple[coverage.PolicyCheck, str]]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lerobot_type", sorted(BUILT.values()))
 def test_each_buildable_type_is_served_batched_with_each_chunk_as_if_alone(checks, lerobot_type):
     check, _ = checks[lerobot_type]
@@ -66,6 +67,8 @@ def test_a_type_with_state_we_cannot_keep_per_robot_is_refused_in_one_line(check
     assert f"a {lerobot_type} policy cannot be served batched per robot" in check.refusal
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_server_refuses_it_at_start_up_with_exit_2_and_no_traceback(tmp_path):
     path = REFUSED["tdmpc"](tmp_path / "tdmpc")
     done = subprocess.run(

@@ -95,6 +95,8 @@ def test_policy_field_overrides_reach_the_policy_config(pi05_dir):
         PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=float16"]))
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_server_command_names_an_unknown_policy_field_and_exits_2(pi05_dir):
     proc = subprocess.run(
         [sys.executable, "-m", "lerobot_armory.entrypoints.server", f"--policy.path={pi05_dir}", "--policy.device=cpu", "--policy.bogus=1"],
@@ -113,6 +115,8 @@ def test_served_chunks_equal_each_robots_chunk_computed_alone(pi05):
     assert assert_shared_chunks_equal_alone(pi05, server, robots) >= 3
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_end_to_end_build_serve_two_armory_sim_robots_with_their_own_tasks(pi05_dir, tmp_path):
     """The commands a user types: the built directory served by lerobot-armory-server, two
     lerobot-armory-client armory_sim robots with different --task, chunks received and executed."""
@@ -215,6 +219,7 @@ def test_warmup_keeps_a_compiled_model_only_if_it_measured_faster(pi05_dir):
     assert engine.description.endswith("compiled)")
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="the pinned, asynchronous path exists on CUDA only")
 def test_on_cuda_back_to_back_batches_match_the_unstaged_path(pi05_dir):
     """Two batches in a row reuse the pinned staging buffers while the first copy may be in flight:

@@ -74,6 +74,7 @@ def test_padding_rows_never_change_a_real_rows_chunk(engines):
     assert_padding_never_changes_a_real_row(static)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("guided", [False, True])
 def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
     """What predicts a successful CUDA graph capture on a GPU, checked on the CPU: for every bucket,
@@ -214,6 +215,8 @@ def test_served_through_the_static_sampler_each_robots_chunks_equal_its_chunks_a
     assert assert_shared_chunks_equal_alone(static, server, robots) >= 1
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_compiled_static_sampler_gives_the_same_chunks(pi05_dir, engines):
     """``--engine.compile_sampler=true``: inductor compiles the sampler's two layer functions (one
     bucket here: seconds on a 2-core CPU); its chunks equal LeRobot's to 1e-5."""
@@ -255,6 +258,8 @@ def test_in_bf16_the_static_sampler_keeps_lerobots_weights_and_comes_nearer_a_fl
         assert ours <= 0.3 * theirs, (b, ours, theirs)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
     """``--engine.cuda_graphs=on`` (which the YAML-based parser reads as a boolean) on a CPU: exit 2
     with one line, before any robot could connect."""
@@ -630,6 +635,7 @@ def test_in_bf16_fused_norms_read_the_float32_stream_and_attention_skips_lerobot
     torch.testing.assert_close(out, want, atol=1e-2, rtol=1e-2)
 
 
+@pytest.mark.slow
 def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_warm_up(two_camera_dir, monkeypatch, caplog):
     """``--engine.compile_sampler=true`` compiles the sampler's two layer functions (a VLM layer, an
     expert layer) with their batch and prompt dimensions dynamic: one compilation each at warm-up
@@ -662,6 +668,7 @@ def test_a_compiled_sampler_compiles_once_for_every_bucket_and_prompt_length_at_
     torch._dynamo.reset()
 
 
+@pytest.mark.slow
 def test_a_compiled_engine_dropped_leaves_the_next_one_compiling(pi05_dir, two_camera_dir, monkeypatch):
     """Without a CUDA device, torch's tracing registered a no-op CUDA guard in the storage of the
     thread that first traced (an engine's device thread): once that engine was dropped, the next

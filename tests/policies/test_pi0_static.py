@@ -74,6 +74,7 @@ def test_padding_rows_and_a_hostile_state_never_change_a_real_rows_chunk(engines
     assert_padding_never_changes_a_real_row(static)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("guided", [False, True])
 def test_the_whole_pi0_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
     """What predicts a CUDA graph capture, on the CPU: one dynamo graph, no break, no op waiting
@@ -128,6 +129,7 @@ def test_each_policy_type_gets_its_own_static_sampler_or_a_reason(engines, pi05_
     assert "static sampler, buckets 1,2,4,8" in static.description
 
 
+@pytest.mark.slow
 def test_a_compiled_pi0_sampler_gives_the_same_chunks(pi0_dir, engines):
     """``--engine.compile_sampler=true`` on π0 (its expert layer takes no time conditioning):
     the layer-by-layer compiled sampler's chunks equal the uncompiled one's (1e-5)."""

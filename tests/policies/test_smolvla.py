@@ -127,6 +127,7 @@ def test_a_batch_of_eight_runs_in_well_under_a_second(smolvla):
     assert min(times) < 1.0
 
 
+@pytest.mark.slow
 def test_smolvla_builds_at_smolvlm2s_depths_and_refuses_what_it_cannot_build(tmp_path):
     """``--size=narrow``: SmolVLM2-500M's depths, heads and image geometry (16 of its 32 text
     layers kept, a 16-layer expert, 15 query heads on 5 K/V heads, 512² images in 16² patches →

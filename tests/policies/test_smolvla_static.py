@@ -74,6 +74,7 @@ def test_padding_rows_and_a_hostile_row_never_change_a_real_rows_chunk(engines):
     assert_padding_never_changes_a_real_row(static)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("guided", [False, True])
 def test_the_whole_smolvla_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
     """What predicts a CUDA graph capture, on the CPU: one dynamo graph, no break, no op waiting

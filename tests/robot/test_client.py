@@ -155,6 +155,7 @@ def run_in_thread(client: ArmoryClient, duration_s: float):
     return t, out
 
 
+@pytest.mark.slow
 def test_fleet_of_sim_robots_executes_chunks_in_order(engine):
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     server = ArmoryServer(engine, info, LatencyProfile("t", (15.0, 20.0, 25.0)), EarliestDeadlineConfig(), 3, port=0).start()
@@ -192,6 +193,7 @@ def test_fleet_of_sim_robots_executes_chunks_in_order(engine):
         server.stop(grace_s=0.5)
 
 
+@pytest.mark.slow
 def test_starvation_is_counted_when_the_server_is_slow():
     fast_server = start_server(ConstEngine(0.0))
     client, _, _ = sim_client(fast_server.address, "quick", h_max=8)
@@ -215,6 +217,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_reconnect_never_replays_a_stale_chunk():
     port = free_port()
     first = start_server(ConstEngine(+1.0, horizon=10), port=port)
@@ -263,6 +266,7 @@ def test_unreachable_server_is_retried_then_given_up():
     assert 0.5 < time.monotonic() - start < 10
 
 
+@pytest.mark.slow
 def test_client_waits_for_a_server_that_comes_up_late():
     port = free_port()
     client, _, _ = sim_client(f"127.0.0.1:{port}", "patient", backoff=Backoff(0.1, 0.3))
@@ -568,6 +572,7 @@ class EpisodeEchoEngine(UnguidedEngine):
         return np.repeat(values[:, None, None], 10, axis=1).repeat(2, axis=2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("delay_s", "h_min"), [(0.0, 8), (0.12, 2)])
 def test_after_an_episode_boundary_no_old_chunk_runs_and_a_fresh_one_comes_at_once(delay_s, h_min):
     """A robot that resets its world every 0.5 s: every action it executes carries the episode

@@ -71,6 +71,7 @@ def test_a_loop_that_observes_only_some_ticks_steps_the_world_once_per_tick():
         robot.disconnect()
 
 
+@pytest.mark.slow
 def test_episodes_end_at_the_time_limit_and_restart_with_the_next_seed():
     limit = TASKS["push"].max_ticks
     robot = MetaWorldRobot(MetaWorldRobotConfig(task="push", seed=1234, episodes=2))
@@ -85,6 +86,7 @@ def test_episodes_end_at_the_time_limit_and_restart_with_the_next_seed():
         robot.disconnect()
 
 
+@pytest.mark.slow
 def test_the_scripted_experts_solve_both_tasks_from_the_live_state():
     for name in TASKS:
         task = MetaWorldTask(name)
@@ -98,6 +100,7 @@ def test_the_scripted_experts_solve_both_tasks_from_the_live_state():
         assert wins == 4, name
 
 
+@pytest.mark.slow
 def test_a_layout_is_drawn_from_the_seed_alone():
     a, b = MetaWorldTask("reach-moving"), MetaWorldTask("reach-moving")
     a.reset(1001)
@@ -125,6 +128,8 @@ def test_a_bad_action_is_refused_in_one_line():
         (["--robot.image_size=64"], {"MUJOCO_GL": "bogus"}, "robot metaworld: MuJoCo cannot start: RuntimeError: invalid value"),
     ],
 )
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_bad_inputs_are_one_clear_line(argv, env, expected):
     import os
 

@@ -502,6 +502,8 @@ def test_missing_piper_sdk_says_how_to_install(make_robot, monkeypatch):
     assert not robot.is_connected
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_config_module_needs_neither_piper_sdk_nor_python_can():
     code = (
         "import sys; sys.modules['piper_sdk'] = None; sys.modules['can'] = None\n"

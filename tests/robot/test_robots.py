@@ -327,6 +327,7 @@ def so101_args(server: ArmoryServer, tmp_path: Path, *extra: str) -> list[str]:
     ]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_so101_runs_the_client_loop_and_its_motors_get_the_chunks_in_order(
     so101_engine, fake_hardware, monkeypatch, tmp_path, capsys
 ):
@@ -427,6 +428,8 @@ def run_cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_a_missing_serial_port_is_one_line_and_exit_1(tmp_path):
     # A fresh process: the OpenCV camera config must parse with nothing imported but the client.
     done = run_cli(
@@ -443,6 +446,8 @@ def test_a_missing_serial_port_is_one_line_and_exit_1(tmp_path):
         assert "lerobot[feetech]" in line
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 @pytest.mark.skipif(not HAVE_FEETECH, reason="needs LeRobot's feetech extra (feetech-servo-sdk, pyserial)")
 def test_motors_that_do_not_answer_are_one_line_and_exit_1(tmp_path):
     import os

@@ -60,6 +60,7 @@ class LostDevice(EchoEngine):
         raise RuntimeError("CUDA error: an illegal memory access was encountered")
 
 
+@pytest.mark.slow
 def test_out_of_memory_at_a_batch_size_lowers_the_cap_and_the_robots_are_served_without_an_error():
     engine = OutOfMemoryAbove(limit=3)
     server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig())
@@ -134,6 +135,7 @@ class UnrecordedFrom(EchoEngine):
         return super().infer(observations, tasks, noise_seeds)
 
 
+@pytest.mark.slow
 def test_batches_served_without_their_cuda_graph_are_counted_and_shown():
     """A batch the engine served eagerly although graphs were recorded (correct chunks, eager
     speed) is counted by the loop, exported as ``armory_batches_unrecorded_total`` and shown in

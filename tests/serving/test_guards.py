@@ -320,6 +320,7 @@ def test_outbox_keeps_at_most_its_limits_for_a_robot_that_never_reads():
 # ---- live: grants and device share -----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_live_grant_and_device_share_cap():
     """The server answers with the grant, and a robot capped at 20 % of device time gets about
     that, even though it asks to be served every tick (h_min 0) at b = 1."""

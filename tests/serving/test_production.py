@@ -167,6 +167,7 @@ def test_token_file_errors_name_the_field(tmp_path):
         AuthTokens.load(str(tmp_path / "missing"))
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
 def test_tls_serves_tls_clients_and_refuses_plaintext(tmp_path):
     key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
@@ -216,6 +217,7 @@ def gaps(times: list[float]) -> float:
     return max(np.diff(times)) if len(times) > 1 else float("inf")
 
 
+@pytest.mark.subprocess
 def test_robot_killed_mid_stream_is_dropped_and_delays_nobody():
     server = make_server(engine=QuickEngine(delay_s=0.02))
     try:
@@ -265,6 +267,7 @@ def test_robot_killed_mid_stream_is_dropped_and_delays_nobody():
         server.stop(0.5)
 
 
+@pytest.mark.slow
 def test_robot_that_stops_reading_does_not_stall_the_server():
     server = make_server()
     try:
@@ -299,6 +302,8 @@ def test_robot_that_stops_reading_does_not_stall_the_server():
         server.stop(0.5)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_sigterm_during_a_batch_delivers_it_and_exits(demo_policy_dir, tmp_path):
     """A slow emulated batch is in flight when SIGTERM arrives: the robot still gets that chunk."""
     import signal
@@ -332,6 +337,8 @@ def test_sigterm_during_a_batch_delivers_it_and_exits(demo_policy_dir, tmp_path)
 # ---- load ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_64_robots_load_shortened():
     out = run_load(64, 8.0)
     assert not out["errors"], out["errors"][:3]
@@ -395,6 +402,7 @@ def fuzz_server():
     server.stop(0.5)
 
 
+@pytest.mark.slow
 @settings(max_examples=600, deadline=None, suppress_health_check=list(HealthCheck), database=None)
 @given(request=registrations)
 def test_fuzz_registrations(fuzz_server, request):
@@ -405,6 +413,7 @@ def test_fuzz_registrations(fuzz_server, request):
         assert exc.code() in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.ALREADY_EXISTS, grpc.StatusCode.RESOURCE_EXHAUSTED)
 
 
+@pytest.mark.slow
 def test_fuzz_stream_then_serve_a_good_robot(fuzz_server):
     """Thousands of malformed stream messages on one registered stream, then a good robot."""
     conn = Connection(fuzz_server.address)

@@ -111,6 +111,7 @@ def no_trouble(robots: list[Pusher]) -> None:
         assert not bad, bad
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("drain", [False, True])
 def test_live_swap_under_a_streaming_fleet(engine, new_engine, demo_policy_dir, new_dir, drain):
     old_probe = _expected(engine, 0, 0)
@@ -179,6 +180,7 @@ def test_operator_tokens_file_refuses_a_robot_token(tmp_path):
     assert ops.check(OPERATOR) and not ops.check(ROBOT) and not ops.check("")
 
 
+@pytest.mark.slow
 def test_bad_swaps_are_refused_and_the_old_policy_keeps_serving(engine, tmp_path, tmp_path_factory):
     broken = tmp_path / "broken"
     broken.mkdir()
@@ -219,6 +221,8 @@ def test_bad_swaps_are_refused_and_the_old_policy_keeps_serving(engine, tmp_path
     assert check_chunks(server, [robot], [], engine)[0] > 5
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_admin_cli_swaps_and_refuses_with_exit_codes(engine, new_dir, tmp_path):
     token_file = tmp_path / "operator.txt"
     token_file.write_text(OPERATOR + "\n")

@@ -204,6 +204,7 @@ def test_compositions_differ_by_policy():
     assert composition([pf], policy_of) != composition([gf], policy_of)
 
 
+@pytest.mark.slow
 def test_plan_a_mixed_fleet(tmp_path, capsys):
     out = tmp_path / "plan.json"
     with pytest.raises(SystemExit) as exc:
@@ -229,6 +230,7 @@ def test_one_policys_robots_alone_are_a_one_policy_fleet():
         fleet.only("nope")
 
 
+@pytest.mark.slow
 def test_a_heavier_policy_mix_needs_at_least_as_many_gpus(tmp_path):
     def fleet_file(pi05: int, act: int) -> Path:
         data = {

@@ -185,6 +185,7 @@ def assert_fleet_unharmed(server: ArmoryServer, results: list[dict[str, Any]], b
 # ---- one test per attack -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheduler", ["lookahead", "edf"])
 @pytest.mark.parametrize("scenario", ["clock_nan", "capture_absurd", "report_absurd"])
 def test_poisoned_times_do_not_hurt_the_fleet(scenario, scheduler):
@@ -197,6 +198,7 @@ def test_poisoned_times_do_not_hurt_the_fleet(scenario, scheduler):
         assert_fleet_unharmed(server, results, base, report)
 
 
+@pytest.mark.slow
 def test_absurd_registrations_are_refused_or_bounded():
     """fps 1e308 / 1e-308 / NaN, weight and horizon extremes: INVALID_ARGUMENT or a sane grant;
     whatever got in streams observations next to the honest robots."""
@@ -207,6 +209,7 @@ def test_absurd_registrations_are_refused_or_bounded():
         assert_fleet_unharmed(server, results, base, report)
 
 
+@pytest.mark.slow
 def test_priority_flood_gets_no_priority():
     """Asks weight 3 and h_min 0, claims 190 steps/s at 20 fps. Tight device (b=1, 60 ms)."""
     base = baseline("lookahead", cap=1, delay_s=0.06)
@@ -216,6 +219,7 @@ def test_priority_flood_gets_no_priority():
         assert_fleet_unharmed(server, results, base, report)
 
 
+@pytest.mark.slow
 def test_clock_ahead_gets_no_priority_under_edf():
     """Clock exchanges 10^6 s off the clock of its observations: the most urgent robot an EDF
     server ever saw, unless the server refuses the lie. EDF b=1, 60 ms batches."""
@@ -225,6 +229,7 @@ def test_clock_ahead_gets_no_priority_under_edf():
         assert_fleet_unharmed(server, results, base, report)
 
 
+@pytest.mark.slow
 def test_huge_report_does_not_stall_the_fleet():
     """A 16 MiB execution report (~8.4 M receipts) every second."""
     base = baseline("lookahead")
@@ -274,6 +279,8 @@ def process_rss_mib(pid: int) -> float:
     raise AssertionError(f"no VmRSS for {pid}")
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_never_reading_robot_cannot_grow_server_memory():
     """Answers it never reads (notices echoing a 64 KiB tensor name): 150 MiB of bait, no rate
     limit so that it goes fast; the server's memory must not follow."""
@@ -304,6 +311,7 @@ def test_never_reading_robot_cannot_grow_server_memory():
         assert all(r["chunks"] > 0 for r in results), "honest robots were not served"
 
 
+@pytest.mark.slow
 def test_slot_squatter_cannot_keep_honest_robots_out():
     """Registrations that never stream fill every slot (max_robots=4) and are renewed twice a
     second; honest robots started after must still get in (the client retries RESOURCE_EXHAUSTED)."""
@@ -318,6 +326,7 @@ def test_slot_squatter_cannot_keep_honest_robots_out():
             )
 
 
+@pytest.mark.slow
 def test_fleet_token_cannot_take_another_robots_identity(tmp_path):
     """Per-robot tokens are exclusive and a session is bound to the credential that made it."""
     tokens = {f"honest{k}": f"honest{k}-token-0123456789abcdef" for k in range(3)}
@@ -338,6 +347,7 @@ def test_fleet_token_cannot_take_another_robots_identity(tmp_path):
         assert_fleet_unharmed(server, results, base, report)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step_s", [3600.0, -3600.0])
 def test_robot_whose_clock_steps_is_served_again(step_s):
     """One honest robot's clock jumps by an hour mid-run; once re-synchronised it must be served
@@ -356,6 +366,8 @@ def test_robot_whose_clock_steps_is_served_again(step_s):
         assert max(others) <= MARGIN_PP, f"the other robots starved {others} after the step"
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_idle_sockets_do_not_lock_out_robots():
     """1,100 TCP connections that never send a byte, then honest robots: in within seconds. The
     server starts with the usual soft limit of 1024 open files."""
@@ -379,6 +391,7 @@ def test_idle_sockets_do_not_lock_out_robots():
             assert first is not None and first < 2.0, f"{r['id']}: first chunk at {first} s after 1,100 idle sockets ({report.summary()})"
 
 
+@pytest.mark.slow
 def test_garbage_and_jpeg_scan_bombs_do_not_hurt_the_fleet():
     """Bytes that are not protobuf on a registered stream, and progressive JPEGs of 200k scans."""
     base = baseline("lookahead", features=WITH_IMAGE)
@@ -465,6 +478,7 @@ REGISTRATION_VALUES = {
 }
 
 
+@pytest.mark.slow
 def test_fuzz_5000_mutated_messages_then_an_honest_robot_is_served():
     """>= 5,000 mutated stream messages (times NaN/inf/huge/bit-flipped, random ints, clock
     syncs, reports, observations) from one robot that re-registers with mutated fps, horizons and

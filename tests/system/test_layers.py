@@ -224,6 +224,8 @@ def test_the_static_check_sees_imports_inside_functions_and_relative_ones(tmp_pa
     ]
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_importing_the_client_loads_no_simulator_scheduler_or_server():
     code = (
         "import sys\n"
@@ -237,6 +239,7 @@ def test_importing_the_client_loads_no_simulator_scheduler_or_server():
     assert not loaded, f"importing the client loaded {loaded}"
 
 
+@pytest.mark.subprocess
 @pytest.mark.skipif(shutil.which("lint-imports", path=str(Path(sys.executable).parent)) is None, reason="import-linter not installed")
 def test_import_linter_contracts_hold():
     """The same layers as ``[tool.importlinter]`` contracts in pyproject.toml (import-linter also

@@ -31,6 +31,8 @@ def local():
     return run_local(cfg)
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_committed_checkpoint_succeeds_served_as_in_lerobots_own_loop(tmp_path, local):
     cfg = TasksConfig(policy_path=str(CHECKPOINT), task="push", mode="both", episodes=EPISODES, max_minutes=4.0)
     cfg.validate()
@@ -43,6 +45,8 @@ def test_the_committed_checkpoint_succeeds_served_as_in_lerobots_own_loop(tmp_pa
     assert seeds == [r["seed"] for r in local["episode_results"]] == list(range(1000, 1000 + EPISODES))
 
 
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_through_the_openpi_endpoint_each_episode_ends_as_in_lerobots_own_loop(local):
     # openpi's client is synchronous (the world waits for each infer, h_min actions per chunk), as
     # LeRobot's loop is: the same chunks executed at the same ticks give the same episodes, tick for
