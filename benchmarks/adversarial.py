@@ -81,7 +81,7 @@ SCHEDULERS = ("rr", "edf", "lookahead", "rollout")
 SHARE_LIMIT = 1.15
 SHARE_REGISTRATION = (("h_min", 0),)
 # clock_ahead registers h_min 1 (served as often as it likes): its stand-in and twin register so
-# too, so that the row measures the clock lie, not the registration (the fleet policy's h_min
+# too, so that the row measures the clock lie, not the registration (the grant rules's h_min
 # floor governs that; docs/security.md gives what a greedy registration costs the others).
 CLOCK_AHEAD_REGISTRATION = (("h_min", 1),)
 # openpi_never_reads: its connections, and the baseline's stand-in: as many openpi clients that read.

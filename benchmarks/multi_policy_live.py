@@ -71,11 +71,11 @@ def engine_for(path: str, profile_ms: tuple[float, ...], name: str) -> tuple[Any
     return EmulatedLatencyEngine(engine, profile), info, profile
 
 
-def fleet_policy() -> Any:
+def grant_rules() -> Any:
     """Grants the fast robots their weight of 3 (the built-in policy caps every weight at 1)."""
-    from lerobot_armory.serving.fleet_policy import FleetPolicy
+    from lerobot_armory.serving.grant_rules import GrantRules
 
-    return FleetPolicy.from_dict({"default": {"max_weight": FAST_WEIGHT}}, "multi_policy_live")
+    return GrantRules.from_dict({"default": {"max_weight": FAST_WEIGHT}}, "multi_policy_live")
 
 
 def scheduler_config(name: str) -> Any:
@@ -170,7 +170,7 @@ def main() -> int:
                     (e1, i1, p1), (e2, i2, p2) = (engine_for(paths[n], PROFILES_MS[n], n) for n in PROFILES_MS)
                     names = list(PROFILES_MS)
                     server = ArmoryServer(
-                        e1, i1, p1, scheduler_config(sched), CAPS[names[0]], port=0, fleet_policy=fleet_policy(), policy_name=names[0],
+                        e1, i1, p1, scheduler_config(sched), CAPS[names[0]], port=0, grant_rules=grant_rules(), policy_name=names[0],
                         others=(ExtraPolicy(names[1], e2, i2, p2, CAPS[names[1]]),),
                     ).start()  # fmt: skip
                     servers.append(server)
@@ -183,7 +183,7 @@ def main() -> int:
                         scaled = tuple(ms / split[name] for ms in PROFILES_MS[name])
                         engine, info, profile = engine_for(paths[name], scaled, name)
                         emulated.append(engine)
-                        server = ArmoryServer(engine, info, profile, scheduler_config(sched), CAPS[name], port=0, fleet_policy=fleet_policy()).start()
+                        server = ArmoryServer(engine, info, profile, scheduler_config(sched), CAPS[name], port=0, grant_rules=grant_rules()).start()
                         servers.append(server)
                         addresses[name] = server.address
                         features = {f.name: (f.dtype, f.shape) for f in info.wire_features}

@@ -31,7 +31,8 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from lerobot_armory.mirror import Chunk, RobotMirror
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.transition import Chunk
 from lerobot_armory.schedulers.base import Scheduler, check_batch
 
 log = logging.getLogger(__name__)

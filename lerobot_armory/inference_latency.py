@@ -258,6 +258,17 @@ class OnlineLatency:
             self.stale_after, self.tolerance,
         )  # fmt: skip
 
+    def lower_cap(self, cap: int) -> None:
+        """Cover b = 1..``cap`` only, from now on (the batch cap was lowered: out of memory at a
+        larger batch); what was learnt for those sizes is kept."""
+        if not 1 <= cap < self.max_batch_size:
+            return
+        self.max_batch_size = cap
+        self.startup_ms = self.startup_ms[:cap]
+        del self._window[cap:], self._suspects[cap:], self._last_seen[cap:]
+        self._table_ms = self._table_ms[:cap]
+        self._measured = frozenset(b for b in self._measured if b <= cap)
+
     @property
     def observed(self) -> int:
         """Batches fed so far."""

@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 
 # A robot's period is never taken shorter than one control tick: a robot whose horizon is shorter
 # than the round trip cannot be kept fed by any placement, and its demand is capped at "every tick".

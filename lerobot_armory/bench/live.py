@@ -32,7 +32,7 @@ from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile, load_profile
-from lerobot_armory.mirror import TIERS
+from lerobot_armory.robot_spec import TIERS
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
 from lerobot_armory.sim.run import run_label
@@ -186,9 +186,9 @@ def run_live(cfg: BenchConfig, scheduler: str, seed: int, work: Path) -> dict[st
         *shlex.split(cfg.policy_args),
     ]  # fmt: skip
     # The operator grants the weights the bench's robots ask for (without a policy every weight is 1).
-    policy_file = run_dir / "fleet_policy.json"
+    policy_file = run_dir / "grant_rules.json"
     policy_file.write_text(json.dumps({"robots": {s.robot_id: {"max_weight": s.weight} for s in specs if s.weight != 1.0}}))
-    args.append(f"--fleet.policy={policy_file}")
+    args.append(f"--fleet.rules={policy_file}")
     measured = run_dir / "profile.json"  # real timing: profiled at start-up, saved, replayed by the simulator
     if scheduler == "lookahead":
         args.append(f"--scheduler.depth={cfg.depth}")

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lerobot_armory.mirror import TIERS  # noqa: E402
+from lerobot_armory.robot_spec import TIERS  # noqa: E402
 from lerobot_armory.sim.sweep_plots import LABEL_ORDER  # noqa: E402
 
 

@@ -65,7 +65,7 @@ class TasksConfig:
             ``duration_s``: as many as fit.
         duration_s: served: stop every robot after this many seconds (0: after its episodes).
         fast_weight: the weight dynamic-task robots ask for (Lookahead's), granted by the
-            server's fleet policy.
+            server's grant rules.
         seed: the first episode's seed (evaluation seeds are 1000 and up).
         fps: the robots' control rate (served).
         h_min / h_max: the robots' horizons (served): served again after ``h_min`` executed
@@ -304,10 +304,10 @@ def run_served(cfg: TasksConfig, work: Path, episode_boundaries: bool = True) ->
             "episodes": cfg.episodes,
         })  # fmt: skip
     if any(s["weight"] != 1.0 for s in specs):  # the operator grants the weights the fast robots ask for
-        (run_dir / "fleet_policy.json").write_text(
+        (run_dir / "grant_rules.json").write_text(
             json.dumps({"robots": {s["robot_id"]: {"max_weight": s["weight"]} for s in specs if s["weight"] != 1.0}})
         )
-        args.append(f"--fleet.policy={run_dir / 'fleet_policy.json'}")
+        args.append(f"--fleet.rules={run_dir / 'grant_rules.json'}")
     if cfg.emulate_profile:
         args.append(f"--engine.emulate_profile={cfg.emulate_profile}")
     server, address = start_server(args)

@@ -22,20 +22,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
 from pathlib import Path
 
 from lerobot_armory.cli_util import run_or_exit
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.inference_latency import BUILTIN_PROFILES, LatencyProfile, OnlineLatency, load_profile
+from lerobot_armory.inference_latency import LatencyProfile, OnlineLatency
 from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES
 from lerobot_armory.schedulers import SchedulerConfig
-from lerobot_armory.engine.emulation import EmulatedLatencyEngine
-from lerobot_armory.engine.policy_engine import PolicyEngine
+from lerobot_armory.engine.startup import StartedEngine, start_engine
 from lerobot_armory.serving.fleet import Fleet
 from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.config import OpenpiOptions, ServerConfig, parse_server_args
-from lerobot_armory.serving.fleet_policy import FleetPolicy
+from lerobot_armory.serving.grant_rules import GrantRules
+from lerobot_armory.serving.registration import Registrar
 from lerobot_armory.serving.logs import configure_logging
 from lerobot_armory.serving.policies_file import PolicyEntry, load_policies
 from lerobot_armory.engine.protocol import Engine
@@ -51,7 +50,6 @@ from lerobot_armory.entrypoints.grpc.admin import AdminService
 from lerobot_armory.entrypoints.grpc.service import ArmoryService, PolicyInfo, RunningServer, shutdown_notice, start_grpc_server
 
 log = logging.getLogger("lerobot_armory.server")
-T = TypeVar("T")
 
 
 class ArmoryServer:
@@ -79,7 +77,7 @@ class ArmoryServer:
         tls: tuple[bytes, bytes] | None = None,
         max_obs_rate_hz: float = 0.0,
         learn_latency: bool = False,
-        fleet_policy: FleetPolicy | None = None,
+        grant_rules: GrantRules | None = None,
         operators: OperatorTokens | None = None,
         loader: Loader | None = None,
         policy_options: PolicyOptions | None = None,
@@ -88,9 +86,9 @@ class ArmoryServer:
     ) -> None:
         self.policy = policy
         self.profile = profile
-        fleet_policy = fleet_policy or FleetPolicy.builtin()
+        grant_rules = grant_rules or GrantRules.builtin()
         # The shortest horizon a robot may ask for follows the fastest policy's single-robot batch.
-        fleet_policy.batch_s = min([profile.latency_s(1), *(o.profile.latency_s(1) for o in others)])
+        grant_rules.batch_s = min([profile.latency_s(1), *(o.profile.latency_s(1) for o in others)])
         self.scheduler_config = scheduler
         self.scheduler = scheduler.make(profile, max_batch_size)
         history = max([engine.history_steps, *(o.engine.history_steps for o in others)])
@@ -111,10 +109,11 @@ class ArmoryServer:
             self.fleet, engine, self.scheduler, on_batch=self._on_batch, latency=self.latency if learn_latency else None,
             policy_name=policy_name, others=served,
         )  # fmt: skip
-        # One admission limit per peer and credential, whichever entrypoint the registrations use.
-        self.admission = AdmissionLimiter()
+        # One registration path (credentials, one admission limit per peer and credential, the
+        # grant rules), whichever entrypoint the registrations use.
+        self.registrar = Registrar(self.fleet, grant_rules, AdmissionLimiter(), auth)
         self.service = ArmoryService(
-            self.fleet, policy, max_message_bytes, auth, max_obs_rate_hz, fleet_policy, self.admission,
+            self.fleet, policy, max_message_bytes, self.registrar, max_obs_rate_hz,
             policy_name=policy_name, others={o.name: o.info for o in others},
         )  # fmt: skip
         self.metrics = ServerMetrics(self.fleet, self.loop.stats, max_batch_size, self.latency)
@@ -125,20 +124,18 @@ class ArmoryServer:
             list(getattr(engine, "overrides", [])),
         )  # fmt: skip
         current = _served_now(options, engine, policy)
-        self.swapper = PolicySwapper(self.loop, current, loader or policy_loader(max_batch_size), self._swapped, policy_name)
+        loader = loader or policy_loader()
+        self.swapper = PolicySwapper(self.loop, current, loader, self._swapped, policy_name)
         self.swappers = {policy_name: self.swapper}
         for o in others:
             o_current = _served_now(o.options or PolicyOptions(getattr(o.engine, "path", "")), o.engine, o.info)
-            # Its own loader (its cap, the server's engine options): not the first policy's.
-            o_loader = o.loader or loader or policy_loader(o.max_batch_size)
-            self.swappers[o.name] = PolicySwapper(self.loop, o_current, o_loader, self._other_swapped(o.name), o.name)
+            self.swappers[o.name] = PolicySwapper(self.loop, o_current, loader, self._other_swapped(o.name), o.name)
         for name, swapper in self.swappers.items():
             swapper.listeners.append(functools.partial(self.metrics.on_swap, policy=name))
             self.metrics.set_policy(name, swapper.current.path)
         self.admin = AdminService(self.swapper, self.fleet, operators, self.status_line, self.swappers)
         self._tls = tls
         self._stop_metrics: Callable[[], None] | None = None
-        self._auth, self._fleet_policy = auth, fleet_policy
         self.openpi: OpenpiEndpoint | None = None
         self._host, self._port = host, port
         self._max_robots, self._max_message_bytes = max_robots, max_message_bytes
@@ -163,7 +160,7 @@ class ArmoryServer:
         if self.openpi is not None:  # the handshake dict is read per connection: new ones see the new policy
             self.openpi.metadata["policy"] = new.description
         if new.d_infer:
-            self._fleet_policy.batch_s = new.d_infer[0]
+            self.registrar.rules.batch_s = new.d_infer[0]
 
     def _other_swapped(self, name: str) -> Callable[[LoadedPolicy], None]:
         """After a swap of a policy other than the first: registrations describe the new checkpoint."""
@@ -211,7 +208,7 @@ class ArmoryServer:
             self.fleet, KeyMap.load(self.policy.wire_features, keymap), options, self.policy.chunk_size,
             {"server": "lerobot-armory", "policy": self.policy.description, "chunk_size": self.policy.chunk_size,
              "action_names": self.policy.action_names},
-            self._host, self._max_message_bytes, self._fleet_policy, self._auth, self._tls, self.admission,
+            self._host, self._max_message_bytes, self.registrar, self._tls,
             next(iter(self.swappers)),  # the first policy serves openpi clients, by its name
         ).start()  # fmt: skip
         return self.openpi.port
@@ -264,7 +261,6 @@ class ExtraPolicy:
         profile: its ``d_infer(b)``.
         max_batch_size: its batch cap.
         options: how it was loaded (a swap of it reuses the device and threads).
-        loader: what a swap of it loads with (None: the server's ``loader``, else one for its cap).
     """
 
     name: str
@@ -273,7 +269,6 @@ class ExtraPolicy:
     profile: LatencyProfile
     max_batch_size: int
     options: PolicyOptions | None = None
-    loader: Loader | None = None
 
 
 def _served_now(options: PolicyOptions, engine: Engine, info: PolicyInfo) -> LoadedPolicy:
@@ -292,42 +287,23 @@ def tune_process() -> None:
     sys.setswitchinterval(0.0005)
 
 
-def on_startup_device(what: str, fn: Callable[..., T], *args: object) -> T:
-    """Run a start-up pass over every batch size; a failure (CUDA out of memory at the largest
-    batch, say) is one line naming the batch cap, not a traceback."""
-    try:
-        return fn(*args)
-    except ConfigError:
-        raise
-    except Exception as exc:
-        first = (str(exc).strip().splitlines() or [""])[0]
-        raise ConfigError("max_batch_size", f"{what} failed: {type(exc).__name__}: {first}") from None
-
-
 def policy_loader(
-    max_batch_size: int,
     rtc: RTCOptions | None = None,
     engine_options: EngineOptions | None = None,
     profile_reps: int = 5,
     emulate_profile: str | None = None,
 ) -> Loader:
-    """What a swap loads a checkpoint with: the engine, warmed up and profiled for b = 1..cap
-    (or wrapped in the emulated profile), as start-up does."""
+    """What a swap loads a checkpoint with: the engine, warmed up and profiled for b = 1..the
+    policy's cap at the time of the swap (or wrapped in the emulated profile), as start-up does."""
 
-    def load(options: PolicyOptions, drain: bool) -> LoadedPolicy:
+    def load(options: PolicyOptions, drain: bool, max_batch_size: int) -> LoadedPolicy:
         if not drain:
             check_room_beside(options)
-        engine = PolicyEngine(options, rtc, dataclasses.replace(engine_options) if engine_options else None)
-        engine.warmup(max_batch_size, log_progress=False)
-        serving: Engine = engine
-        if emulate_profile:
-            profile = load_profile(emulate_profile)
-            serving = EmulatedLatencyEngine(engine, profile)
-        else:
-            profile = engine.profile(max_batch_size, 0, profile_reps, log_progress=False)
+        started = start_engine(options, max_batch_size, rtc, engine_options, profile_reps, emulate_profile, quiet=True)
+        engine, profile = started.engine, started.profile
         shape = PolicyShape(tuple(engine.wire_features), len(engine.action_names), engine.chunk_size, engine.history_steps)
         d_infer = [profile.latency_s(b) for b in range(1, max_batch_size + 1)]
-        return LoadedPolicy(options, serving, shape, d_infer, engine.description)
+        return LoadedPolicy(options, started.serving, shape, d_infer, engine.description)
 
     return load
 
@@ -355,26 +331,6 @@ def check_room_beside(options: PolicyOptions) -> None:
         )
 
 
-def resolve_profile(cfg: ServerConfig, engine: PolicyEngine) -> LatencyProfile:
-    """Load ``--latency_profile`` if it names a profile or an existing file; else profile (and save)."""
-    name = cfg.latency_profile
-    if name and (name in BUILTIN_PROFILES or Path(name).is_file()):
-        profile = load_profile(name)
-        log.info("latency profile loaded from %s", name)
-        if engine.rtc is not None and not profile.name.endswith("+rtc"):
-            log.warning(
-                "--rtc.enabled=true with a latency profile not measured with RTC (%s): RTC's guidance makes every "
-                "batch slower, so the scheduler will expect chunks too early; profile again with RTC on",
-                profile.name,
-            )
-        return profile
-    profile = profile_at_startup(engine, cfg.max_batch_size, cfg.profile_reps)
-    if name:
-        profile.save(name)
-        log.info("latency profile saved to %s", name)
-    return profile
-
-
 def latency_learning(cfg: ServerConfig, profile: LatencyProfile) -> tuple[bool, str]:
     """Whether the scheduler's ``d_infer`` learns from served batches, and why (for the summary)."""
     if cfg.latency_learning is not None:
@@ -393,22 +349,22 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     (:mod:`lerobot_armory.entrypoints.cluster.replica`) build the same server through here.
     """
     cfg.validate()
-    fleet_policy = cfg.fleet.load()  # before the model loads: a bad file is one line, at once
+    grant_rules = cfg.fleet.load()  # before the model loads: a bad file is one line, at once
     entries = load_policies(cfg.policies) if cfg.policies else []
     tune_process()
     configure_logging(cfg.log_level, cfg.log_format)
     first = _options_of(cfg, entries[0]) if entries else cfg.policy
-    engine, serving_engine, profile, latency_note = _load_policy(cfg, first, cfg.max_batch_size, profile_file=not entries)
+    started = _start(cfg, first, cfg.max_batch_size, latency_profile=None if entries else cfg.latency_profile)
+    engine, serving_engine, profile, latency_note = started.engine, started.serving, started.profile, started.note
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     others = []
     for entry in entries[1:]:
         cap = entry.max_batch_size or cfg.max_batch_size
         options = _options_of(cfg, entry)
-        o_engine, o_serving, o_profile, _ = _load_policy(cfg, options, cap, profile_file=False)
+        o_started = _start(cfg, options, cap)
+        o_engine, o_serving, o_profile = o_started.engine, o_started.serving, o_started.profile
         o_info = PolicyInfo(o_engine.description, o_engine.wire_features, o_engine.action_names, o_engine.chunk_size)
-        # A swap of it warms up and profiles b = 1..its own cap (or emulates), as its start did.
-        o_loader = policy_loader(cap, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile)
-        others.append(ExtraPolicy(entry.name, o_serving, o_info, o_profile, cap, options, o_loader))
+        others.append(ExtraPolicy(entry.name, o_serving, o_info, o_profile, cap, options))
     first_cap = (entries[0].max_batch_size if entries else None) or cfg.max_batch_size
     auth = AuthTokens.load(cfg.auth_token_file) if cfg.auth_token_file else None
     operators = OperatorTokens.load(cfg.operator_token_file, auth) if cfg.operator_token_file else None
@@ -421,8 +377,8 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
     server = ArmoryServer(
         serving_engine, info, profile, cfg.scheduler, first_cap, cfg.host, cfg.port, cfg.max_robots,
         int(cfg.max_message_mb * (1 << 20)), auth=auth, tls=tls, max_obs_rate_hz=cfg.max_obs_rate_hz,
-        learn_latency=learn, fleet_policy=fleet_policy, operators=operators,
-        loader=policy_loader(first_cap, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile),
+        learn_latency=learn, grant_rules=grant_rules, operators=operators,
+        loader=policy_loader(cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile),
         policy_options=first, policy_name=entries[0].name if entries else DEFAULT_POLICY, others=tuple(others),
     )  # fmt: skip
     if cfg.batch_log:
@@ -446,7 +402,7 @@ def build_server(cfg: ServerConfig) -> tuple[ArmoryServer, str]:
         f"  security: {'TLS' if tls else 'plaintext'}, {'token auth' if auth else 'no auth'}, "
         f"{'operator token (admin calls on)' if operators else 'no operator token (admin calls off)'}, "
         f"max {cfg.max_robots} robots, {cfg.max_message_mb:g} MiB messages, {cfg.max_obs_rate_hz:g} obs/s per robot\n"
-        f"  fleet policy: {fleet_policy.describe()}\n"
+        f"  grant rules: {grant_rules.describe()}\n"
         f"  metrics: {f'http://{cfg.host}:{metrics_port}/metrics' if metrics_port is not None else 'off'}\n"
         f"  openpi clients: {f'{"wss" if tls else "ws"}://{cfg.host}:{openpi_port} (replan {cfg.openpi.replan_steps} steps at {cfg.openpi.fps:g} fps)' if openpi_port is not None else 'off'}\n"
         f"{profile.describe(cfg.max_batch_size)}{latency_note}\n"
@@ -461,29 +417,11 @@ def _options_of(cfg: ServerConfig, entry: PolicyEntry) -> PolicyOptions:
     return PolicyOptions(entry.path, cfg.policy.device, cfg.policy.cpu_threads, [*cfg.policy.overrides, *entry.overrides])
 
 
-def _load_policy(
-    cfg: ServerConfig, options: PolicyOptions, max_batch_size: int, profile_file: bool
-) -> tuple[PolicyEngine, Engine, LatencyProfile, str]:
-    """Load, warm up and profile one policy: (its engine, the engine the loop runs — the same, or
-    wrapped in the emulated profile —, its ``d_infer`` profile, a note for the summary).
-    ``profile_file``: ``--latency_profile`` applies (one policy served)."""
-    log.info("loading policy %s ...", options.path)
-    engine = PolicyEngine(options, cfg.rtc, dataclasses.replace(cfg.engine))
-    log.info("warming up b = 1..%d ...", max_batch_size)
-    on_startup_device(f"warming up b = 1..{max_batch_size}", engine.warmup, max_batch_size)
-    if cfg.engine.emulate_profile:
-        profile = load_profile(cfg.engine.emulate_profile)
-        log.info("emulating latency profile %s: every batch takes exactly d_infer(b)", profile.name)
-        return engine, EmulatedLatencyEngine(engine, profile), profile, " (emulated latency)"
-    if profile_file:
-        return engine, engine, resolve_profile(cfg, engine), ""
-    return engine, engine, profile_at_startup(engine, max_batch_size, cfg.profile_reps), ""
-
-
-def profile_at_startup(engine: PolicyEngine, max_batch_size: int, reps: int) -> LatencyProfile:
-    """``d_infer(b)`` for b = 1..cap, measured (the engine has just warmed every size up)."""
-    log.info("profiling d_infer(b) for b = 1..%d (%d reps each)...", max_batch_size, reps)
-    return on_startup_device(f"profiling b = 1..{max_batch_size}", engine.profile, max_batch_size, 0, reps)
+def _start(cfg: ServerConfig, options: PolicyOptions, max_batch_size: int, latency_profile: str | None = None) -> StartedEngine:
+    """One policy of the server, started for serving with the server's engine options."""
+    return start_engine(
+        options, max_batch_size, cfg.rtc, cfg.engine, cfg.profile_reps, cfg.engine.emulate_profile, latency_profile
+    )
 
 
 def serve(cfg: ServerConfig) -> None:

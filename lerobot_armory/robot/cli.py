@@ -37,7 +37,7 @@ from lerobot.utils.errors import DeviceNotConnectedError
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import spec_problems
+from lerobot_armory.robot_spec import spec_problems
 from lerobot_armory.robot.client import ArmoryClient, Backoff, RegistrationRefused, RobotIdentity
 from lerobot_armory.robot.connection import Registration
 from lerobot_armory.robot.features import FeatureMap
@@ -97,9 +97,9 @@ class ClientConfig:
         """Check every option; raises one :class:`ConfigError` naming every problem at once.
 
         The declared spec goes through the validator the server applies to registrations
-        (:func:`~lerobot_armory.mirror.spec_problems`), so what passes here is refused there only
+        (:func:`~lerobot_armory.robot_spec.spec_problems`), so what passes here is refused there only
         for what the robot cannot know yet: the policy's chunk size (``h_max`` above it) and the
-        operator's fleet policy.
+        operator's grant rules.
         """
         problems = spec_problems(default_robot_id(self), self.fps, None, self.h_min, self.h_max, self.weight, self.tier)
         if not self.duration_s >= 0:  # NaN included

@@ -165,7 +165,7 @@ class ArmoryClient:
         self.notices: list[str] = []
         self.policy: str = ""
         self.chunk_size: int = 0
-        self.granted: pb.Grant | None = None  # the fleet policy's grant of the current session, if the server sent one
+        self.granted: pb.Grant | None = None  # the grant rules's grant of the current session, if the server sent one
         # Outages: seconds from a lost connection to the next executed action (holding meanwhile).
         self.outages: list[float] = []
         self._lost_at: float | None = None
@@ -242,7 +242,7 @@ class ArmoryClient:
         log.info("registered as %s with %s (H=%d), session %d", ident.robot_id, reg.policy, reg.chunk_size, epoch)
 
     def _accept_grant(self, granted: pb.Grant | None) -> int:
-        """Log what the fleet policy granted; returns the h_max the action buffer must use.
+        """Log what the grant rules granted; returns the h_max the action buffer must use.
 
         The robot's weight, tier and horizons are requests the operator's policy may change: the
         robot follows the grant, since the server schedules by it. Its fps is not negotiable (the
@@ -250,16 +250,16 @@ class ArmoryClient:
         """
         ident = self.identity
         if granted is None:
-            return ident.h_max  # a server without fleet policies: the request is what it uses
+            return ident.h_max  # a server without grant rules: the request is what it uses
         log.info(
-            "granted by fleet policy (%s): weight %g, tier %s, fps %g, h_min %d, h_max %d, device share %g",
+            "granted by grant rules (%s): weight %g, tier %s, fps %g, h_min %d, h_max %d, device share %g",
             granted.rule or "no rule named", granted.weight, granted.tier, granted.fps, granted.h_min, granted.h_max,
             granted.max_device_share,
         )  # fmt: skip
         if not math.isclose(granted.fps, ident.fps, rel_tol=1e-9):
             raise RegistrationRefused(
                 f"the server granted fps {granted.fps:g} but this robot runs at fps {ident.fps:g}: "
-                "the control rate cannot change, fix --fps or the server's fleet policy"
+                "the control rate cannot change, fix --fps or the server's grant rules"
             )
         same_weight = math.isclose(granted.weight, ident.weight, rel_tol=1e-9)
         changed = [
@@ -274,7 +274,7 @@ class ArmoryClient:
         ]
         if changed:
             rule = granted.rule or "no rule named"
-            log.warning("the fleet policy (%s) changed this robot's request: %s", rule, "; ".join(changed))
+            log.warning("the grant rules (%s) changed this robot's request: %s", rule, "; ".join(changed))
         # The server sends chunks for the granted horizon: executing beyond it would outrun what it
         # plans for. A larger grant is not taken either: h_max is also the robot's own safety limit.
         return min(ident.h_max, granted.h_max) if granted.h_max > 0 else ident.h_max

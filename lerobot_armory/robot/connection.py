@@ -50,7 +50,7 @@ class Registration:
     expected_features: list[FeatureSpec]
     clock_sync: pb.ClockSync
     action_dim: int = 0  # length of each action vector (0: a server that did not say)
-    granted: pb.Grant | None = None  # what the fleet policy granted (None: a server that did not say)
+    granted: pb.Grant | None = None  # what the grant rules granted (None: a server that did not say)
     stream_address: str = ""  # a cluster front's answer: the replica the stream goes to ("" : this server)
 
     @classmethod

@@ -33,7 +33,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from lerobot_armory.mirror import RobotMirror, tick_of
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.transition import tick_of
 
 # An observation landing at ``now`` (to float rounding) is held already, not a reason to wait.
 _EPS = 1e-9

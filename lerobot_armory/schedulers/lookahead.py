@@ -25,7 +25,8 @@ from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.mirror import RobotMirror, TickChunk, WindowView, advance, observed_tick, request_is_useful
+from lerobot_armory.mirror import RobotMirror, WindowView, request_is_useful
+from lerobot_armory.transition import TickChunk, advance, observed_tick
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
 
 class _Robot:

@@ -57,10 +57,10 @@ robots, so a decision costs about what one policy's of the whole fleet's size wo
 
 Why it is fast enough. A rollout asks three things about a robot many times: its index at a
 tick, when it runs dry, and when it becomes useful again. It keeps each robot in the mirror's
-coverage-queue form (:data:`~lerobot_armory.mirror.Queue`) and asks
-:func:`~lerobot_armory.mirror.index_at`, :func:`~lerobot_armory.mirror.dry_tick` and
-:func:`~lerobot_armory.mirror.tick_reaching`: the transition specialised to such queues, which
-lives (and is tested against :func:`~lerobot_armory.mirror.advance`) in the mirror.
+coverage-queue form (:data:`~lerobot_armory.transition.Queue`) and asks
+:func:`~lerobot_armory.transition.index_at`, :func:`~lerobot_armory.transition.dry_tick` and
+:func:`~lerobot_armory.transition.tick_reaching`: the transition specialised to such queues, which
+lives (and is tested against :func:`~lerobot_armory.transition.advance`) in the mirror.
 """
 
 from __future__ import annotations
@@ -71,17 +71,8 @@ from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.mirror import (
-    Queue,
-    RobotMirror,
-    dry_tick,
-    index_at,
-    observed_tick,
-    queue_of,
-    queue_with,
-    tick_of,
-    tick_reaching,
-)
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.transition import Queue, dry_tick, index_at, observed_tick, queue_of, queue_with, tick_of, tick_reaching
 from lerobot_armory.schedulers.base import Scheduler, SchedulerConfig
 from lerobot_armory.schedulers.dispatch_timing import next_observation_at
 

@@ -18,7 +18,7 @@ from lerobot_armory.engine.options import EngineOptions, PolicyOptions, RTCOptio
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.proto.limits import DEFAULT_MAX_MESSAGE_BYTES
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
-from lerobot_armory.serving.fleet_policy import FleetPolicy
+from lerobot_armory.serving.grant_rules import GrantRules
 
 __all__ = ["EngineOptions", "FleetOptions", "OpenpiOptions", "PolicyOptions", "RTCOptions", "ServerConfig", "parse_server_args"]
 
@@ -52,12 +52,21 @@ class OpenpiOptions:
 
 @dataclass
 class FleetOptions:
-    """``--fleet.policy=FILE``: the operator's fleet policy (None: the built-in default)."""
+    """``--fleet.rules=FILE``: the operator's grant rules (None: the built-in default).
 
+    Attributes:
+        rules: the grant rules file (serving/grant_rules.py).
+        policy: its former name (``--fleet.policy``), still read; giving both is an error.
+    """
+
+    rules: str | None = None
     policy: str | None = None
 
-    def load(self) -> FleetPolicy:
-        return FleetPolicy.load(self.policy) if self.policy else FleetPolicy.builtin()
+    def load(self) -> GrantRules:
+        if self.rules and self.policy:
+            raise ConfigError("fleet.rules", "given twice: --fleet.rules and its former name --fleet.policy; keep --fleet.rules")
+        path = self.rules or self.policy
+        return GrantRules.load(path) if path else GrantRules.builtin()
 
 
 @dataclass
@@ -101,8 +110,8 @@ class ServerConfig:
             (``lerobot-armory-admin swap|status``: swap the served checkpoint live); distinct from
             every robot token. Unset: admin calls are refused.
         max_obs_rate_hz: observations per second a robot may send (0: unlimited).
-        fleet: ``--fleet.policy=FILE`` (YAML or JSON): what each robot may be granted (weight,
-            tier, fps and horizon bounds, device share); see serving/fleet_policy.py. Without it
+        fleet: ``--fleet.rules=FILE`` (YAML or JSON): what each robot may be granted (weight,
+            tier, fps and horizon bounds, device share); see serving/grant_rules.py. Without it
             every robot's weight is capped at 1.
         openpi: ``--openpi.port=8000``: also speak openpi's websocket policy protocol (an
             unchanged openpi client is served batched with the gRPC robots); ``--openpi.keymap``,

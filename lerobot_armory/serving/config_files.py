@@ -1,4 +1,4 @@
-"""Reading the operator's YAML or JSON files (fleet policy, policies), every problem one line."""
+"""Reading the operator's YAML or JSON files (grant rules, policies), every problem one line."""
 
 from __future__ import annotations
 

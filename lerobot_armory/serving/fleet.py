@@ -19,7 +19,8 @@ from collections.abc import Callable
 import numpy as np
 
 from lerobot_armory.feature_spec import FeatureSpec
-from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotSpec
+from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.serving.messages import ClockSync, ExecutionReport, Grant, Notice, NoticeKind, SyncRequest
 from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
 from lerobot_armory.serving.session import Link, RobotSession
@@ -39,7 +40,7 @@ MAX_PENDING_SYNCS = 4
 # Each receipt of an execution report names a chunk its mirror awaits (at most
 # MAX_AWAITING_REPORTS), so a report's first SENT_TABLE receipts are all that can mean anything.
 SENT_TABLE = MAX_AWAITING_REPORTS
-# Device time accounting for the fleet policy's max_device_share: a decayed sum over this window.
+# Device time accounting for the grant rules's max_device_share: a decayed sum over this window.
 SHARE_WINDOW_S = 5.0
 
 
@@ -318,7 +319,7 @@ class Fleet:
                 session.counters.index_error = abs(mirror.predicted_index(t) - int(report.index))
         return refused
 
-    # ---- device share (the fleet policy's max_device_share) ----------------------------------
+    # ---- device share (the grant rules's max_device_share) ----------------------------------
 
     def charge_device(self, sessions: list[RobotSession], seconds: float, t_end: float) -> None:
         """Book ``seconds`` of device time, split evenly, on the batch's robots (lock held)."""

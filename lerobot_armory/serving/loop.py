@@ -20,7 +20,8 @@ import numpy as np
 
 from lerobot_armory.arbiter import PolicyArbiter
 from lerobot_armory.dispatch import Dispatcher, Plan
-from lerobot_armory.mirror import Chunk, RobotMirror
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.transition import Chunk
 from lerobot_armory.inference_latency import LatencyProfile, OnlineLatency
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.engine.faults import Fault, classify
@@ -66,6 +67,20 @@ class ServedPolicy:
     def rtc(self) -> bool:
         """Real-time chunking: the engine guides each chunk by the prefix the mirror predicts."""
         return self.engine.rtc is not None
+
+    @property
+    def max_batch_size(self) -> int:
+        """This policy's batch cap: the one value the scheduler plans with, the loop reports and
+        the next swap warms up and profiles for (the scheduler holds it; read it here)."""
+        return self.scheduler.max_batch_size
+
+    def lower_cap(self, cap: int) -> None:
+        """Lower the batch cap to ``cap`` (a batch of more ran out of device memory): the next
+        plan, the latency model's table and the next swap's warm-up all stop at ``cap``."""
+        cap = max(1, min(cap, self.max_batch_size))
+        self.scheduler.max_batch_size = cap
+        if self.latency is not None:
+            self.latency.lower_cap(cap)
 
 
 @dataclass
@@ -230,6 +245,11 @@ class ServingLoop:
                 self._pending = None
                 return None
             return self.switched_at_batch
+
+    def cap_of(self, policy: str | None = None) -> int:
+        """The batch cap of ``policy`` now (None: the first policy's)."""
+        with self.fleet.cond:
+            return self.policies[policy or self.default_policy].max_batch_size
 
     def _apply_switch(self) -> None:
         """Take the pending engine (fleet lock held, loop thread, no batch in flight)."""
@@ -427,8 +447,8 @@ class ServingLoop:
             self.fleet.in_flight = set()
             self._busy = False
             if shrink:
-                served.scheduler.max_batch_size = min(served.scheduler.max_batch_size, plan.size - 1)
-                self.stats.batch_cap = served.scheduler.max_batch_size
+                served.lower_cap(plan.size - 1)
+                self.stats.batch_cap = served.max_batch_size
                 self.stats.oom_batches += 1
             else:
                 self.stats.failed_batches += 1

@@ -96,7 +96,7 @@ class ExecutionReport:
 
 @dataclass(frozen=True)
 class Grant:
-    """What the fleet policy grants a registering robot (``rule``: the policy entry that matched:
+    """What the grant rules grant a registering robot (``rule``: the rule that matched:
     ``robot:ID``, ``token:NAME`` or ``default``)."""
 
     weight: float

@@ -1,7 +1,7 @@
 """Authentication tokens, TLS material and per-robot rate limits.
 
 Tokens come from ``--auth_token_file``: one token per line is a fleet token any robot may use;
-``@NAME TOKEN`` is a fleet token with a name (the fleet policy can give it its own rule);
+``@NAME TOKEN`` is a fleet token with a name (the grant rules can give it its own rule);
 ``ROBOT_ID TOKEN`` binds a token to one robot id, and that id is then *only* reachable with its own
 token (a fleet token cannot register it). Blank lines and ``#`` comments are ignored.
 Comparisons are constant-time; tokens are never logged.
@@ -22,7 +22,7 @@ from lerobot_armory.errors import ConfigError
 @dataclass(frozen=True)
 class Credential:
     """Who a token proved to be: ``name`` is ``robot:ID``, ``token:NAME`` or ``fleet``; ``group``
-    names a fleet policy token rule (``@NAME`` lines) or is None; ``digest`` binds a session to
+    names a grant rules token rule (``@NAME`` lines) or is None; ``digest`` binds a session to
     the token that registered it without keeping the token."""
 
     name: str

@@ -6,7 +6,7 @@
   their results);
 - :class:`SessionCounters`: what the robot reported and what was counted for it (metrics,
   status);
-- :class:`DeviceShare`: device time spent on it (the fleet policy's ``max_device_share``);
+- :class:`DeviceShare`: device time spent on it (the grant rules's ``max_device_share``);
 - on the session itself: its spec, task, features, mirror, latest observation, outbox, the chunks
   RTC cuts the next leftovers from, and a pending move.
 
@@ -22,7 +22,8 @@ import numpy as np
 
 from lerobot_armory.arbiter import DEFAULT_POLICY
 from lerobot_armory.feature_spec import FeatureSpec
-from lerobot_armory.mirror import RobotMirror, RobotSpec
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.serving.messages import Grant
 from lerobot_armory.serving.outbox import Outbox
 from lerobot_armory.serving.security import RateLimiter
@@ -34,7 +35,7 @@ REPORT_RATE_HZ = 20.0
 @dataclass
 class Link:
     """The robot's connection: whether its stream is open, who registered it (a digest of the
-    token; None without auth), what the fleet policy granted, and its rate limits."""
+    token; None without auth), what the grant rules granted, and its rate limits."""
 
     streaming: bool = False
     credential: bytes | None = None

@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from lerobot_armory.engine.options import PolicyOptions
 from lerobot_armory.engine.protocol import Engine
 from lerobot_armory.feature_spec import FeatureSpec
-from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.serving.loop import ServingLoop
 
 log = logging.getLogger("lerobot_armory.swap")
@@ -127,7 +126,9 @@ class SwapRefused(Exception):
     """Raised by a loader for a checkpoint it will not load (it does not fit in device memory, say)."""
 
 
-Loader = Callable[[PolicyOptions, bool], LoadedPolicy]
+# loader(options, drain, max_batch_size): the cap is the served policy's at the time of the swap
+# (an out-of-memory batch may have lowered it since start-up).
+Loader = Callable[[PolicyOptions, bool, int], LoadedPolicy]
 
 
 class PolicySwapper:
@@ -136,7 +137,8 @@ class PolicySwapper:
     Args:
         loop: the serving loop.
         current: the policy being served.
-        loader: ``loader(options, drain)`` loads, warms up and profiles a checkpoint; raises
+        loader: ``loader(options, drain, max_batch_size)`` loads, warms up and profiles a
+            checkpoint for the policy's batch cap at the time of the swap; raises
             :class:`SwapRefused` (refused: the checkpoint does not fit, say) or anything else
             (failed: a broken directory).
         on_swap: called with the new :class:`LoadedPolicy` right after the switch.
@@ -201,7 +203,7 @@ class PolicySwapper:
             assert refusal is not None
             log.warning("swap to %s %s (%s); loading %s again", path, refusal[0], refusal[1], old_options.path)
             try:
-                restored = self.loader(old_options, True)
+                restored = self.loader(old_options, True, self.loop.cap_of(self.policy))
             except Exception as exc:  # noqa: BLE001 - nothing left to serve with: stop, a supervisor restarts
                 why = f"{refusal[1]}; reloading {old_options.path} failed too ({type(exc).__name__}: {exc}): the server stops"
                 self.loop.error = RuntimeError(why)
@@ -229,7 +231,7 @@ class PolicySwapper:
     def _load(self, options: PolicyOptions, drain: bool) -> tuple[LoadedPolicy | None, tuple[str, str] | None]:
         """Load and check; (policy, None) or (None, (result, reason))."""
         try:
-            new = self.loader(options, drain)
+            new = self.loader(options, drain, self.loop.cap_of(self.policy))
         except SwapRefused as exc:
             return None, ("refused", str(exc))
         except Exception as exc:  # noqa: BLE001 - any load failure leaves the old policy serving

@@ -32,7 +32,7 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.mirror import TIERS, RobotSpec
+from lerobot_armory.robot_spec import TIERS, RobotSpec
 from lerobot_armory.placement import NoReplica, ReplicaView, make_placement, place_all
 from lerobot_armory.sim.fleet_file import Fleet
 from lerobot_armory.sim.simulator import FleetSimulator

@@ -50,7 +50,7 @@ from typing import Any
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile, load_profile
-from lerobot_armory.mirror import TIERS, RobotSpec, spec_problems
+from lerobot_armory.robot_spec import TIERS, RobotSpec, spec_problems
 from lerobot_armory.placement import Capacity, demand
 from lerobot_armory.schedulers import EarliestDeadlineConfig, SchedulerConfig, make_scheduler_config
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset
@@ -75,7 +75,7 @@ class RobotGroup:
     Attributes:
         name: prefix of the robots' ids.
         count: how many.
-        fps / chunk_size / h_min / h_max / weight / tier: as :class:`~lerobot_armory.mirror.RobotSpec`.
+        fps / chunk_size / h_min / h_max / weight / tier: as :class:`~lerobot_armory.robot_spec.RobotSpec`.
     """
 
     name: str

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 
 MIXES = ("all-fast", "one-fast", "half-fast")
 

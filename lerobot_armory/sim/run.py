@@ -13,7 +13,7 @@ import numpy as np
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
-from lerobot_armory.mirror import TIERS
+from lerobot_armory.robot_spec import TIERS
 from lerobot_armory.schedulers import LookaheadConfig, SchedulerConfig
 from lerobot_armory.sim.fleet_file import Fleet, load_fleet
 from lerobot_armory.sim.presets import MIXES, fleet_specs, get_preset

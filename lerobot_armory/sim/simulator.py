@@ -9,7 +9,7 @@ The world has two views of every robot:
   execution reports (when a chunk reached the robot, robot clock). Robot clocks are offset from
   the server's by a random amount, so the mirror's delay estimation is exercised honestly.
 
-Both move through the same transition (:func:`~lerobot_armory.mirror.advance`). Events are
+Both move through the same transition (:func:`~lerobot_armory.transition.advance`). Events are
 "the GPU becomes free" and, while the GPU idles, "an observation arrives"; the robots' ticks
 between events are advanced in bulk, which keeps 10 robots × 300 s well under a second of
 simulation for RR and EDF.
@@ -34,7 +34,10 @@ from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline
+from lerobot_armory.delay import DelayEstimator
+from lerobot_armory.mirror import RobotMirror, RobotTimeline
+from lerobot_armory.robot_spec import RobotSpec
+from lerobot_armory.transition import Chunk
 from lerobot_armory.schedulers.base import Scheduler
 
 # Robot clocks differ from the server's by up to this much (seconds); nothing may depend on it.

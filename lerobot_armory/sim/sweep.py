@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import TIERS
+from lerobot_armory.robot_spec import TIERS
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig, SchedulerConfig
 from lerobot_armory.sim.presets import MIXES
 from lerobot_armory.sim.run import SimConfig, simulate, table

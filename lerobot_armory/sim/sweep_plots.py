@@ -13,7 +13,7 @@ matplotlib.use("Agg")  # headless: no display on servers and CI
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from lerobot_armory.mirror import TIERS  # noqa: E402
+from lerobot_armory.robot_spec import TIERS  # noqa: E402
 
 Record = dict[str, Any]
 LABEL_ORDER = ["RR", "EDF", "LA w=1", "LA w=3", "LA w=5"]

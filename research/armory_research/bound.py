@@ -30,7 +30,7 @@ chunks). The usefulness rule (``h_min``) is dropped, and so is the batch synchro
 of a batch share its dispatch instant and batch size): that is what the bound gives away.
 
 Each ``V_j`` is a small exact dynamic program over the robot's ticks, on the same canonical
-queue states and the same :func:`~lerobot_armory.mirror.advance` transition as the exact
+queue states and the same :func:`~lerobot_armory.transition.advance` transition as the exact
 search; ``min_λ`` of the convex dual is found by golden-section search (any ``λ`` gives a valid
 bound, so an imprecise minimum only loosens it). The bound holds for *every* schedule,
 including ones that idle on purpose, so it also bounds the work-conserving optimum.

@@ -18,7 +18,7 @@ a robot is useful are *not* in the search space (no online scheduler may do that
 How. Depth-first branch-and-bound over batch choices (every subset of the useful robots of size
 ``1..b``, so the batch size is chosen too), with
 
-- the transition of :func:`lerobot_armory.mirror.advance` (never re-implemented): each robot's
+- the transition of :func:`lerobot_armory.transition.advance` (never re-implemented): each robot's
   state is its chunk queue on its own tick grid, relative to its latest observation;
 - a canonical state (the queue reduced to "which indices are covered from which tick on",
   indices and ticks relative to the robot) so equivalent states meet in one memo entry, and
@@ -60,7 +60,10 @@ from functools import lru_cache
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile, load_profile
-from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, RobotTimeline, advance, tick_of
+from lerobot_armory.delay import DelayEstimator
+from lerobot_armory.mirror import RobotMirror, RobotTimeline
+from lerobot_armory.robot_spec import RobotSpec
+from lerobot_armory.transition import Chunk, advance, tick_of
 from lerobot_armory.schedulers.base import Scheduler
 from lerobot_armory.schedulers.edf import EarliestDeadlineScheduler
 from lerobot_armory.sim.presets import fleet_specs, get_preset

@@ -14,7 +14,7 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
-from lerobot_armory.mirror import advance
+from lerobot_armory.transition import advance
 from lerobot_armory.schedulers import check_batch, make_scheduler_config
 from lerobot_armory.schedulers.rollout import RolloutScheduler
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset

@@ -11,7 +11,7 @@ import pytest
 
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.inference_latency import LatencyProfile
-from lerobot_armory.mirror import Chunk
+from lerobot_armory.transition import Chunk
 from lerobot_armory.schedulers import EarliestDeadlineScheduler, RoundRobinScheduler
 from lerobot_armory.schedulers.base import Scheduler
 from tests.support.mirrors import mirror

@@ -461,3 +461,18 @@ def test_a_pinned_profile_does_not_move(engine):
     assert server.scheduler.d_infer == pinned.table_s(3)
     assert server.latency.observed == 0 and server.latency.max_drift().pct == 0.0
     assert "d_infer=fixed" in server.status_line()
+
+
+def test_a_lowered_cap_keeps_what_was_learnt_below_it_and_refuses_sizes_above():
+    model = OnlineLatency(LatencyProfile("p", (10.0, 20.0, 30.0, 40.0)), 4, min_samples=3, confirm=3, window=5)
+    for _ in range(3):
+        model.observe(2, 0.050)  # b = 2 measured at 50 ms: the table moves
+    before = model.table_s()
+    model.lower_cap(2)
+    assert model.max_batch_size == 2 and model.table_s() == before[:2] and model.table_s()[1] == pytest.approx(0.050)
+    with pytest.raises(ValueError, match="outside 1..2"):
+        model.observe(3, 0.030)
+    model.lower_cap(3)  # raising is not lowering: nothing changes
+    assert model.max_batch_size == 2
+    model.observe(1, 0.030)
+    assert len(model.table_s()) == 2

@@ -11,25 +11,10 @@ from hypothesis import strategies as st
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
-from lerobot_armory.mirror import (
-    MAX_AWAITING_REPORTS,
-    Chunk,
-    DelayEstimator,
-    RobotMirror,
-    RobotSpec,
-    RobotTimeline,
-    advance,
-    dry_tick,
-    index_at,
-    observed_tick,
-    queue_of,
-    queue_with,
-    reach,
-    reward,
-    tick_of,
-    tick_reaching,
-    ticks_until_dry,
-)
+from lerobot_armory.delay import DelayEstimator
+from lerobot_armory.mirror import MAX_AWAITING_REPORTS, RobotMirror, RobotTimeline, reward
+from lerobot_armory.robot_spec import RobotSpec
+from lerobot_armory.transition import Chunk, advance, dry_tick, index_at, observed_tick, queue_of, queue_with, reach, tick_of, tick_reaching, ticks_until_dry
 from lerobot_armory.schedulers import make_scheduler_config
 from lerobot_armory.sim import FleetSimulator, LogNormalDelay, fleet_specs, get_preset
 from tests.support.mirrors import consistent_chunks, mirror, naive_run, served, spec

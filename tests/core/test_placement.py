@@ -9,7 +9,7 @@ import pytest
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import load_profile
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.placement import (
     PLACEMENTS,
     Capacity,

@@ -10,7 +10,9 @@ from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.dispatch import Dispatcher
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.inference_latency import LatencyProfile, load_profile
-from lerobot_armory.mirror import DelayEstimator, RobotMirror, RobotSpec
+from lerobot_armory.delay import DelayEstimator
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.schedulers import EarliestDeadlineScheduler, make_scheduler_config
 from lerobot_armory.schedulers.dispatch_timing import hold_until
 from lerobot_armory.sim import FleetSimulator, fleet_specs, get_preset

@@ -10,7 +10,7 @@ import pytest
 
 from tests.support.echo import FEATURES, echo_server
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import MAX_ROBOT_ID, TIERS, RobotSpec, spec_problems
+from lerobot_armory.robot_spec import MAX_ROBOT_ID, TIERS, RobotSpec, spec_problems
 from lerobot_armory.robot.armory_sim import ArmorySimConfig
 from lerobot_armory.robot.cli import ClientConfig
 from lerobot_armory.robot.connection import Connection

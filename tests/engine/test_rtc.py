@@ -170,7 +170,8 @@ def test_infer_guided_needs_rtc(engine):
 
 
 def _mirror(fps: float = 10.0, h_max: int = 10):
-    from lerobot_armory.mirror import RobotMirror, RobotSpec
+    from lerobot_armory.mirror import RobotMirror
+    from lerobot_armory.robot_spec import RobotSpec
 
     return RobotMirror(RobotSpec("r", fps, 10, 1, h_max))
 

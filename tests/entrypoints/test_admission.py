@@ -86,8 +86,9 @@ def test_a_connection_that_does_not_ask_in_time_is_closed_and_waiting_ones_are_c
 
 def test_one_host_cannot_register_faster_than_its_limit_on_grpc_or_openpi(small_server):
     limiter = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=4)
-    old = small_server.service.admission, small_server.openpi.admission
-    small_server.service.admission = small_server.openpi.admission = limiter  # the server shares one
+    assert small_server.service.registrar is small_server.openpi.registrar is small_server.registrar
+    old = small_server.registrar.admission
+    small_server.registrar.admission = limiter  # gRPC and openpi register through one registrar
     features = {"observation.state": ("float32", (2,)), "observation.images.front": ("uint8", (32, 32, 3))}
     try:
         codes = []
@@ -107,7 +108,7 @@ def test_one_host_cannot_register_faster_than_its_limit_on_grpc_or_openpi(small_
             ws.send(pack(OBS))  # its first request registers it: the same host's bucket is empty
             assert "too many registrations from this host" in ws.recv(timeout=10)
     finally:
-        small_server.service.admission, small_server.openpi.admission = old
+        small_server.registrar.admission = old
 
 
 @pytest.mark.slow

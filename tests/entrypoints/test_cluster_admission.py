@@ -110,7 +110,7 @@ def test_a_replica_s_registration_limit_is_named_as_such_not_as_full_replicas(sm
     front, local = small_cluster
     assert wait_for(lambda: all(s.view.healthy for s in front.front.state.values()), timeout=10)
     for rid in local.ids():
-        local.replicas[rid].server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
+        local.replicas[rid].server.registrar.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
     answers = [_register(front.address, f"r{k}") for k in range(5)]
     assert answers[:4] == ["OK"] * 4, answers
     assert answers[4].startswith("RESOURCE_EXHAUSTED: the replicas take no more registrations through this front"), answers[4]
@@ -149,7 +149,7 @@ def test_registrations_from_many_hosts_through_the_front_count_per_robot_host_on
     assert wait_for(lambda: _keyed(front), timeout=10), front.front.describe()
     for rid in local.ids():
         assert local.replicas[rid].server.service.forwarding is not None  # handed by the front
-        local.replicas[rid].server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
+        local.replicas[rid].server.registrar.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
     answers = [_register_from(front.front, f"10.0.0.{k}", f"robot-{k}") for k in range(12)]
     assert answers == ["OK"] * 12, answers
     assert front.front.refused["replica_rate"] == 0
@@ -166,7 +166,7 @@ def test_a_forwarded_host_without_the_front_s_proof_counts_against_the_real_peer
     front, local = small_cluster
     assert wait_for(lambda: _keyed(front), timeout=10), front.front.describe()
     replica = local.replicas["r0"]
-    replica.server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
+    replica.server.registrar.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=2)
     channel = grpc.insecure_channel(replica.address)
     stub = ArmoryStub(channel)
     key = front.front.forwarding
@@ -201,7 +201,7 @@ def test_a_replica_that_restarts_is_handed_the_key_again(small_cluster, tmp_path
     assert local.replicas["r0"].server.service.forwarding is None
     assert wait_for(lambda: _keyed(front) and local.replicas["r0"].server.service.forwarding is not None, timeout=10)
     for rid in local.ids():
-        local.replicas[rid].server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=1)
+        local.replicas[rid].server.registrar.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=1)
     assert [_register_from(front.front, f"10.0.1.{k}", f"robot-{k}") for k in range(6)] == ["OK"] * 6
 
 
@@ -213,7 +213,7 @@ def test_the_forwarding_key_is_in_no_log_line_answer_or_metric(small_cluster, ca
     assert wait_for(lambda: _keyed(first), timeout=10), first.front.describe()
     first.stop(0)
     for rid in local.ids():
-        local.replicas[rid].server.service.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=1)
+        local.replicas[rid].server.registrar.admission = AdmissionLimiter(peer_rate_hz=0.01, peer_burst=1)
     # A connection of its own (gRPC shares one between channels to the same address): the replica
     # logs once per peer per 10 s, and the front's connection is logged below.
     channel = grpc.insecure_channel(local.replicas["r0"].address, options=[("grpc.use_local_subchannel_pool", 1)])

@@ -8,7 +8,7 @@ from collections import Counter
 from prometheus_client import generate_latest
 
 from lerobot_armory.entrypoints.cluster.front import MOVE_INTERVAL_S, ClusterFront, FrontOptions
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics
 from lerobot_armory.placement import Capacity
 from lerobot_armory.proto import armory_pb2 as pb

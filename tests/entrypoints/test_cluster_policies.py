@@ -24,7 +24,7 @@ from lerobot_armory.entrypoints.cluster.front import PENDING_S, ClusterFront, Fr
 from lerobot_armory.entrypoints.cluster.replica import ArmoryReplica, LocalReplicas
 from lerobot_armory.entrypoints.server import ServerConfig
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.placement import Capacity, demand
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminStub

@@ -1,6 +1,6 @@
 """Robot side: the action buffer, the client loop with armory_sim robots against a real server,
 starvation under a slow server, reconnects without stale chunks, refused registrations, clock-sync
-answers, a full server waited for, fleet-policy grants."""
+answers, a full server waited for, grant-rule grants."""
 
 from __future__ import annotations
 
@@ -465,12 +465,12 @@ def test_client_command_waits_for_a_full_server_until_give_up(capsys):
         server.stop(0.5)
 
 
-# ---- fleet-policy grants ---------------------------------------------------------------------
+# ---- grant-rule grants ---------------------------------------------------------------------
 
 
 def test_registration_reads_the_grant_or_none():
     response = pb.RegisterResponse(session_id="s", action_names=["x", "y"], chunk_size=10, policy="p")
-    assert Registration.from_response(response, pb.ClockSync()).granted is None  # a server without fleet policies
+    assert Registration.from_response(response, pb.ClockSync()).granted is None  # a server without grant rules
     grant = pb.Grant(weight=0.5, tier="fast", fps=30.0, h_min=2, h_max=6, max_device_share=0.25, rule="robot:a")
     response.granted.CopyFrom(grant)
     reg = Registration.from_response(response, pb.ClockSync(sync_id=0, client_recv_time=3.0))

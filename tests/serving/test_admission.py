@@ -8,7 +8,7 @@ import pickle
 
 import pytest
 
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
 from lerobot_armory.serving.fleet import Fleet, FleetError
 from lerobot_armory.serving.forwarding import ForwardingKey

@@ -83,6 +83,35 @@ def test_out_of_memory_at_a_batch_size_lowers_the_cap_and_the_robots_are_served_
         server.stop(0.5)
 
 
+def test_a_cap_lowered_by_out_of_memory_is_the_cap_everywhere():
+    """The served policy owns its batch cap: once a batch of 3 ran out of memory, the scheduler,
+    the latency model (learning), the loop's stats and the next swap's warm-up all read 2."""
+    from lerobot_armory.serving.swap import SwapRefused
+
+    asked: list[int] = []
+
+    def loader(options, drain, max_batch_size):
+        asked.append(max_batch_size)
+        raise SwapRefused("only recording the cap it was asked to load for")
+
+    engine = OutOfMemoryAbove(limit=3)
+    server = echo_server(engine, cap=4, scheduler=EarliestDeadlineConfig(), learn_latency=True, loader=loader)
+    clients: list = []
+    try:
+        clients = echo_robots(server, 4, 3.0)
+        assert any(b >= 3 for b in engine.sizes), f"no batch of 3 or more was tried: {engine.sizes}"
+        served = server.loop.policies[server.loop.default_policy]
+        assert served.latency is not None
+        assert server.loop.stats.batch_cap == served.max_batch_size == server.scheduler.max_batch_size == 2
+        assert served.latency.max_batch_size == len(served.latency.table_s()) == server.loop.cap_of() == 2
+        result = server.swapper.swap("/a/checkpoint")
+        assert result.result == "refused" and asked == [2], (result, asked)
+    finally:
+        for c in clients:
+            c.close()
+        server.stop(0.5)
+
+
 def test_out_of_memory_at_a_batch_of_one_fails_that_batch_and_tells_its_robot():
     engine = OutOfMemoryAbove(limit=1)
     server = echo_server(engine, cap=2, scheduler=EarliestDeadlineConfig())

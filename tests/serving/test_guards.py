@@ -1,5 +1,5 @@
 """What a robot claims cannot break or bend the mirror: edge checks on times, indices and rates,
-robust clock offsets with step detection, the operator's fleet policy, bounded reports/notices."""
+robust clock offsets with step detection, the operator's grant rules, bounded reports/notices."""
 
 from __future__ import annotations
 
@@ -12,21 +12,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import (
-    CLOCK_FAULTS_FOR_STEP,
-    FPS_TOLERANCE,
-    MAX_UPLINK_S,
-    PROGRESS_SLACK_STEPS,
-    DelayEstimator,
-    RobotMirror,
-    RobotSpec,
-)
+from lerobot_armory.delay import CLOCK_FAULTS_FOR_STEP, MAX_UPLINK_S, DelayEstimator
+from lerobot_armory.mirror import FPS_TOLERANCE, PROGRESS_SLACK_STEPS, RobotMirror
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.schedulers import EarliestDeadlineConfig, LookaheadConfig, RoundRobinConfig
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.serving.fleet import Fleet, FleetError
 from lerobot_armory.serving.messages import ChunkOut, Notice, NoticeKind
 from lerobot_armory.serving.outbox import OUTBOX_NOTICES, Outbox
-from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest
+from lerobot_armory.serving.grant_rules import GrantRules, GrantRequest
 from lerobot_armory.serving.security import AuthTokens
 
 SPEC = RobotSpec("r", fps=20.0, chunk_size=10, h_min=0, h_max=10)
@@ -211,11 +205,11 @@ def test_schedulers_decide_whatever_robots_claimed(config):
     assert scheduler.select(mirrors, 2.0)
 
 
-# ---- fleet policy ----------------------------------------------------------------------------
+# ---- grant rules ----------------------------------------------------------------------------
 
 
 def test_builtin_policy_caps_weight_at_one_and_keeps_the_rest():
-    grant, problems = FleetPolicy.builtin().grant(GrantRequest("a", 20.0, 0, 10, 3.0, "fast"))
+    grant, problems = GrantRules.builtin().grant(GrantRequest("a", 20.0, 0, 10, 3.0, "fast"))
     assert not problems
     assert (grant.weight, grant.tier, grant.h_min, grant.h_max, grant.rule) == (1.0, "fast", 0, 10, "default")
 
@@ -227,7 +221,7 @@ def test_policy_rules_by_robot_and_token(tmp_path):
         "robots:\n  arm-7: {max_weight: 3, tiers: [fast, slow]}\n"
         "tokens:\n  lab-b: {max_weight: 2, max_device_share: 0.25}\n"
     )
-    policy = FleetPolicy.load(str(path))
+    policy = GrantRules.load(str(path))
     g, _ = policy.grant(GrantRequest("arm-7", 30.0, 0, 10, 5.0, "fast"))
     assert (g.weight, g.tier, g.h_min, g.rule) == (3.0, "fast", 2, "robot:arm-7")  # h_min raised into bounds
     g, _ = policy.grant(GrantRequest("x", 30.0, 4, 10, 5.0, "fast"), token_name="lab-b")
@@ -237,16 +231,16 @@ def test_policy_rules_by_robot_and_token(tmp_path):
 
 
 def test_a_horizon_shorter_than_a_batch_of_one_is_refused_with_the_numbers():
-    policy = FleetPolicy.builtin()
+    policy = GrantRules.builtin()
     policy.batch_s = 0.073  # what the server sets: d_infer(1)
     g, problems = policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"))
     assert g is None and problems == [
         "h_max 4 at 60 fps is 67 ms of actions, shorter than 73 ms (the inference time of a batch of one here): "
-        "it would run dry before any chunk could reach it; ask for h_max >= 5 (or the operator sets min_horizon_s in --fleet.policy)"
+        "it would run dry before any chunk could reach it; ask for h_max >= 5 (or the operator sets min_horizon_s in --fleet.rules)"
     ]
     assert policy.grant(GrantRequest("ok", 60.0, 0, 5, 1.0, "fast"))[0] is not None
     assert policy.grant(GrantRequest("greedy", 60.0, 0, 4, 1.0, "fast"), check_horizon=False)[0] is not None  # openpi
-    strict = FleetPolicy.from_dict({"default": {"min_horizon_s": 0.2}, "robots": {"lab": {"min_horizon_s": 0}}})
+    strict = GrantRules.from_dict({"default": {"min_horizon_s": 0.2}, "robots": {"lab": {"min_horizon_s": 0}}})
     strict.batch_s = 0.073
     g, problems = strict.grant(GrantRequest("x", 20.0, 0, 3, 1.0, "fast"))
     assert g is None and "min_horizon_s" in problems[0] and "ask for h_max >= 4" in problems[0]
@@ -268,8 +262,23 @@ def test_bad_policy_is_one_line(tmp_path, data, needle):
     path = tmp_path / "p.json"
     path.write_text(json.dumps(data))
     with pytest.raises(ConfigError) as info:
-        FleetPolicy.load(str(path))
+        GrantRules.load(str(path))
     assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+def test_the_rules_file_is_read_by_its_name_and_by_its_former_one_never_both(tmp_path):
+    from lerobot_armory.serving.config import FleetOptions
+
+    path = tmp_path / "rules.json"
+    path.write_text(json.dumps({"default": {"max_weight": 2}}))
+    asked = GrantRequest("a", 20.0, 5, 10, 3.0, "fast")
+    for options in (FleetOptions(rules=str(path)), FleetOptions(policy=str(path))):
+        grant, _ = options.load().grant(asked)
+        assert grant is not None and grant.weight == 2.0
+    grant, _ = FleetOptions().load().grant(asked)
+    assert grant is not None and grant.weight == 1.0  # the built-in default
+    with pytest.raises(ConfigError, match="fleet.rules.*given twice"):
+        FleetOptions(rules=str(path), policy=str(path)).load()
 
 
 # ---- credentials, slots, outbox --------------------------------------------------------------
@@ -331,8 +340,8 @@ def test_live_grant_and_device_share_cap():
     from tests.support.echo import FEATURES, EchoEngine, echo_server
     from lerobot_armory.robot.client import ArmoryClient, RobotIdentity
 
-    policy = FleetPolicy.from_dict({"robots": {"hog": {"max_device_share": 0.2, "max_weight": 2}}})
-    server = echo_server(EchoEngine(0.03), cap=1, scheduler=EarliestDeadlineConfig(), fleet_policy=policy)
+    policy = GrantRules.from_dict({"robots": {"hog": {"max_device_share": 0.2, "max_weight": 2}}})
+    server = echo_server(EchoEngine(0.03), cap=1, scheduler=EarliestDeadlineConfig(), grant_rules=policy)
     robots = {}
     for name, h_min in (("hog", 0), ("calm", 8)):
         state = np.zeros(4, np.float32)

@@ -397,7 +397,7 @@ def fuzz_server():
     server = make_server()
     # Hundreds of registrations a second from this host are the point of the fuzz, not a flood to
     # cut (tests/serving/test_admission.py checks the limit): no limit here.
-    server.service.admission = AdmissionLimiter(peer_rate_hz=1e6, peer_burst=1e6)
+    server.registrar.admission = AdmissionLimiter(peer_rate_hz=1e6, peer_burst=1e6)
     yield server
     server.stop(0.5)
 

@@ -58,7 +58,7 @@ def start(engine, operators: OperatorTokens | None = OperatorTokens([OPERATOR]),
     info = PolicyInfo(engine.description, engine.wire_features, engine.action_names, engine.chunk_size)
     return ArmoryServer(
         engine, info, profile, EarliestDeadlineConfig(), 3, port=0, auth=auth, operators=operators,
-        loader=policy_loader(3, profile_reps=1),
+        loader=policy_loader(profile_reps=1),
     ).start()  # fmt: skip
 
 

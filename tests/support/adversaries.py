@@ -66,7 +66,7 @@ NON_FINITE_OR_HUGE = (math.nan, math.inf, -math.inf, 1e308, -1e308)
 INT64_MAX, INT64_MIN = 2**63 - 1, -(2**63)
 MIB = 1 << 20
 
-# What the harness calls a sane grant (the server's fleet policy may be stricter): fps in
+# What the harness calls a sane grant (the server's grant rules may be stricter): fps in
 # [0.01, 1000] Hz, weight in (0, 1e6], 0 <= h_min <= h_max <= H. An accepted registration outside
 # these is a violation; a refusal must be INVALID_ARGUMENT.
 SANE_FPS = (0.01, 1000.0)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from lerobot_armory.mirror import Chunk, DelayEstimator, RobotMirror, RobotSpec, TickChunk
+from lerobot_armory.delay import DelayEstimator
+from lerobot_armory.mirror import RobotMirror
+from lerobot_armory.robot_spec import RobotSpec
+from lerobot_armory.transition import Chunk, TickChunk
 
 
 def spec(

@@ -37,7 +37,7 @@ CONTRACTS: list[tuple[str, tuple[str, ...], tuple[str, ...]]] = [
     ),
     (
         "the core (mirror, dispatch, arbiter, schedulers, placement, delay and latency models) is pure: no engine, serving, wire or I/O layer",
-        ("lerobot_armory.mirror", "lerobot_armory.dispatch", "lerobot_armory.arbiter", "lerobot_armory.schedulers", "lerobot_armory.placement",
+        ("lerobot_armory.mirror", "lerobot_armory.transition", "lerobot_armory.delay", "lerobot_armory.robot_spec", "lerobot_armory.dispatch", "lerobot_armory.arbiter", "lerobot_armory.schedulers", "lerobot_armory.placement",
          "lerobot_armory.network_delay", "lerobot_armory.inference_latency"),
         ("lerobot_armory.engine", "lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.sim",
          "lerobot_armory.bench", "lerobot_armory.robot", "lerobot_armory.policies", "lerobot_armory.proto",
@@ -53,7 +53,7 @@ CONTRACTS: list[tuple[str, tuple[str, ...], tuple[str, ...]]] = [
         "the engine knows no robots, sessions or wires",
         ("lerobot_armory.engine",),
         ("lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.sim", "lerobot_armory.bench",
-         "lerobot_armory.robot", "lerobot_armory.schedulers", "lerobot_armory.dispatch", "lerobot_armory.mirror",
+         "lerobot_armory.robot", "lerobot_armory.schedulers", "lerobot_armory.dispatch", "lerobot_armory.mirror", "lerobot_armory.transition", "lerobot_armory.delay",
          "lerobot_armory.proto", "lerobot_armory.wire", "grpc", "google", "websockets"),
     ),
     (

@@ -5,7 +5,7 @@
     lerobot-armory-cluster --policies=policies.yaml --replicas=4   # every replica serves every policy
 
 Every ``lerobot-armory-server`` option applies to each replica (``--policy.*``, ``--scheduler.*``,
-``--max_batch_size``, ``--fleet.policy``, ``--auth_token_file`` ...); ``--port`` is the front's, and so
+``--max_batch_size``, ``--fleet.rules``, ``--auth_token_file`` ...); ``--port`` is the front's, and so
 is ``--metrics_port`` (the front's registrations placed and refused by reason, its moves, its view of
 the replicas; the replicas publish no metrics port of their own).
 Robots use ``--server_address=`` the front and nothing else changes.
@@ -109,7 +109,7 @@ class ClusterConfig(ServerConfig):
 
 
 def preflight(cfg: ClusterConfig) -> None:
-    """Every check that needs no Ray and no model: a bad option, fleet policy file or policies
+    """Every check that needs no Ray and no model: a bad option, grant rules file or policies
     file is one line here, not K tracebacks in the replicas."""
     cfg.validate()
     cfg.fleet.load()

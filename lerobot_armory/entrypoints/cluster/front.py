@@ -50,7 +50,7 @@ from lerobot_armory.entrypoints.cluster.admin import FrontAdminService
 from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics, FrontSnapshot
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.placement import (
     Capacity,
     Move,
@@ -714,7 +714,7 @@ class ClusterFront(ArmoryServicer):
         policy = self.policy_for(request.policy_name)
         chunk = max((s.chunk_sizes.get(policy, s.chunk_size) for s in self.state.values() if s.view.healthy), default=0)
         try:
-            # Placement weighs at most 1 here: the replica's fleet policy grants the real weight,
+            # Placement weighs at most 1 here: the replica's grant rules grant the real weight,
             # and a robot must not buy a lighter replica by asking for a heavy one.
             return RobotSpec(request.robot_id, request.fps, chunk, request.h_min, request.h_max, min(request.weight, 1.0), request.tier)
         except (ConfigError, TypeError, ValueError):

@@ -26,7 +26,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from lerobot_armory.mirror import RobotSpec
+from lerobot_armory.robot_spec import RobotSpec
 from lerobot_armory.entrypoints.server import ArmoryServer, build_server
 from lerobot_armory.serving.config import ServerConfig
 from lerobot_armory.serving.forwarding import ForwardingKey

@@ -20,7 +20,7 @@ import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec, spec_problems
+from lerobot_armory.robot_spec import spec_problems
 from lerobot_armory.proto import armory_pb2 as pb
 from lerobot_armory.proto.armory_pb2_grpc import ArmoryAdminServicer, ArmoryServicer
 from lerobot_armory.entrypoints.grpc.hardening import Malformed, add_admin_to_server, add_armory_to_server
@@ -39,9 +39,10 @@ from lerobot_armory.serving.fleet import SENT_TABLE, Fleet, FleetError
 from lerobot_armory.serving.session import DEFAULT_POLICY, RobotSession
 from lerobot_armory.serving.messages import Notice, NoticeKind
 from lerobot_armory.serving.outbox import MAX_NOTICE_CHARS
-from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest, describe_grant
+from lerobot_armory.serving.grant_rules import GrantRules, GrantRequest, describe_grant
 from lerobot_armory.serving.peer_log import ThrottledLog
-from lerobot_armory.serving.security import AuthTokens, Credential, RateLimiter
+from lerobot_armory.serving.registration import Registrar, Registration
+from lerobot_armory.serving.security import RateLimiter
 from lerobot_armory.wire import FeatureSpec, WireError, check_features, decode_all, spec_from_proto, specs_to_proto
 
 log = logging.getLogger(__name__)
@@ -69,22 +70,19 @@ class ArmoryService(ArmoryServicer):
         fleet: Fleet,
         policy: PolicyInfo,
         max_message_bytes: int,
-        auth: AuthTokens | None = None,
+        registrar: Registrar | None = None,
         max_obs_rate_hz: float = 0.0,
-        fleet_policy: FleetPolicy | None = None,
-        admission: AdmissionLimiter | None = None,
         policy_name: str = DEFAULT_POLICY,
         others: dict[str, PolicyInfo] | None = None,
     ) -> None:
         self.fleet = fleet
-        self.admission = admission or AdmissionLimiter()
+        # Credentials, admission and grants: the one registration path, shared with openpi.
+        self.registrar = registrar or Registrar(fleet, GrantRules.builtin(), AdmissionLimiter())
         self.policy = policy  # the first policy's (a swap replaces it)
         self.policy_name = policy_name
         self.others = dict(others or {})  # more policies served from the same device, by name
         self.max_message_bytes = max_message_bytes
-        self.auth = auth
         self.max_obs_rate_hz = max_obs_rate_hz
-        self.fleet_policy = fleet_policy or FleetPolicy.builtin()
         self.peer_log = ThrottledLog(log)  # one line per misbehaving peer per 10 s, no tracebacks
         # A cluster replica's: the key its front proves forwarded hosts with (None: a single server,
         # which counts every registration against its own peer).
@@ -97,34 +95,27 @@ class ArmoryService(ArmoryServicer):
         if isinstance(request, Malformed):
             self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
-        credential: Credential | None = None
-        if self.auth is not None:
-            credential = self.auth.identify(request.robot_id, request.auth_token)
-            if credential is None:
-                context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token for this robot id")
-        host = self._admitted_host(request.robot_id, context)
-        refused = self.admission.check(host, credential.digest if credential else None)
-        if refused is not None:
-            self.peer_log.warn(context.peer(), refused)
-            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, refused)
+        try:
+            credential = self.registrar.authenticate(request.robot_id, request.auth_token)
+            self.registrar.admit(self._admitted_host(request.robot_id, context), credential)
+        except FleetError as exc:
+            if exc.code == "RESOURCE_EXHAUSTED":
+                self.peer_log.warn(context.peer(), str(exc))
+            context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
         name, info, problems = self._policy_for(request.policy_name)
         if info is not None:
             problems = self._check_registration(request, info)
         asked = GrantRequest(request.robot_id, request.fps, request.h_min, request.h_max, request.weight, request.tier)
-        grant = None
-        if not problems:
-            grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None)
-        if problems or grant is None:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "registration refused: " + "; ".join(problems))
-        assert info is not None
-        spec = RobotSpec(request.robot_id, grant.fps, info.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
-        features = {f.name: spec_from_proto(f) for f in request.features}
         try:
-            session = self.fleet.register(
-                spec, request.task, features, credential.digest if credential else None, grant, register_recv=recv, policy=name
-            )
+            if info is None:
+                raise FleetError("INVALID_ARGUMENT", "registration refused: " + "; ".join(problems))
+            # Features are read only from a request without problems (a bad shape is one of them).
+            features = {} if problems else {f.name: spec_from_proto(f) for f in request.features}
+            registration = Registration(asked, info.chunk_size, features, request.task, name, tuple(problems))
+            session, grant = self.registrar.register(registration, credential, recv)
         except FleetError as exc:
             context.abort(getattr(grpc.StatusCode, exc.code), str(exc))
+        spec = session.spec
         if self.max_obs_rate_hz > 0:
             session.link.obs_rate = RateLimiter(self.max_obs_rate_hz)
         log.info(
@@ -199,12 +190,15 @@ class ArmoryService(ArmoryServicer):
         metadata = dict(context.invocation_metadata())
         session_id = metadata.get(SESSION_KEY, "")
         credential = None
-        if self.auth is not None:
+        if self.registrar.auth is not None:
             with self.fleet.cond:
                 known = self.fleet.sessions.get(session_id)
-            credential = self.auth.identify(known.robot_id, metadata.get(TOKEN_KEY, "")) if known is not None else None
-            if credential is None:
-                context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong auth token")
+            try:
+                if known is None:
+                    raise FleetError("UNAUTHENTICATED", "missing or wrong auth token")
+                credential = self.registrar.authenticate(known.robot_id, metadata.get(TOKEN_KEY, ""), "auth token")
+            except FleetError as exc:
+                context.abort(grpc.StatusCode.UNAUTHENTICATED, str(exc))
         try:
             session = self.fleet.attach(session_id, credential.digest if credential else None)
         except FleetError as exc:

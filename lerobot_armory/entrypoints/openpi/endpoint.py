@@ -30,16 +30,16 @@ from http import HTTPStatus
 from typing import Any
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.mirror import RobotSpec
 from lerobot_armory.serving.fleet import Fleet, FleetError
 from lerobot_armory.serving.session import RobotSession
-from lerobot_armory.serving.fleet_policy import FleetPolicy, GrantRequest
+from lerobot_armory.serving.grant_rules import GrantRequest, GrantRules
+from lerobot_armory.serving.registration import Registrar, Registration
 from lerobot_armory.serving.messages import ChunkOut, ClockSync, ExecutionReport, Notice, NoticeKind, Receipt
 from lerobot_armory.entrypoints.openpi.keymap import KeyMap
 from lerobot_armory.entrypoints.openpi.codec import pack, unpack
 from lerobot_armory.serving.config import OpenpiOptions
 from lerobot_armory.serving.admission import AdmissionLimiter
-from lerobot_armory.serving.security import AuthTokens, Credential
+from lerobot_armory.serving.security import Credential
 from lerobot_armory.feature_spec import WireError
 
 log = logging.getLogger(__name__)
@@ -139,16 +139,15 @@ class OpenpiEndpoint:
         metadata: dict[str, Any],
         host: str = "127.0.0.1",
         max_message_bytes: int = 16 << 20,
-        fleet_policy: FleetPolicy | None = None,
-        auth: AuthTokens | None = None,
+        registrar: Registrar | None = None,
         tls: tuple[bytes, bytes] | None = None,
-        admission: AdmissionLimiter | None = None,
         policy_name: str | None = None,
     ) -> None:
         self.fleet = fleet
         # The policy openpi clients are served by (they cannot name one): the server's first.
         self.policy_name = policy_name
-        self.admission = admission or AdmissionLimiter()
+        # Credentials, admission and grants: the one registration path, shared with gRPC.
+        self.registrar = registrar or Registrar(fleet, GrantRules.builtin(), AdmissionLimiter())
         self.waiting = 0  # connections open that have not asked yet (the event loop's thread only)
         self.refused = collections.Counter()  # why connections were refused, by reason
         self.keymap = keymap
@@ -157,8 +156,6 @@ class OpenpiEndpoint:
         self.metadata = metadata
         self.host = host
         self.max_message_bytes = max_message_bytes
-        self.fleet_policy = fleet_policy or FleetPolicy.builtin()
-        self.auth = auth
         self.tls = tls
         self._ids = itertools.count()
         self._loop = asyncio.new_event_loop()
@@ -226,29 +223,16 @@ class OpenpiEndpoint:
 
     def _authenticate(self, robot_id: str, api_key: str) -> Credential | None:
         """The credential of ``api_key`` (None without auth); FleetError when it is wrong."""
-        if self.auth is None:
-            return None
-        credential = self.auth.identify(robot_id, api_key)
-        if credential is None:
-            raise FleetError("UNAUTHENTICATED", "missing or wrong api key (openpi client's api_key)")
-        return credential
+        return self.registrar.authenticate(robot_id, api_key, "api key (openpi client's api_key)")
 
     def _register(self, robot_id: str, credential: Credential | None, peer: str) -> RobotSession:
-        refused = self.admission.check(peer, credential.digest if credential else None)
-        if refused is not None:
-            raise FleetError("RESOURCE_EXHAUSTED", refused)
+        self.registrar.admit(peer, credential)
         opts = self.options
-        h_max = min(opts.replan_steps, self.chunk_size)
-        asked = GrantRequest(robot_id, opts.fps, 1, h_max, 1.0, opts.tier)
-        grant, problems = self.fleet_policy.grant(asked, credential.group if credential else None, check_horizon=False)
-        if grant is None:
-            raise FleetError("INVALID_ARGUMENT", "; ".join(problems))
-        spec = RobotSpec(robot_id, grant.fps, self.chunk_size, grant.h_min, grant.h_max, grant.weight, grant.tier)
+        asked = GrantRequest(robot_id, opts.fps, 1, min(opts.replan_steps, self.chunk_size), 1.0, opts.tier)
         features = {f.name: f for f in self.keymap.features}
         now = self.fleet.clock()
-        session = self.fleet.register(
-            spec, "", features, credential.digest if credential else None, grant, register_recv=now, policy=self.policy_name
-        )
+        registration = Registration(asked, self.chunk_size, features, policy=self.policy_name, check_horizon=False)
+        session, _ = self.registrar.register(registration, credential, now)
         # Its clock is ours: complete the registration exchange with zero offset and no delay.
         assert session.clock.register_stamps is not None
         b, s = session.clock.register_stamps

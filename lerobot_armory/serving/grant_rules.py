@@ -1,4 +1,4 @@
-"""The operator's fleet policy (``--fleet.policy=FILE``): what each robot may be granted.
+"""The operator's grant rules (``--fleet.rules=FILE``): what each robot may be granted.
 
 A robot *requests* a weight, a tier, an fps and horizons at registration; the operator decides
 what it gets. The policy file (YAML or JSON) has a ``default`` rule and optional rules per robot
@@ -36,10 +36,10 @@ from typing import Any
 
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.serving.config_files import read_config_file
-from lerobot_armory.mirror import MAX_FPS, MAX_WEIGHT, MIN_FPS, TIERS
+from lerobot_armory.robot_spec import MAX_FPS, MAX_WEIGHT, MIN_FPS, TIERS
 from lerobot_armory.serving.messages import Grant
 
-FIELD = "fleet.policy"
+FIELD = "fleet.rules"
 _BIG = 1 << 30
 
 
@@ -53,7 +53,7 @@ class Rule:
     h_min: tuple[int, int] = (0, _BIG)
     h_max: tuple[int, int] = (1, _BIG)
     max_device_share: float = 1.0
-    min_horizon_s: float | None = None  # None: a batch of one's inference time (FleetPolicy.batch_s)
+    min_horizon_s: float | None = None  # None: a batch of one's inference time (GrantRules.batch_s)
 
     def merged(self, where: str, entry: Any) -> Rule:
         """This rule with the fields ``entry`` (a mapping from the file) gives, checked."""
@@ -115,7 +115,7 @@ class GrantRequest:
 
 
 @dataclass
-class FleetPolicy:
+class GrantRules:
     """The default rule plus rules per robot id and per token name."""
 
     default: Rule
@@ -127,17 +127,17 @@ class FleetPolicy:
     batch_s: float = 0.0
 
     @classmethod
-    def builtin(cls) -> FleetPolicy:
+    def builtin(cls) -> GrantRules:
         return cls(Rule(), {}, {})
 
     @classmethod
-    def load(cls, path: str) -> FleetPolicy:
+    def load(cls, path: str) -> GrantRules:
         """Read a YAML (``.yaml``/``.yml``) or JSON policy file; every problem is one line."""
         data = read_config_file(path, FIELD)
         return cls.from_dict(data, path)
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "<dict>") -> FleetPolicy:
+    def from_dict(cls, data: Any, source: str = "<dict>") -> GrantRules:
         if not isinstance(data, dict):
             raise ConfigError(FIELD, f"{source}: expected a mapping with default / robots / tokens")
         unknown = sorted(set(data) - {"default", "robots", "tokens"})
@@ -176,7 +176,7 @@ class FleetPolicy:
         False skips the horizon floor (openpi sessions: their fps and horizon are the operator's)."""
         rule, name = self.rule_for(request.robot_id, token_name)
         problems = []
-        where = f"the fleet policy ({name})"
+        where = f"the grant rules ({name})"
         if not rule.fps[0] <= request.fps <= rule.fps[1]:
             problems.append(f"fps {request.fps:g} is outside {where}'s [{rule.fps[0]:g}, {rule.fps[1]:g}]")
         if request.h_max < rule.h_max[0]:
@@ -189,7 +189,7 @@ class FleetPolicy:
             problems.append(
                 f"h_max {h_max} at {request.fps:g} fps is {1000 * h_max / request.fps:.0f} ms of actions, shorter than "
                 f"{1000 * floor_s:.0f} ms ({why}): it would run dry before any chunk could reach it; "
-                f"ask for h_max >= {need}" + (" (or the operator sets min_horizon_s in --fleet.policy)" if rule.min_horizon_s is None else "")
+                f"ask for h_max >= {need}" + (" (or the operator sets min_horizon_s in --fleet.rules)" if rule.min_horizon_s is None else "")
             )
         h_min = min(max(request.h_min, rule.h_min[0]), rule.h_min[1])
         if h_min > h_max:
