@@ -8,7 +8,6 @@ front sees it up again; a chunk served through the cluster equals a single serve
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 
 import numpy as np
@@ -61,7 +60,7 @@ def test_a_killed_replica_actor_loses_no_robot_and_ray_restarts_it(ray_cluster):
     where = front.front.placements()
     assert sorted(Counter(where.values()).values()) == [2, 2, 2], where
     assert sorted(Counter(rid for robot, rid in where.items() if int(robot[-1]) % 2 == 0).values()) == [1, 1, 1], where
-    time.sleep(2.0)
+    assert wait_for(lambda: all(r.client.executed > 30 for r in robots), timeout=10)  # every robot streaming
     victim = where["robot0"]
     moved = sorted(robot for robot, rid in where.items() if rid == victim)
     old_address = front.front.state[victim].address

@@ -15,6 +15,7 @@ import pytest
 
 from tests.support.echo import FEATURES as ECHO_FEATURES
 from tests.support.echo import echo_server
+from tests.support.pusher import wait_for
 from lerobot_armory.network_delay import LogNormalDelay
 from lerobot_armory.inference_latency import LatencyProfile
 from lerobot_armory.proto import armory_pb2 as pb
@@ -223,10 +224,9 @@ def test_reconnect_never_replays_a_stale_chunk():
     first = start_server(ConstEngine(+1.0, horizon=10), port=port)
     client, _, executed = sim_client(f"127.0.0.1:{port}", "phoenix", h_max=10, backoff=Backoff(0.2, 0.5))
     thread, out = run_in_thread(client, 6.0)
-    time.sleep(1.5)
-    assert any(v[0] == 1.0 for _, _, v in executed)
+    assert wait_for(lambda: any(v[0] == 1.0 for _, _, v in executed), timeout=10)
     first.stop(grace_s=0.2)
-    time.sleep(1.0)
+    assert wait_for(lambda: bool(client.losses), timeout=10)
     # From the moment the robot notices the loss (its stream closes: on a loaded machine that can
     # come after stop() returns) it holds; one control tick of slack for an action already taken
     # from the buffer when the close landed.
@@ -273,7 +273,7 @@ def test_client_waits_for_a_server_that_comes_up_late():
     holder = {}
     t = threading.Thread(target=lambda: holder.update(stats=client.run(2.0)), daemon=True)
     t.start()
-    time.sleep(1.0)
+    time.sleep(1.0)  # what is tested: the server comes up a second after the robot started asking
     server = start_server(ConstEngine(0.0), port=port)
     try:
         t.join(20)
@@ -424,7 +424,7 @@ def test_a_full_server_is_waited_for_then_joined(caplog):
 
         waiting = threading.Thread(target=connect, daemon=True)
         waiting.start()
-        time.sleep(1.5)
+        time.sleep(1.5)  # what is tested: 1.5 s later it still waits (neither refused nor connected)
         assert waiting.is_alive() and not outcome, f"a full server must be waited for, got {outcome}"
         assert not second.connected
         reasons = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
