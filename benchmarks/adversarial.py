@@ -290,7 +290,7 @@ def ensure_policy(cfg: Config) -> str:
         return str(Path(cfg.policy_path).resolve())
     path = Path("out") / f"planner-H10-S{cfg.image_size}"
     if not (path / "config.json").is_file():
-        from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+        from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
         make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=cfg.image_size))
     return str(path.resolve())

@@ -91,7 +91,7 @@ def distances(path: str, sizes: list[int]) -> dict[int, dict[str, tuple[float, f
 def main() -> None:
     import torch
 
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", default="1,3", help="batch sizes")

@@ -104,7 +104,7 @@ def bare_loop(engine, batch: dict, noise: dict, seconds: float) -> float:
 
 def build_policy(kind: str, out: str) -> str:
     """The policy directory to serve (random weights, built offline)."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     if kind == "act":
         make_demo_policy(DemoPolicyConfig(output=out))

@@ -41,11 +41,11 @@ Configurations (``--configs``, any subset; each is loaded through ``--policy.pat
   (``--compile_mode``; the engine keeps the compiled model only if it measured faster).
 - ``pi0-bf16`` / ``pi0-bf16-graphs-tf32``: LeRobot's π0 ``full`` (the same PaliGemma and expert
   sizes, the state as a suffix token, a 48-token prompt, cut to 16 when graphed), LeRobot's eager sampler against our
-  static π0 sampler (``policies/pi0_static.py``) recorded as graphs with TF32, the default.
+  static π0 sampler (``acceleration/pi0_static.py``) recorded as graphs with TF32, the default.
 - ``smolvla-fp32`` / ``smolvla-fp32-graphs-tf32`` / ``smolvla-fp32-graphs-tf32-ordered``: SmolVLA at
   SmolVLM2-500M's sizes (``--size`` full; 450 M parameters, float32 as LeRobot builds it from its
   configuration, 16 VLM layers and a 0.75-wide expert, 512² images), LeRobot's eager sampler
-  against our static SmolVLA sampler (``policies/smolvla_static.py``) recorded as graphs with TF32,
+  against our static SmolVLA sampler (``acceleration/smolvla_static.py``) recorded as graphs with TF32,
   with its fused kernels and in LeRobot's order (``smolvla-fp32-graphs-tf32-unaligned``: fused, with
   LeRobot's prefix and cache lengths, as before 2026-11-28).
 
@@ -184,10 +184,10 @@ def as_before(config: str) -> Iterator[None]:
     - ``-twopasssoftmax``: the Triton softmax reading each row twice (two passes), as before
       2026-11-28 #12, where a row that fits its block is read once (``masked_softmax``'s
       ``one_pass``)."""
-    from lerobot_armory.policies import pi05_kernels
-    from lerobot_armory.policies.pi05_kernels import Fused, LeRobotOrder
-    from lerobot_armory.policies.pi05_static import StaticPi05
-    from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
+    from lerobot_armory.acceleration import pi05_kernels
+    from lerobot_armory.acceleration.pi05_kernels import Fused, LeRobotOrder
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
     flags = _flags(config)
     patched: list[tuple[Any, str, Any]] = []  # (class or module, attribute, the value before)
@@ -222,7 +222,7 @@ def _cuda() -> bool:
 
 def build(config: str, size: str, work: Path, compile_mode: str) -> tuple[str, list[str]]:
     """The policy directory of a configuration (built once per run) and its ``--policy.*`` overrides."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     if config == "act":
         path = work / "act"

@@ -146,7 +146,7 @@ def main() -> int:
         PROFILES_MS[name], CAPS[name] = tuple(x * args.time_scale for x in ms), cap
 
     from lerobot_armory.entrypoints.server import ArmoryServer, ExtraPolicy, tune_process
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     tune_process()
     work = Path(tempfile.mkdtemp(prefix="armory-multi-policy-"))

@@ -23,7 +23,7 @@ what remains is the model's own arithmetic, about 20 kernels an expert layer and
 only ``--engine.compile_sampler`` reduces further). Exits 1 on a miss. ``--kind=pi0`` counts
 LeRobot's π0 the same way (the same depths, a 48-token prompt, the state as a token of the
 action expert's suffix); ``--kind=smolvla`` LeRobot's SmolVLA (SmolVLM2-500M's depths and image
-geometry at tiny widths, float32 only; its fused kernels are ``policies/smolvla_kernels.py``).
+geometry at tiny widths, float32 only; its fused kernels are ``acceleration/smolvla_kernels.py``).
 
     .venv/bin/python benchmarks/pi05_ops.py [--sizes=1,8] [--dtype=bfloat16] [--kind=pi0|smolvla]
 """
@@ -58,11 +58,11 @@ def count(engine: Any, b: int) -> tuple[Any, float]:
     """(OpTrace of one forward pass, median CPU ms of 5)."""
     import torch
 
-    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.acceleration.op_trace import OpTrace
 
     processed, kwargs = forward_inputs(engine, b)
     # no_grad, not inference_mode: composite ops then reach the trace decomposed, with the copies
-    # they make (policies/op_trace.py).
+    # they make (acceleration/op_trace.py).
     with torch.no_grad():
         if engine.sampler is None:
             def forward() -> Any:
@@ -100,7 +100,7 @@ def trace_graphs(engine: Any, b: int) -> tuple[int, int, list[str]]:
 def main() -> None:
     import torch
 
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.cuda_graphs import bucket_for
     from lerobot_armory.engine.options import EngineOptions, PolicyOptions

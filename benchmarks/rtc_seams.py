@@ -48,7 +48,7 @@ def policy_for(chunk_size: int) -> str:
     """The tiny π0.5 demo for this chunk size (built once, offline)."""
     path = Path("out") / f"pi05-tiny-H{chunk_size}"
     if not (path / "config.json").is_file():
-        from lerobot_armory.policies.demo.pi05 import make_pi05_policy
+        from lerobot_armory.demo.pi05 import make_pi05_policy
 
         make_pi05_policy(path, size="tiny", chunk_size=chunk_size)
     return str(path)

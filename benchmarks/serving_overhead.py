@@ -96,7 +96,7 @@ def main() -> None:
 
     from lerobot_armory.schedulers import EarliestDeadlineConfig
     from lerobot_armory.entrypoints.server import ArmoryServer, tune_process
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.options import PolicyOptions
     from lerobot_armory.entrypoints.grpc.service import PolicyInfo

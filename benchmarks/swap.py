@@ -40,7 +40,7 @@ import torch  # noqa: E402
 from lerobot_armory.engine.options import PolicyOptions  # noqa: E402
 from lerobot_armory.entrypoints.admin import AdminConfig, SwapTarget, call  # noqa: E402
 from lerobot_armory.entrypoints.server import build_server  # noqa: E402
-from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy  # noqa: E402
+from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy  # noqa: E402
 from lerobot_armory.schedulers import EarliestDeadlineConfig  # noqa: E402
 from lerobot_armory.serving.config import ServerConfig  # noqa: E402
 from tests.support.cluster import sim_robot  # noqa: E402 - the tests' armory_sim robot on a thread

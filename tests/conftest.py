@@ -81,7 +81,7 @@ TINY = dict(chunk_size=10, state_dim=2, cameras="front", image_size=32, dim_mode
 @pytest.fixture(scope="session")
 def demo_policy_dir(tmp_path_factory):
     """A small random-weight ACT built offline and saved like any LeRobot policy."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     out = tmp_path_factory.mktemp("policy") / "tiny-act"
     make_demo_policy(DemoPolicyConfig(output=str(out), **TINY))
@@ -103,7 +103,7 @@ def engine(demo_policy_dir):
 @pytest.fixture(scope="session")
 def pi05_dir(tmp_path_factory):
     """``lerobot-armory-make-demo-policy --kind=pi05 --size=tiny`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.demo.build import main
 
     out = tmp_path_factory.mktemp("pi05") / "pi05-tiny"
     main(["--kind=pi05", "--size=tiny", f"--output={out}", "--chunk_size=10"])
@@ -113,7 +113,7 @@ def pi05_dir(tmp_path_factory):
 @pytest.fixture(scope="session")
 def pi0_dir(tmp_path_factory):
     """``lerobot-armory-make-demo-policy --kind=pi0 --size=tiny`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.demo.build import main
 
     out = tmp_path_factory.mktemp("pi0") / "pi0-tiny"
     main(["--kind=pi0", "--size=tiny", f"--output={out}", "--chunk_size=10"])
@@ -123,7 +123,7 @@ def pi0_dir(tmp_path_factory):
 @pytest.fixture(scope="session")
 def smolvla_dir(tmp_path_factory):
     """``lerobot-armory-make-demo-policy --kind=smolvla`` (chunk 10, armory_sim features)."""
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.demo.build import main
 
     out = tmp_path_factory.mktemp("smolvla") / "smolvla-tiny"
     with pytest.MonkeyPatch.context() as mp:

@@ -1,6 +1,6 @@
 """The fused π0.5 layers' GPU-only choices, one kernel at a time, at the full π0.5's shapes.
 
-Each choice made on 2026-11-28 #10 (``policies/pi05_kernels.py``, ``policies/triton_kernels.py``)
+Each choice made on 2026-11-28 #10 (``acceleration/pi05_kernels.py``, ``acceleration/triton_kernels.py``)
 against what it replaced, checked for equal values and timed on its own, at the rows a sample
 runs at b = 1 and b = 8 (VLM: 576 prefix rows a sample, LIBERO's two cameras and a 64-token
 prompt; expert: 50 action rows):
@@ -92,7 +92,7 @@ def cases(
 ) -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
     """Each choice as (what it replaced, the choice), closures over fresh random inputs;
     ``attention``: (batch rows, query rows a batch row, keys, head width)."""
-    from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul, masked_softmax, rope_qkv
+    from lerobot_armory.acceleration.triton_kernels import add_rms_norm, gelu_tanh_mul, masked_softmax, rope_qkv
 
     gen = torch.Generator(device="cpu").manual_seed(0)
 

@@ -112,7 +112,7 @@ def ensure_policy(cfg: BenchConfig, chunk_size: int) -> str:
         return cfg.policy_path
     path = Path("out") / f"planner-H{chunk_size}-S{cfg.image_size}"
     if not (path / "config.json").is_file():
-        from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+        from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
         make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=chunk_size, image_size=cfg.image_size))
     return str(path)

@@ -87,7 +87,7 @@ def check_policy(path: str, timing: bool = True) -> PolicyCheck:
     from lerobot_armory.engine import rtc as rtc_mod
     from lerobot_armory.engine.options import PolicyOptions
     from lerobot_armory.engine.policy_engine import PolicyEngine
-    from lerobot_armory.policies import static_sampler
+    from lerobot_armory.acceleration import static_sampler
 
     try:
         engine = PolicyEngine(PolicyOptions(path, "cpu", cpu_threads=1))

@@ -1,7 +1,7 @@
 """Batch buckets and one CUDA graph per bucket for a static sampler.
 
 A CUDA graph replays a recorded sequence of kernels with the tensor addresses and shapes it was
-recorded with, for the cost of one launch. The static sampler (``policies/pi05_static.py``) is
+recorded with, for the cost of one launch. The static sampler (``acceleration/pi05_static.py``) is
 such a sequence for each batch size, so the engine records one graph per *bucket* (default
 1, 2, 4, 8, …, up to the batch cap, and the cap itself) and serves a batch of b robots with the
 graph of the smallest bucket ≥ b: the real rows are copied into the graph's input buffers, the
@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.pi05_static import SamplerInputs
+from lerobot_armory.acceleration.pi05_static import SamplerInputs
 
 log = logging.getLogger(__name__)
 

@@ -69,7 +69,7 @@ class EngineOptions:
             straight into the cache; residuals as ``addcmul``; the residual stream in float32):
             a third of the kernels LeRobot's π0.5 sample launches, the same values in another
             rounding order in float32 and, in bfloat16, chunks about as near a float32 model's as
-            LeRobot's own bf16 ones, nearer on π0.5 (``policies/pi05_kernels.py``). ``false``: LeRobot's own
+            LeRobot's own bf16 ones, nearer on π0.5 (``acceleration/pi05_kernels.py``). ``false``: LeRobot's own
             sequence of operations (and its bf16 rounding).
         compile_sampler: ``torch.compile`` (inductor) the static sampler's two layer functions,
             a VLM layer and an action-expert layer, before its graphs are recorded: fused
@@ -119,7 +119,7 @@ class EngineOptions:
         self.cuda_graphs = {"true": "on", "false": "off", "yes": "on", "no": "off"}.get(value, value)
 
     def validate(self) -> None:
-        from lerobot_armory.policies.pi05_static import ATTENTION
+        from lerobot_armory.acceleration.pi05_static import ATTENTION
         from lerobot_armory.engine.cuda_graphs import MODES
 
         if self.cuda_graphs not in MODES:

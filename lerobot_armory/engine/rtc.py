@@ -43,7 +43,7 @@ import numpy as np
 
 from lerobot_armory.engine.options import RTCOptions
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.rtc_guidance import guidance_weight
+from lerobot_armory.acceleration.rtc_guidance import guidance_weight
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """What lerobot-armory reads from a policy directory besides LeRobot's own files.
 
 The engine reads these when it loads ``--policy.path``; the offline builders
-(:mod:`lerobot_armory.policies.demo`) write them. They live here, below both.
+(:mod:`lerobot_armory.demo`) write them. They live here, below both.
 """
 
 # Optional sidecar a policy directory may carry (the demo policy writes it): action names.

@@ -42,7 +42,7 @@ TINY = "armory_tiny"
 # 8 query heads on 1 K/V head, 256 image tokens per 224² camera) at tiny widths: a model whose
 # forward pass launches as many kernels as the real π0.5's, which a CPU runs in a second.
 NARROW = "armory_narrow"
-# Vocabulary of the tiny variant: the stand-in tokenizer (``policies/demo/standin_tokenizer.py``) has
+# Vocabulary of the tiny variant: the stand-in tokenizer (``demo/standin_tokenizer.py``) has
 # fewer pieces, so every id it emits is inside the model's embedding table.
 TINY_VOCAB = 1024
 

@@ -66,7 +66,7 @@ def test_network_emulator_delays_exactly_with_zero_jitter():
 
 @pytest.fixture(scope="module")
 def planner(tmp_path_factory):
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.options import PolicyOptions
 

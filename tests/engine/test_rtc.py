@@ -110,7 +110,7 @@ def test_a_guided_pi05_batch_equals_lerobots_rtc_for_each_robot_alone(pi05_dir, 
     LeRobot's stock π0.5 with its stock RTCProcessor, one robot per call."""
     import torch
 
-    from lerobot_armory.engine.policy_engine import _load
+    from lerobot_armory.engine.loading import load_policy
 
     obs = [observation(k, k) for k in range(3)]
     tasks = ["touch the target", "hold still", "touch the target"]
@@ -124,7 +124,7 @@ def test_a_guided_pi05_batch_equals_lerobots_rtc_for_each_robot_alone(pi05_dir, 
     actions, model_actions = guided.infer_guided(obs, tasks, seeds, prefixes)
     assert actions.shape == model_actions.shape == (3, 10, 2)
 
-    config, policy, pre, post = _load(str(pi05_dir), "cpu")
+    config, policy, pre, post = load_policy(str(pi05_dir), "cpu")
     config.rtc_config = rtc.RTCOptions(enabled=True, execution_horizon=8).lerobot_config()
     policy.init_rtc_processor()  # LeRobot's own processor
     assert type(policy.model.rtc_processor).__name__ == "RTCProcessor"
@@ -292,7 +292,7 @@ def test_served_chunks_are_guided_by_what_each_robot_was_sent(guided):
 def test_the_planner_blends_the_leftover_into_its_plan_as_rtc_weighs_it(tmp_path):
     """armory_planner's RTC contract: the delayed steps are the leftover's, then a linear fade
     to the fresh (closed-loop) plan at the execution horizon, per row."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     path = tmp_path / "planner"
     make_demo_policy(DemoPolicyConfig(output=str(path), kind="planner", chunk_size=10, image_size=32))

@@ -81,7 +81,7 @@ def test_a_registration_that_lies_and_never_streams_leads_to_no_move():
         front._rebuild(state)
     for k in range(2):
         request = pb.RegisterRequest(robot_id=f"new{k}", fps=20.0, h_min=5, h_max=10, weight=1.0, tier="slow")
-        rid = next(front._choices(request))
+        rid = next(front.choices(request))
         front.state[rid].reported[f"new{k}"] = RobotSpec(f"new{k}", 20.0, 10, 5, 10)
         front._rebuild(front.state[rid])
     assert sorted(len(s.reported) for s in front.state.values()) == [3, 3]
@@ -102,7 +102,7 @@ def test_registrations_that_never_stream_cannot_fill_one_side_and_push_newcomers
     for state in front.state.values():
         front._rebuild(state)
     request = pb.RegisterRequest(robot_id="new", fps=20.0, h_min=5, h_max=10, weight=1.0, tier="slow")
-    assert next(front._choices(request)) == "a"
+    assert next(front.choices(request)) == "a"
 
 
 def test_robots_registering_at_the_same_moment_are_spread_by_a_reservation_made_with_the_choice():
@@ -120,7 +120,7 @@ def test_robots_registering_at_the_same_moment_are_spread_by_a_reservation_made_
     def place(k: int) -> None:
         request = pb.RegisterRequest(robot_id=f"r{k}", fps=20.0, h_min=5, h_max=10, weight=1.0, tier="slow")
         barrier.wait()
-        chosen.append(next(front._choices(request)))
+        chosen.append(next(front.choices(request)))
 
     threads = [threading.Thread(target=place, args=(k,)) for k in range(8)]
     for t in threads:

@@ -98,18 +98,18 @@ def test_the_front_charges_each_robot_its_own_policy_s_capacity():
     assert a.utilization() == pytest.approx(2 * demand(spec, sorting)) and b.utilization() == pytest.approx(2 * demand(spec, kitchen))
     # A kitchen robot goes where the kitchen robots are: b is lighter once each robot is charged at
     # its own policy (charged alike, a and b would tie and a would win on its name).
-    assert next(front._choices(_request("k2", "kitchen"))) == "b"
+    assert next(front.choices(_request("k2", "kitchen"))) == "b"
     assert front.state["b"].pending_policy == {"k2": "kitchen"}
     # A pending sorting robot is charged at sorting's capacity, with sorting's chunk size.
     assert front._spec(_request("s2", "sorting")).chunk_size == 20 and front._spec(_request("k3", "")).chunk_size == 10
-    rid = next(front._choices(_request("s2", "sorting")))
+    rid = next(front.choices(_request("s2", "sorting")))
     state = front.state[rid]
     assert state.pending_policy["s2"] == "sorting"
     assert state.view.demand(state.view.robots["s2"]) == demand(state.view.robots["s2"], sorting)
     # A robot naming a policy nobody serves (the replica will refuse it) is charged at the main
     # policy's; one naming none too (the main policy's robots on a single-policy cluster).
     assert front.policy_for("bakery") == front.policy_for("") == "kitchen"
-    rid = next(front._choices(_request("lost", "bakery")))
+    rid = next(front.choices(_request("lost", "bakery")))
     assert front.state[rid].pending_policy["lost"] == "kitchen"
     assert front.state[rid].view.demand(front.state[rid].view.robots["lost"]) == demand(front.state[rid].view.robots["lost"], kitchen)
     # Bounded: once the replicas report, or the reservation lapses, the front keeps no robot's policy
@@ -128,7 +128,7 @@ def test_the_front_charges_each_robot_its_own_policy_s_capacity():
 @pytest.fixture(scope="module")
 def two_policy_cluster(tmp_path_factory):
     """2 in-process replicas serving kitchen (b <= 3) and sorting (b <= 1), and a front with an operator token."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     root = tmp_path_factory.mktemp("two")
     make_demo_policy(DemoPolicyConfig(output=str(root / "kitchen"), **TINY))
@@ -224,7 +224,7 @@ def _admin(address: str):
 
 @pytest.mark.slow
 def test_a_rolling_swap_of_one_policy_leaves_the_other_on_every_replica(two_policy_cluster):
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     front, replicas, cfg, root = two_policy_cluster
     new = root / "sorting-v2"

@@ -27,7 +27,7 @@ SORTING = {"observation.state": ("float32", (3,)), "observation.images.front": (
 @pytest.fixture(scope="module")
 def two_policy_server(tmp_path_factory):
     """A server of two tiny ACTs of different state and action sizes, from one policies file."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     root = tmp_path_factory.mktemp("two")
     make_demo_policy(DemoPolicyConfig(output=str(root / "kitchen"), **TINY))
@@ -133,7 +133,7 @@ def test_policies_file_problems_are_one_line_each(tmp_path):
 
 
 def test_a_swap_of_one_policy_leaves_the_other_serving(two_policy_server):
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     server, _, records, root = two_policy_server
     make_demo_policy(DemoPolicyConfig(output=str(root / "sorting-v2"), **{**TINY, "state_dim": 3, "seed": 2}))

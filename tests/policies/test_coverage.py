@@ -17,8 +17,8 @@ import pytest
 
 from lerobot_armory.engine.policy_kinds import KINDS
 from lerobot_armory.engine import coverage
-from lerobot_armory.policies.demo.build import BUILDERS, make_demo_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.build import BUILDERS, make_demo_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 from tests.support.refused_policies import REFUSED
 
 TABLE = Path(__file__).resolve().parents[2] / "docs" / "policies" / "coverage.md"

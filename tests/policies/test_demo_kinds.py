@@ -121,7 +121,7 @@ def build(tmp_path_factory):
     """``build(kind)``: the directory ``lerobot-armory-make-demo-policy --kind=<kind>`` writes
     (chunk 10, 2-D state and action, one camera ``front``: armory_sim's features), built once
     per kind with the hub offline; ``build.seconds[kind]`` is its build time."""
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.demo.build import main
 
     root = tmp_path_factory.mktemp("demo-kinds")
     dirs: dict[str, Path] = {}
@@ -192,15 +192,15 @@ def test_a_moved_directory_loads_its_own_stand_ins(kind, tmp_path, monkeypatch):
     """Built in one place and moved (the old place gone): the engine's loader points the saved
     absolute names at the directory's own ``clip`` (multi_task_dit's CLIP encoders) or ``fast``
     and ``tokenizer`` (pi0_fast's config and pre-processor steps), as it does SmolVLA's ``vlm``."""
-    from lerobot_armory.engine.policy_engine import _load
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.engine.loading import load_policy
+    from lerobot_armory.demo.build import main
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     built, moved = tmp_path / "built", tmp_path / "elsewhere" / "moved"
     main([f"--kind={kind}", f"--output={built}", f"--chunk_size={CHUNK}", f"--state_dim={STATE}"])
     moved.parent.mkdir()
     shutil.move(built, moved)
-    config, policy, pre, post = _load(str(moved), "cpu")
+    config, policy, pre, post = load_policy(str(moved), "cpu")
     assert type(policy).__name__ == {"multi_task_dit": "MultiTaskDiTPolicy", "pi0_fast": "PI0FastPolicy"}[kind]
     if kind == "multi_task_dit":
         assert config.vision_encoder_name == config.text_encoder_name == str((moved / "clip").resolve())
@@ -226,7 +226,7 @@ def test_multi_task_dit_stand_in_clip_pools_the_prompt(build):
 
 
 def test_options_that_do_not_apply_are_refused(tmp_path):
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     with pytest.raises(ConfigError, match="n_obs_steps"):
         make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "a"), kind="act", n_obs_steps=3))

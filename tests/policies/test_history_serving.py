@@ -15,8 +15,8 @@ from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.protocol import noise_seed
 from lerobot_armory.errors import ConfigError
 from lerobot_armory.engine.coverage import frozen_chance
-from lerobot_armory.policies.demo.build import make_demo_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.build import make_demo_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 from lerobot_armory.serving.config import OpenpiOptions
 from tests.support.vla import TASKS, observation, serve_prompt_robots
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lerobot_armory.policies.op_trace import ONE_KERNEL_ON_CUDA, OpTrace
+from lerobot_armory.acceleration.op_trace import ONE_KERNEL_ON_CUDA, OpTrace
 
 
 def test_a_copy_hidden_inside_a_composite_op_is_counted_under_no_grad_and_hidden_under_inference_mode():

@@ -48,12 +48,12 @@ def test_a_guided_row_equals_lerobots_stock_rtc_for_that_robot_alone(engines, pi
     """The chain closed: a static guided batch row equals LeRobot's own RTCProcessor, one robot."""
     import torch
 
-    from lerobot_armory.engine.policy_engine import _load
+    from lerobot_armory.engine.loading import load_policy
 
     _, static = engines
     obs, tasks, seeds, prefixes = batch(3, seed=4)
     _, model_actions = static.infer_guided(obs, tasks, seeds, prefixes)
-    config, policy, pre, _ = _load(str(pi05_dir), "cpu")
+    config, policy, pre, _ = load_policy(str(pi05_dir), "cpu")
     config.rtc_config = RTC.lerobot_config()
     policy.init_rtc_processor()
     assert type(policy.model.rtc_processor).__name__ == "RTCProcessor"
@@ -81,7 +81,7 @@ def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket
     ``torch.compile(fullgraph=True)`` traces the whole sampler (vision tower, prefix, all ten
     denoising steps, RTC) as one graph with no break, and no op in it waits for the host. LeRobot's
     own sampler, traced by the same counter, does wait (the check can fail)."""
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     lerobot, static = engines
     assert_traces_as_one_graph_with_no_host_sync(StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
@@ -278,7 +278,7 @@ def test_the_server_command_refuses_graphs_without_a_gpu_in_one_line(pi05_dir):
 @pytest.fixture(scope="module")
 def two_camera_dir(tmp_path_factory):
     """A tiny π0.5 with two cameras (as LIBERO's: a view and a wrist)."""
-    from lerobot_armory.policies.demo.build import main
+    from lerobot_armory.demo.build import main
 
     path = tmp_path_factory.mktemp("pi05-2cam") / "pi05"
     main(["--kind=pi05", "--size=tiny", f"--output={path}", "--chunk_size=10", "--cameras=front,wrist", "--state_dim=3"])
@@ -350,12 +350,12 @@ def test_creating_parameters_on_a_device_that_fails_falls_back_to_the_cpu(pi05_d
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.pi05.modeling_pi05 import PI05Policy
 
-    from lerobot_armory.engine import policy_engine as engine_mod
+    from lerobot_armory.engine import loading
 
     config = PreTrainedConfig.from_pretrained(str(pi05_dir))
     config.device = "cpu"
     with caplog.at_level(logging.WARNING):
-        policy = engine_mod._from_pretrained(PI05Policy, str(pi05_dir), config, "cuda")
+        policy = loading.from_pretrained(PI05Policy, str(pi05_dir), config, "cuda")
     assert next(policy.parameters()).device.type == "cpu"
     assert any("creating pi05's parameters on cuda failed" in r.message for r in caplog.records)
 
@@ -384,7 +384,7 @@ def test_fusing_keeps_every_weight_and_adds_no_memory(pi05_dir):
     the bytes they did, and a second sampler over the same policy shares the first's tensors."""
     import torch
 
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))  # LeRobot's sampler: nothing fused yet
     policy = engine.policy
@@ -417,8 +417,8 @@ def test_fused_kernels_halve_the_launches_of_a_sample(engines, pi05_dir):
     kernels of LeRobot's order at every bucket, and neither waits for the host."""
     import torch
 
-    from lerobot_armory.policies.op_trace import OpTrace
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.op_trace import OpTrace
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     _, static = engines
     plain = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"), RTC)
@@ -445,8 +445,8 @@ def test_fused_keys_and_values_leave_the_rotation_straight_into_the_cache(engine
     the same chunks."""
     import torch
 
-    from lerobot_armory.policies.op_trace import OpTrace
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.op_trace import OpTrace
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     _, static = engines
     fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
@@ -591,9 +591,9 @@ def test_in_bf16_fused_norms_read_the_float32_stream_and_attention_skips_lerobot
     import torch
     from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 
-    from lerobot_armory.policies.op_trace import OpTrace
-    from lerobot_armory.policies.pi05_kernels import LeRobotOrder, Modulation
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.op_trace import OpTrace
+    from lerobot_armory.acceleration.pi05_kernels import LeRobotOrder, Modulation
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     engine = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu", overrides=["dtype=bfloat16"]))
     sampler = StaticPi05(engine.policy)
@@ -728,7 +728,7 @@ def test_a_fitted_prompt_has_the_strides_of_a_recorded_batch_and_masks_what_it_a
     stride. A prompt grown to a longer bucket keeps every column and adds masked ones."""
     import torch
 
-    from lerobot_armory.policies.pi05_static import SamplerInputs
+    from lerobot_armory.acceleration.pi05_static import SamplerInputs
 
     for rows in (1, 3):
         tokens = torch.arange(1, rows * 48 + 1).view(rows, 48)
@@ -788,8 +788,8 @@ def test_the_fused_cache_is_a_multiple_of_8_positions_and_its_unwritten_position
     and suffix are never written: with every fresh allocation of the sampler filled with NaN (what
     a GPU's reused memory may hold), the chunks are the same, and the same as LeRobot's order,
     whose cache has no such positions."""
-    from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.pi05_kernels import KEY_ALIGN
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     _, static = engines
     fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
@@ -809,7 +809,7 @@ def test_the_vlms_mlp_hands_its_activation_contiguous_gate_and_up_and_the_chunks
     one product. The weights are the fused ones all the same, and the chunks stay LeRobot's."""
     import torch
 
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     _, static = engines
     fused, plain = StaticPi05(static.policy, guided=True), StaticPi05(static.policy, guided=True, fused=False)
@@ -853,9 +853,9 @@ def test_with_float32_products_every_residual_sum_reads_one_dtype(kind, request,
     import torch
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    from lerobot_armory.policies import pi05_kernels
-    from lerobot_armory.policies.pi0_static import StaticPi0
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration import pi05_kernels
+    from lerobot_armory.acceleration.pi0_static import StaticPi0
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
     path = str(request.getfixturevalue(f"{kind}_dir"))

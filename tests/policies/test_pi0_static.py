@@ -79,7 +79,7 @@ def test_padding_rows_and_a_hostile_state_never_change_a_real_rows_chunk(engines
 def test_the_whole_pi0_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
     """What predicts a CUDA graph capture, on the CPU: one dynamo graph, no break, no op waiting
     for the host, at every bucket; LeRobot's own π0 sampler, counted the same way, waits."""
-    from lerobot_armory.policies.pi0_static import StaticPi0
+    from lerobot_armory.acceleration.pi0_static import StaticPi0
 
     lerobot, static = engines
     assert_traces_as_one_graph_with_no_host_sync(StaticPi0(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
@@ -107,9 +107,9 @@ def test_in_bf16_the_fused_pi0_stays_a_bf16_rounding_from_float32_like_lerobots(
 def test_each_policy_type_gets_its_own_static_sampler_or_a_reason(engines, pi05_dir):
     """The registry: π0 → StaticPi0, π0.5 → StaticPi05; each class refuses the other's policy, and
     a type with no static sampler is told which have one."""
-    from lerobot_armory.policies import static_sampler
-    from lerobot_armory.policies.pi0_static import StaticPi0
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration import static_sampler
+    from lerobot_armory.acceleration.pi0_static import StaticPi0
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     _, static = engines
     pi05 = PolicyEngine(PolicyOptions(str(pi05_dir), "cpu"))

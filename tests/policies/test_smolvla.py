@@ -134,7 +134,7 @@ def test_smolvla_builds_at_smolvlm2s_depths_and_refuses_what_it_cannot_build(tmp
     64 tokens a camera) at tiny widths, loaded through ``--policy.path``; its static sampler (fused)
     gives LeRobot's chunks. An unknown size and a bf16 build are refused in one line."""
     from lerobot_armory.engine.options import EngineOptions
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     path = make_demo_policy(DemoPolicyConfig(output=str(tmp_path / "narrow"), kind="smolvla", size="narrow", chunk_size=10, cameras="base,wrist"))
     lerobot = PolicyEngine(PolicyOptions(str(path), "cpu"))

@@ -80,7 +80,7 @@ def test_the_whole_smolvla_sampler_traces_as_one_graph_with_no_host_sync_at_ever
     """What predicts a CUDA graph capture, on the CPU: one dynamo graph, no break, no op waiting
     for the host, at every bucket (vision tower, prefix, ten steps, RTC); LeRobot's own SmolVLA
     sampler, counted the same way, waits (tensors made from Python data at every step)."""
-    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+    from lerobot_armory.acceleration.smolvla_static import StaticSmolVLA
 
     lerobot, static = engines
     assert_traces_as_one_graph_with_no_host_sync(StaticSmolVLA(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
@@ -118,8 +118,8 @@ def test_a_bf16_smolvlm_gives_lerobots_chunks_bit_for_bit(smolvla_dir, part):
     import torch
     from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 
-    from lerobot_armory.policies.pi05_static import SamplerInputs
-    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+    from lerobot_armory.acceleration.pi05_static import SamplerInputs
+    from lerobot_armory.acceleration.smolvla_static import StaticSmolVLA
 
     engine = PolicyEngine(PolicyOptions(str(smolvla_dir), "cpu"))
     obs, tasks, seeds, _ = batch(3, seed=2)
@@ -164,8 +164,8 @@ def test_the_fused_prefix_and_caches_are_multiples_of_8_and_unwritten_memory_nev
     the chunks are the same; LeRobot's order keeps LeRobot's lengths."""
     import torch
 
-    from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
-    from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+    from lerobot_armory.acceleration.pi05_kernels import KEY_ALIGN
+    from lerobot_armory.acceleration.smolvla_static import StaticSmolVLA
 
     _, static = engines
     fused = static.sampler.sample.__self__

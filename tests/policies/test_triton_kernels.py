@@ -1,4 +1,4 @@
-"""The Triton kernels of the π0 family's fused layers (``policies/triton_kernels.py``), run on the
+"""The Triton kernels of the π0 family's fused layers (``acceleration/triton_kernels.py``), run on the
 CPU through Triton's interpreter: the same values as PyTorch's operations they replace, the same
 chunks as LeRobot's sampler, fewer launches a sample. Off on a CPU otherwise, with the reason.
 
@@ -23,7 +23,7 @@ from tests.support.vla import sampler_inputs
 def interpreted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     """Triton's kernels run through its CPU interpreter while the test runs (jitted afresh, in
     that mode, and forgotten after)."""
-    from lerobot_armory.policies import triton_kernels
+    from lerobot_armory.acceleration import triton_kernels
 
     pytest.importorskip("triton", reason="Triton ships with PyTorch's CUDA builds; a CPU-only torch has none")
     monkeypatch.setenv("TRITON_INTERPRET", "1")
@@ -47,7 +47,7 @@ def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     operation a GPU would launch)."""
     from torch.utils._python_dispatch import _disable_current_modes
 
-    from lerobot_armory.policies import pi05_kernels
+    from lerobot_armory.acceleration import pi05_kernels
 
     calls: list[str] = []
     for name in KERNELS:
@@ -64,7 +64,7 @@ def counted_kernel_calls(monkeypatch: pytest.MonkeyPatch) -> list[str]:
 def test_the_kernels_compute_what_pytorchs_operations_do(interpreted):
     import torch
 
-    from lerobot_armory.policies.triton_kernels import add_rms_norm, gelu_tanh_mul
+    from lerobot_armory.acceleration.triton_kernels import add_rms_norm, gelu_tanh_mul
 
     gen = torch.Generator().manual_seed(0)
     for shape in ((3, 2 * 40), (2, 5, 2 * 1100)):  # 1100 columns: two programs a row, the second part-masked
@@ -90,7 +90,7 @@ def test_the_rotary_and_softmax_kernels_compute_what_pytorchs_operations_do(inte
     worth of keys), masked keys get 0, and a NaN score spoils its own row only."""
     import torch
 
-    from lerobot_armory.policies.triton_kernels import _SOFTMAX_BLOCK, masked_softmax, rope_qkv
+    from lerobot_armory.acceleration.triton_kernels import _SOFTMAX_BLOCK, masked_softmax, rope_qkv
 
     gen = torch.Generator().manual_seed(0)
     b, length, heads, kv, d = 2, 5, 3, 2, 8
@@ -137,9 +137,9 @@ def test_with_the_kernels_the_chunks_stay_lerobots_and_a_sample_launches_fewer_k
     (the MLP's activation: GELU and its product; the residual sum, the norm and its cast)."""
     import torch
 
-    from lerobot_armory.policies.op_trace import OpTrace
-    from lerobot_armory.policies.pi0_static import StaticPi0
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.op_trace import OpTrace
+    from lerobot_armory.acceleration.pi0_static import StaticPi0
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     sampler = {"pi05": StaticPi05, "pi0": StaticPi0}[kind]
     horizon = 8
@@ -178,7 +178,7 @@ def test_a_compiled_sampler_runs_the_kernels_only_between_its_compiled_layers(pi
     LeRobot's. Dynamo's ``eager`` backend stands in for inductor (the same tracing)."""
     import torch
 
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     real_compile = torch.compile
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: real_compile(fn, **{**kw, "backend": "eager"}))
@@ -209,9 +209,9 @@ def test_in_bf16_every_kernel_launch_was_compiled_at_load_and_the_chunks_stay_ne
     sampler without the kernels (the interpreter's own bf16 rounding included)."""
     import torch
 
-    from lerobot_armory.policies import pi05_kernels, triton_kernels
-    from lerobot_armory.policies.pi0_static import StaticPi0
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration import pi05_kernels, triton_kernels
+    from lerobot_armory.acceleration.pi0_static import StaticPi0
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     if float32_products:  # the GPU's product, stood in for by its arithmetic (test_pi05_static.py)
         monkeypatch.setattr(pi05_kernels, "float32_products_reason", lambda device, dtype: None)
@@ -278,7 +278,7 @@ def test_every_kernel_compiles_for_hopper_with_vector_loads_and_no_spills(tmp_pa
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    from lerobot_armory.policies import triton_kernels
+    from lerobot_armory.acceleration import triton_kernels
 
     triton_kernels._kernels.cache_clear()  # jitted for the GPU (no interpreter)
     gelu, norm, rope, softmax = triton_kernels._kernels()
@@ -325,8 +325,8 @@ def test_attention_kernels_that_fail_their_check_turn_off_alone_and_are_told(pi0
 
     import torch
 
-    from lerobot_armory.policies import pi05_kernels
-    from lerobot_armory.policies.pi05_static import StaticPi05
+    from lerobot_armory.acceleration import pi05_kernels
+    from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     monkeypatch.setattr(pi05_kernels, "attention_kernels_reason", lambda *args: "a stand-in failure")
     with caplog.at_level(logging.INFO):

@@ -300,7 +300,7 @@ def so101_engine(tmp_path_factory):
     """A tiny random ACT whose state and actions are so101's 6 motors, one 32² camera."""
     import torch
 
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
     from lerobot_armory.engine.policy_engine import PolicyEngine
     from lerobot_armory.engine.options import PolicyOptions
 

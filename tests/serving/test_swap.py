@@ -36,7 +36,7 @@ ROBOT = "robot-fleet-token-0123456789abcd"
 
 
 def _make(tmp_path_factory, name: str, **changes) -> Path:
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     out = tmp_path_factory.mktemp(name) / name
     make_demo_policy(DemoPolicyConfig(output=str(out), **{**TINY, **changes}))

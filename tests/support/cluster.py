@@ -23,7 +23,7 @@ IMAGE = 32
 
 def make_planner(out) -> str:
     """The analytic armory_planner (deterministic, cheap) saved as a LeRobot policy dir."""
-    from lerobot_armory.policies.demo.build import DemoPolicyConfig, make_demo_policy
+    from lerobot_armory.demo.build import DemoPolicyConfig, make_demo_policy
 
     make_demo_policy(DemoPolicyConfig(output=str(out), kind="planner", chunk_size=10, image_size=IMAGE))
     return str(out)
@@ -190,9 +190,12 @@ class RobotAt:
 
 
 def register_from(front, host: str, request) -> str:
-    """Register ``request`` with ``front`` as a robot at ``host`` would: "OK" or "CODE: details"."""
+    """Register ``request`` with ``front`` (a ClusterFront) through its gRPC servicer, as a robot
+    at ``host`` would: "OK" or "CODE: details"."""
+    from lerobot_armory.entrypoints.cluster.front_service import FrontService
+
     try:
-        front.Register(request, RobotAt(host))
+        FrontService(front).Register(request, RobotAt(host))
         return "OK"
     except Refused as exc:
         return str(exc)

@@ -136,7 +136,7 @@ def assert_traces_as_one_graph_with_no_host_sync(sampler: Any, static: PolicyEng
     import torch
     import torch._dynamo
 
-    from lerobot_armory.policies.op_trace import OpTrace
+    from lerobot_armory.acceleration.op_trace import OpTrace
 
     sampler.prepare()  # the constants exist before the region is traced or recorded
     for b in (1, 2, 4, 8):

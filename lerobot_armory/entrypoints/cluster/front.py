@@ -1,5 +1,10 @@
 """The cluster's front: robots register here and are answered with the replica to stream to.
 
+This module is the coordinator (:class:`ClusterFront`); its gRPC servicer is in
+``front_service.py``. Over 500 lines, kept whole on purpose: the view, placement, moves and rolls
+share one lock and one ``state`` table, and splitting them would spread that lock's invariants
+over several files.
+
 The front holds no robot state of its own that matters: every few hundred milliseconds it asks
 each replica for its ``load`` (the robots streaming there, its ``d_infer`` table) and rebuilds its
 view from the answers. Robots stream to replicas directly, so a front that restarts loses no
@@ -7,8 +12,8 @@ running robot: they keep streaming, and the new front's first refresh sees them 
 
 Registration: the front chooses a replica (the robot's current one if it still streams there, a
 pending move's target, else the placement policy over the healthy replicas), forwards the
-robot's ``RegisterRequest`` to it unchanged (the replica checks features, tokens and the fleet
-policy as a single server does) and returns the replica's answer with ``stream_address`` set. A
+robot's ``RegisterRequest`` to it unchanged (the replica checks features, tokens and the grant
+rules as a single server does) and returns the replica's answer with ``stream_address`` set. A
 replica that does not answer is marked down and the next choice is tried, so a robot whose
 replica died is placed on a live one at its first re-registration. The forwarded registration
 names the robot's host, with a proof made with the front's forwarding key
@@ -47,6 +52,7 @@ from typing import Any
 import grpc
 
 from lerobot_armory.entrypoints.cluster.admin import FrontAdminService
+from lerobot_armory.entrypoints.cluster.front_service import FrontService
 from lerobot_armory.entrypoints.cluster.metrics import FrontMetrics, FrontSnapshot
 from lerobot_armory.entrypoints.cluster.replica import ReplicaDown, ReplicaSet, spec_of
 from lerobot_armory.errors import ConfigError
@@ -63,29 +69,15 @@ from lerobot_armory.placement import (
     with_unverified,
 )
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
-from lerobot_armory.proto.limits import FORWARD_PROOF_KEY, FORWARDED_FOR_KEY
-from lerobot_armory.entrypoints.grpc.hardening import Malformed
-from lerobot_armory.serving.peer_log import ThrottledLog
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryStub
 from lerobot_armory.entrypoints.grpc.service import RunningServer, start_grpc_server
-from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
+from lerobot_armory.serving.admission import AdmissionLimiter
 from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.security import OperatorTokens
 from lerobot_armory.serving.session import DEFAULT_POLICY
 
 log = logging.getLogger(__name__)
 
-# Answers from a replica that mean "try another replica" rather than "the robot is wrong" (UNKNOWN
-# and INTERNAL: the replica broke while answering; the robot would otherwise give up).
-TRY_ANOTHER = (
-    grpc.StatusCode.UNAVAILABLE,
-    grpc.StatusCode.DEADLINE_EXCEEDED,
-    grpc.StatusCode.RESOURCE_EXHAUSTED,
-    grpc.StatusCode.UNKNOWN,
-    grpc.StatusCode.INTERNAL,
-)
-# Of those, the answers after which the replica counts as down until its next health check.
-DOWN = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
 # A robot the front just placed is counted on its replica until the replica reports it (or this passes).
 PENDING_S = 5.0
 # A moved robot is steered to its target for this long, and not moved again for MOVE_COOLDOWN_S.
@@ -95,9 +87,6 @@ MOVE_COOLDOWN_S = 30.0
 # rebalances one robot at a time, each time against the load the replicas then report.
 MOVE_INTERVAL_S = 5.0
 MAX_MOVES_KEPT = 1000  # the recent moves, for status and tests
-# What a replica's refusal says when its registration limit refused (serving/admission.py): per
-# robot host (the one the front proves) or per credential.
-REPLICA_RATE = "too many registrations from"
 # How long one replica may take to load, warm up and switch to a new checkpoint.
 SWAP_TIMEOUT_S = 900.0
 
@@ -203,8 +192,9 @@ def _served_name(name: str, what: tuple[str, tuple[str, ...]] | None, with_path:
     return f"{name}={path}" + (f" [{' '.join(overrides)}]" if overrides else "")
 
 
-class ClusterFront(ArmoryServicer):
-    """``Register`` places and forwards; ``Stream`` is refused (robots stream to their replica)."""
+class ClusterFront:
+    """The cluster's coordinator: the replicas' view (polled), placement and moves, rolls and the
+    forwarding key; its gRPC face (``Register`` places and forwards) is :class:`~lerobot_armory.entrypoints.cluster.front_service.FrontService`."""
 
     def __init__(
         self,
@@ -237,7 +227,6 @@ class ClusterFront(ArmoryServicer):
         self.last_move_at = -1e9
         self._rebalance_due = False  # a membership change whose move waited for MOVE_INTERVAL_S
         self._members: frozenset[tuple[str, str]] = frozenset()  # (robot, replica) pairs and ("", replica up)
-        self.peer_log = ThrottledLog(log)
         self.admission = AdmissionLimiter()  # registrations per peer host, as on a replica
         self.refused: collections.Counter[str] = collections.Counter()  # registrations refused, by reason
         self.placed: collections.Counter[str] = collections.Counter()  # registrations accepted, by replica
@@ -656,9 +645,9 @@ class ClusterFront(ArmoryServicer):
                 lines.append(f"  {rid} {health:<4} {s.address or '-':<21} util={util:.2f} robots={robots}")
             return "\n".join(lines)
 
-    # ---- Register ----------------------------------------------------------------------------
+    # ---- registration: placement (the gRPC servicer forwards, front_service.py) -----------------
 
-    def _choices(self, request: pb.RegisterRequest) -> Iterator[str]:
+    def choices(self, request: pb.RegisterRequest) -> Iterator[str]:
         """Replicas to try for a robot, best first, each at most once."""
         tried: set[str] = set()
         robot = request.robot_id
@@ -720,92 +709,49 @@ class ClusterFront(ArmoryServicer):
         except (ConfigError, TypeError, ValueError):
             return None
 
-    def _stub(self, address: str) -> ArmoryStub:
+    def stub(self, address: str) -> ArmoryStub:
+        """The gRPC stub of a replica's address (one channel each, closed when the replica moves)."""
         with self.lock:
             if address not in self._channels:
                 channel = self._channel_factory(address)
                 self._channels[address] = (channel, ArmoryStub(channel))
             return self._channels[address][1]
 
-    def Register(self, request: pb.RegisterRequest, context: grpc.ServicerContext) -> pb.RegisterResponse:
-        if isinstance(request, Malformed):
-            self.peer_log.warn(context.peer(), f"malformed RegisterRequest ({request.size} bytes): {request.error}")
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "malformed RegisterRequest")
-        host = peer_host(context.peer())
-        refused = self.admission.check(host)
-        if refused is not None:
-            self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "rate", refused)
-        answers: list[tuple[str, grpc.StatusCode, str]] = []  # (replica, code, details) of the replicas that said no
-        for rid in self._choices(request):
-            with self.lock:
-                state = self.state[rid]
-                address = state.address if state.view.healthy else ""
-                keyed = state.keyed
-                spec = self._spec(request)
-                if address and spec is not None:
-                    # Reserved before the call: robots registering at the same moment (the robots
-                    # of a replica that just died) see each other and spread.
-                    self._reserve(state, spec, self.policy_for(request.policy_name))
-            if not address:
-                continue
-            remaining = context.time_remaining()
-            timeout = self.options.call_timeout_s if remaining is None else max(0.05, min(self.options.call_timeout_s, remaining))
-            try:
-                metadata = self._forwarded_for(host, request.robot_id) if keyed else None
-                response = self._stub(address).Register(request, timeout=timeout, metadata=metadata)
-            except grpc.RpcError as exc:
-                self._unreserve(rid, request.robot_id)
-                if exc.code() in TRY_ANOTHER:
-                    answers.append((rid, exc.code(), exc.details() or ""))
-                    if exc.code() in DOWN:
-                        self._mark_down(rid)
-                    continue
-                context.abort(exc.code(), exc.details() or exc.code().name)  # the robot's own problem: told as is
-            response.stream_address = address
-            with self.lock:
-                self.placed[rid] += 1
-                for other_id, other in self.state.items():  # placed here now, nowhere else
-                    if other_id != rid:
-                        other.pending.pop(request.robot_id, None)
-                        other.reported.pop(request.robot_id, None)
-                        self._rebuild(other)
-            log.info("placed %s on %s (%s)", request.robot_id, rid, address)
-            return response
-        if answers and all(code == grpc.StatusCode.RESOURCE_EXHAUSTED for _, code, _ in answers):
-            what = "; ".join(f"{rid}: {details}" for rid, _, details in answers)
-            if any(REPLICA_RATE in details for _, _, details in answers):
-                # A replica's own registration limit refused: per robot host (the front's limit
-                # lets that host through), per credential, or per this front's host on a replica
-                # that did not take the forwarding key.
-                self._refuse(
-                    context, grpc.StatusCode.RESOURCE_EXHAUSTED, "replica_rate",
-                    f"the replicas take no more registrations through this front for now ({what})",
-                )  # fmt: skip
-            self._refuse(context, grpc.StatusCode.RESOURCE_EXHAUSTED, "full", f"every replica is full of robots that ask ({what}); retry later")
-        if answers:
-            what = "; ".join(f"{rid}: {code.name}: {details}" for rid, code, details in answers)
-            self._refuse(context, grpc.StatusCode.UNAVAILABLE, "unavailable", f"no replica could take this robot now ({what}); retry")
-        self._refuse(context, grpc.StatusCode.UNAVAILABLE, "down", "no replica is up; retry")
+    def reserve_for(self, rid: str, request: pb.RegisterRequest) -> tuple[str, bool]:
+        """Reserve room on replica ``rid`` for a registration about to be forwarded there: (its
+        address, "" when it is down; whether it took this front's forwarding key). Reserved before
+        the call: robots registering at the same moment (the robots of a replica that just died)
+        see each other and spread."""
+        with self.lock:
+            state = self.state[rid]
+            address = state.address if state.view.healthy else ""
+            spec = self._spec(request)
+            if address and spec is not None:
+                self._reserve(state, spec, self.policy_for(request.policy_name))
+            return address, state.keyed
 
-    def _forwarded_for(self, host: str, robot_id: str) -> tuple[tuple[str, str], ...]:
-        """The metadata naming the robot's host to a keyed replica, with its proof."""
-        return ((FORWARDED_FOR_KEY, host), (FORWARD_PROOF_KEY, self.forwarding.proof(host, robot_id)))
+    def placed_on(self, rid: str, robot_id: str) -> None:
+        """``rid`` took the robot: counted, and it is pending nowhere else."""
+        with self.lock:
+            self.placed[rid] += 1
+            for other_id, other in self.state.items():
+                if other_id != rid:
+                    other.pending.pop(robot_id, None)
+                    other.reported.pop(robot_id, None)
+                    self._rebuild(other)
 
-    def _refuse(self, context: grpc.ServicerContext, code: grpc.StatusCode, why: str, message: str) -> None:
-        """Refuse a registration: counted by reason (``armory_front_registrations_refused_total``),
-        logged once per peer (per 10 s), told as it is."""
+    def refused_for(self, why: str) -> None:
+        """A registration refused, counted by reason (``armory_front_registrations_refused_total``)."""
         with self.lock:
             self.refused[why] += 1
-        self.peer_log.warn(context.peer(), f"registration refused: {message}")
-        context.abort(code, message)
 
-    def _unreserve(self, rid: str, robot_id: str) -> None:
+    def unreserve(self, rid: str, robot_id: str) -> None:
         with self.lock:
             state = self.state[rid]
             if state.pending.pop(robot_id, None) is not None:
                 self._rebuild(state)
 
-    def _mark_down(self, rid: str) -> None:
+    def mark_down(self, rid: str) -> None:
         with self.lock:
             state = self.state[rid]
             if state.view.healthy:
@@ -813,14 +759,6 @@ class ClusterFront(ArmoryServicer):
             state.view.healthy = False
             state.reported = {}
             state.reported_policy = {}
-
-    def Stream(self, request_iterator: Iterator[pb.RobotMessage], context: grpc.ServicerContext) -> Iterator[pb.ServerMessage]:
-        context.abort(
-            grpc.StatusCode.FAILED_PRECONDITION,
-            "this is a lerobot-armory cluster front: register here, then stream to the replica named in "
-            "RegisterResponse.stream_address (lerobot-armory's client follows it)",
-        )
-        yield from ()  # pragma: no cover - abort raises
 
 
 class FrontServer:
@@ -840,7 +778,8 @@ class FrontServer:
         self._stop_metrics: Callable[[], None] | None = None
         # The operator's calls (lerobot-armory-admin swap|status), refused without operator tokens.
         self.admin = FrontAdminService(front, operators)
-        self.grpc: RunningServer = start_grpc_server(front, host, port, 256, max_message_bytes, tls, admin=self.admin)  # type: ignore[arg-type]
+        self.service = FrontService(front)
+        self.grpc: RunningServer = start_grpc_server(self.service, host, port, 256, max_message_bytes, tls, admin=self.admin)  # type: ignore[arg-type]
         self.host = host
         self._stop = threading.Event()
         front.refresh()

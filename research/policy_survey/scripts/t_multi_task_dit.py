@@ -5,7 +5,7 @@ from lerobot.policies.multi_task_dit.configuration_multi_task_dit import MultiTa
 from lerobot.policies.multi_task_dit.modeling_multi_task_dit import MultiTaskDiTPolicy
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.policies.utils import populate_queues
-from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 # stand-in for openai/clip-vit-base-patch16: tiny random CLIP + stand-in tokenizer in one local dir
 clip_dir = tempfile.mkdtemp() + "/clip"
 cc = CLIPConfig(text_config=dict(vocab_size=1024, hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, max_position_embeddings=32),

@@ -5,7 +5,7 @@ from lerobot.policies.pi0.configuration_pi0 import PI0Config
 import tinypi; tinypi.patch(modeling_pi0, PI0Config, "PI0Pytorch")
 from lerobot.policies.pi0.modeling_pi0 import PI0Policy
 from lerobot.policies.factory import make_pre_post_processors
-from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 tok = build_standin_tokenizer(tempfile.mkdtemp() + "/tokenizer", max_id=tinypi.VOCAB)
 inp, out = feats(4, 4, ("front",), 64)
 cfg = PI0Config(paligemma_variant="tiny", action_expert_variant="tiny", image_resolution=(32, 32), tokenizer_max_length=32,

@@ -1,7 +1,7 @@
 from harness import *
 import sys; sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[3]))
-from lerobot_armory.policies.demo.pi05 import make_pi05_policy
-from lerobot_armory.policies.demo.smolvla import make_smolvla_policy
+from lerobot_armory.demo.pi05 import make_pi05_policy
+from lerobot_armory.demo.smolvla import make_smolvla_policy
 from lerobot_armory.policies import pi05_variants
 from lerobot.policies.factory import make_pre_post_processors
 for kind in ("pi05", "smolvla"):

@@ -3,7 +3,7 @@ import sys, types; sys.path.insert(0, str(__import__("pathlib").Path(__file__).r
 from lerobot.policies.pi0_fast import modeling_pi0_fast
 from lerobot.policies.pi0_fast.configuration_pi0_fast import PI0FastConfig
 import tinypi; tinypi.patch(modeling_pi0_fast, PI0FastConfig, "PI0FastPytorch", force_image_size=32)
-from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 from lerobot.policies.factory import make_pre_post_processors
 import transformers
 inp, out = feats(4, 4, ("front",), 64)

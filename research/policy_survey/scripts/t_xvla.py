@@ -4,7 +4,7 @@ from lerobot.policies.xvla.configuration_xvla import XVLAConfig
 from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
 from lerobot.policies.xvla import processor_xvla
 from lerobot.policies.factory import make_pre_post_processors
-from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 tok = build_standin_tokenizer(tempfile.mkdtemp() + "/tokenizer", max_id=1024)   # stand-in for facebook/bart-large
 inp, out = feats(8, 8, ("front",), 64)
 florence = {

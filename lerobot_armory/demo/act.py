@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
-from lerobot_armory.policies.demo.common import policy_features, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, save_policy
 
 
 def make_act_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features
+from lerobot_armory.demo.common import policy_features
 from lerobot_armory.policies.layout import TOKENIZER_DIR  # where the loader looks for it
 
 SIZES = ("tiny", "narrow", "full")
@@ -94,7 +94,7 @@ def make_pi_policy(
     from lerobot.policies.factory import make_pre_post_processors
 
     from lerobot_armory.policies import pi05_variants
-    from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+    from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 
     name, package, config_name, policy_name, tiny_prompt, full_prompt = _PI_TYPES[policy_type]
     if size not in SIZES:

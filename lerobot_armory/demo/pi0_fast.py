@@ -37,8 +37,8 @@ import shutil
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, unit_stats, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import FAST_DIR, TOKENIZER_DIR  # where the loader looks for them
 
 SCALE = 10  # FAST's: DCT coefficients × 10, rounded
@@ -51,7 +51,7 @@ def make_pi0_fast_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     from transformers import AutoTokenizer
 
     from lerobot_armory.policies import pi05_variants
-    from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+    from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 
     inputs, outputs = policy_features("π0-FAST", cfg.chunk_size, cfg.state_dim, cfg.action_dim, cameras, cfg.image_size, max_dim=32)
     try:
@@ -101,7 +101,7 @@ def build_standin_fast(output: Path, vocab_size: int, chunk_size: int, action_di
     from tokenizers import Tokenizer, decoders, models, trainers
     from transformers import PreTrainedTokenizerFast
 
-    from lerobot_armory.policies.demo import processing_action_tokenizer
+    from lerobot_armory.demo import processing_action_tokenizer
 
     rng = np.random.default_rng(seed)
     walks = np.cumsum(rng.normal(0.0, 0.1, (2000, chunk_size, action_dim)), axis=1).clip(-1, 1)

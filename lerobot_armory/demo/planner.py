@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import SIDECAR
 
 

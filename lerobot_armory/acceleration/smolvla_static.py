@@ -46,14 +46,14 @@ from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding, m
 from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
-from lerobot_armory.policies.pi05_kernels import KEY_ALIGN
-from lerobot_armory.policies.pi05_static import FlowSchedule, SamplerInputs, policy_type
-from lerobot_armory.policies.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
+from lerobot_armory.acceleration.pi05_kernels import KEY_ALIGN
+from lerobot_armory.acceleration.pi05_static import FlowSchedule, SamplerInputs, policy_type
+from lerobot_armory.acceleration.smolvla_kernels import SmolVLAFused, SmolVLAOrdered
 
 
 class StaticSmolVLA:
     """``VLAFlowMatching.sample_actions`` without host synchronisation or per-step copies
-    (arguments as :class:`~lerobot_armory.policies.pi05_static.StaticPi05`'s; ``attention`` must
+    (arguments as :class:`~lerobot_armory.acceleration.pi05_static.StaticPi05`'s; ``attention`` must
     be ``eager``, LeRobot's own, and ``vision_dtype`` None; ``fused``: :mod:`.smolvla_kernels`
     where the policy allows it, :attr:`unfused_reason` says why not)."""
 

@@ -27,8 +27,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, unit_stats, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 
 DOWN_DIMS = (32, 64)
 NUM_INFERENCE_STEPS = 4

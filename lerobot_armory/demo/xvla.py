@@ -22,8 +22,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, unit_stats, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import TOKENIZER_DIR  # where the loader looks for it
 
 VOCAB = 1024
@@ -50,7 +50,7 @@ def make_xvla_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
     from lerobot.policies.xvla.configuration_xvla import XVLAConfig
     from lerobot.policies.xvla.modeling_xvla import XVLAPolicy
 
-    from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+    from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 
     inputs, outputs = policy_features("xvla", cfg.chunk_size, cfg.state_dim, cfg.action_dim, cameras, cfg.image_size, max_dim=MAX_DIM)
     out = Path(cfg.output)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from lerobot_armory.policies.demo.pi05 import make_pi_policy
+from lerobot_armory.demo.pi05 import make_pi_policy
 
 
 def make_pi0_policy(
@@ -39,5 +39,5 @@ def make_pi0_policy(
     device: str = "cpu",
 ) -> Path:
     """Build and save a random-weight π0; returns its directory (arguments as
-    :func:`lerobot_armory.policies.demo.pi05.make_pi05_policy`)."""
+    :func:`lerobot_armory.demo.pi05.make_pi05_policy`)."""
     return make_pi_policy("pi0", output, size, chunk_size, state_dim, action_dim, cameras, image_size, seed, dtype, device)

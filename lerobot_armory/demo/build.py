@@ -31,18 +31,18 @@ from pathlib import Path
 
 from lerobot_armory.cli_util import parse_or_exit, run_or_exit
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import write_sidecar
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import write_sidecar
+from lerobot_armory.demo.config import DemoPolicyConfig
 
 
 def _build_act(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.act import make_act_policy
+    from lerobot_armory.demo.act import make_act_policy
 
     return make_act_policy(cfg, cameras)
 
 
 def _build_pi05(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.pi05 import make_pi05_policy
+    from lerobot_armory.demo.pi05 import make_pi05_policy
 
     out = make_pi05_policy(
         cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype,
@@ -53,7 +53,7 @@ def _build_pi05(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 
 
 def _build_pi0(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.pi0 import make_pi0_policy
+    from lerobot_armory.demo.pi0 import make_pi0_policy
 
     out = make_pi0_policy(
         cfg.output, cfg.size, cfg.chunk_size, cfg.state_dim, cfg.action_dim, tuple(cameras), cfg.image_size, cfg.seed, cfg.dtype,
@@ -64,13 +64,13 @@ def _build_pi0(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 
 
 def _build_pi0_fast(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.pi0_fast import make_pi0_fast_policy
+    from lerobot_armory.demo.pi0_fast import make_pi0_fast_policy
 
     return make_pi0_fast_policy(cfg, cameras)
 
 
 def _build_smolvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.smolvla import make_smolvla_policy
+    from lerobot_armory.demo.smolvla import make_smolvla_policy
 
     if cfg.dtype != "float32":
         raise ConfigError("dtype", "SmolVLA is built in float32 only (as LeRobot builds it from its configuration)")
@@ -80,37 +80,37 @@ def _build_smolvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
 
 
 def _build_diffusion(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.diffusion import make_diffusion_policy
+    from lerobot_armory.demo.diffusion import make_diffusion_policy
 
     return make_diffusion_policy(cfg, cameras)
 
 
 def _build_vqbet(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.vqbet import make_vqbet_policy
+    from lerobot_armory.demo.vqbet import make_vqbet_policy
 
     return make_vqbet_policy(cfg, cameras)
 
 
 def _build_multi_task_dit(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.multi_task_dit import make_multi_task_dit_policy
+    from lerobot_armory.demo.multi_task_dit import make_multi_task_dit_policy
 
     return make_multi_task_dit_policy(cfg, cameras)
 
 
 def _build_xvla(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.xvla import make_xvla_policy
+    from lerobot_armory.demo.xvla import make_xvla_policy
 
     return make_xvla_policy(cfg, cameras)
 
 
 def _build_planner(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
-    from lerobot_armory.policies.demo.planner import make_planner_policy
+    from lerobot_armory.demo.planner import make_planner_policy
 
     return make_planner_policy(cfg, cameras)
 
 
 # kind -> builder (each imports its LeRobot classes only when called); a new kind is one module
-# under policies/demo/ and one entry here.
+# under demo/ and one entry here.
 BUILDERS: dict[str, Callable[[DemoPolicyConfig, list[str]], Path]] = {
     "act": _build_act,
     "pi05": _build_pi05,

@@ -28,8 +28,8 @@ import torch
 from lerobot.policies.common.vla_utils import create_sinusoidal_pos_embedding
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import Pending
-from lerobot_armory.policies.pi05_static import SamplerInputs, StaticPi05
+from lerobot_armory.acceleration.pi05_kernels import Pending
+from lerobot_armory.acceleration.pi05_static import SamplerInputs, StaticPi05
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class TimeEmbedding:
 
 class StaticPi0(StaticPi05):
     """``PI0Pytorch.sample_actions`` without host synchronisation or per-step copies (arguments
-    as :class:`~lerobot_armory.policies.pi05_static.StaticPi05`'s; its inputs carry the state,
+    as :class:`~lerobot_armory.acceleration.pi05_static.StaticPi05`'s; its inputs carry the state,
     ``SamplerInputs.state``, padded as ``PI0Policy.prepare_state`` pads it)."""
 
     kind = "pi0"

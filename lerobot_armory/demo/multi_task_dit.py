@@ -35,8 +35,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, unit_stats, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 from lerobot_armory.policies.layout import CLIP_DIR, TOKENIZER_DIR  # where the loader looks for them
 
 # Sizes of the stand-in CLIP (clip-vit-base-patch16: text 512 wide, 12 layers, 77 positions;
@@ -107,7 +107,7 @@ def build_standin_clip(output: Path, tokenizer_output: Path | None = None) -> Pa
 
     from transformers import AutoTokenizer, CLIPConfig, CLIPModel
 
-    from lerobot_armory.policies.demo.standin_tokenizer import build_standin_tokenizer
+    from lerobot_armory.demo.standin_tokenizer import build_standin_tokenizer
 
     with tempfile.TemporaryDirectory() as tmp:
         build_standin_tokenizer(tmp, max_id=VOCAB)

@@ -1,15 +1,15 @@
 """Which static sampler serves a policy: a registry of LeRobot ``config.type`` to sampler class
 (π0.5, π0 and SmolVLA today). A new member of the π0 family is one subclass of
-:class:`~lerobot_armory.policies.pi05_static.StaticPi05` and one line here; another model is one
+:class:`~lerobot_armory.acceleration.pi05_static.StaticPi05` and one line here; another model is one
 class with the same interface (``smolvla_static.StaticSmolVLA``)."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from lerobot_armory.policies.pi0_static import StaticPi0
-from lerobot_armory.policies.pi05_static import StaticPi05, policy_type
-from lerobot_armory.policies.smolvla_static import StaticSmolVLA
+from lerobot_armory.acceleration.pi0_static import StaticPi0
+from lerobot_armory.acceleration.pi05_static import StaticPi05, policy_type
+from lerobot_armory.acceleration.smolvla_static import StaticSmolVLA
 
 SAMPLERS: dict[str, Any] = {cls.kind: cls for cls in (StaticPi05, StaticPi0, StaticSmolVLA)}
 

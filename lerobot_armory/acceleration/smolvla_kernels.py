@@ -39,7 +39,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lerobot_armory.policies.pi05_kernels import _swap_halves, fuse_weights, key_aligned, unfusable
+from lerobot_armory.acceleration.pi05_kernels import _swap_halves, fuse_weights, key_aligned, unfusable
 
 ROPE_WAVELENGTH = 10_000  # LeRobot's apply_rope default (SmolVLA calls it without the config's rope_theta)
 

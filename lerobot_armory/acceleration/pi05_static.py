@@ -63,8 +63,8 @@ from lerobot.utils.constants import OPENPI_ATTENTION_MASK_VALUE
 from torch import Tensor
 
 from lerobot_armory.policies.cameras import served_cameras
-from lerobot_armory.policies.pi05_kernels import KEY_ALIGN, Fused, LeRobotOrder, Modulation, Pending
-from lerobot_armory.policies.rtc_guidance import guidance_weight
+from lerobot_armory.acceleration.pi05_kernels import KEY_ALIGN, Fused, LeRobotOrder, Modulation, Pending
+from lerobot_armory.acceleration.rtc_guidance import guidance_weight
 
 ATTENTION = ("eager", "sdpa")
 

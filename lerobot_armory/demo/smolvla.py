@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features
+from lerobot_armory.demo.common import policy_features
 from lerobot_armory.policies.layout import TOKENIZER_DIR, VLM_DIR  # where the loader looks for them
 
 # SmolVLM2's special tokens (its tokenizer names the image ones as attributes SmolVLA reads).

@@ -40,7 +40,7 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   dtype (PyTorch's elementwise kernels on mixed dtypes are not vectorised: the expert's 360 gated
   residuals a pass took 5.6 µs each on an H200, the rotation's single-dtype ``addcmul`` of the
   same size 3.3) and the product reaches the float32 stream unrounded;
-- **Triton kernels on a GPU** (:mod:`~lerobot_armory.policies.triton_kernels`,
+- **Triton kernels on a GPU** (:mod:`~lerobot_armory.acceleration.triton_kernels`,
   ``hand_kernels``): the MLP's activation on the gate/up product's two halves where they lie
   (GELU and its product: two kernels, both non-vectorised on strided halves), and each residual
   sum with the norm after it and its cast (three kernels): attention's with the MLP's norm, and
@@ -52,7 +52,7 @@ bit for bit LeRobot's chunks on a CPU). :class:`Fused` computes the same values 
   embedding (four kernels a layer → one, writing q and the cache) and attention's mask with its
   softmax (two → one): −(198 × 3 + 197) = −791 more; off on a CPU, inside a compiled layer (inductor
   fuses those operations; between compiled layers they run) or where the device cannot run them
-  (:func:`~lerobot_armory.policies.triton_kernels.hand_kernels_reason`);
+  (:func:`~lerobot_armory.acceleration.triton_kernels.hand_kernels_reason`);
 - **K/V caches a multiple of 8 positions long** (:meth:`Fused.cache_length`): a row of scores is
   as long as the cache, and rows not 16 bytes apart keep cuBLAS off its Hopper kernels (π0.5's
   50-action suffix made every expert attention's rows 2 mod 8 long); the positions between prefix
@@ -86,7 +86,7 @@ import torch
 from lerobot.policies.pi_gemma import _gated_residual
 from torch import Tensor
 
-from lerobot_armory.policies.triton_kernels import (
+from lerobot_armory.acceleration.triton_kernels import (
     LayerShape,
     add_rms_norm,
     attention_kernels_reason,

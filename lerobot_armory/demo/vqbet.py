@@ -23,8 +23,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from lerobot_armory.errors import ConfigError
-from lerobot_armory.policies.demo.common import policy_features, unit_stats, save_policy
-from lerobot_armory.policies.demo.config import DemoPolicyConfig
+from lerobot_armory.demo.common import policy_features, unit_stats, save_policy
+from lerobot_armory.demo.config import DemoPolicyConfig
 
 
 def make_vqbet_policy(cfg: DemoPolicyConfig, cameras: list[str]) -> Path:
