@@ -69,6 +69,11 @@ CONTRACTS: list[tuple[str, tuple[str, ...], tuple[str, ...]]] = [
         ("lerobot_armory",),
         ("research", "armory_research", "benchmarks", "tests"),
     ),
+    (
+        "the console scripts' mains (lerobot_armory.scripts) are imported by nothing",
+        ("lerobot_armory.mirror", "lerobot_armory.transition", "lerobot_armory.delay", "lerobot_armory.robot_spec", "lerobot_armory.dispatch", "lerobot_armory.arbiter", "lerobot_armory.schedulers", "lerobot_armory.placement", "lerobot_armory.policies", "lerobot_armory.acceleration", "lerobot_armory.demo", "lerobot_armory.engine", "lerobot_armory.serving", "lerobot_armory.entrypoints", "lerobot_armory.robot", "lerobot_armory.sim", "lerobot_armory.bench", "lerobot_armory.wire", "lerobot_armory.proto"),
+        ("lerobot_armory.scripts",),
+    ),
 ]  # fmt: skip
 ROBOT_MAY_NOT = CONTRACTS[0][2]
 
