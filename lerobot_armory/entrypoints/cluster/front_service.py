@@ -9,19 +9,17 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import grpc
 
 from lerobot_armory.entrypoints.grpc.hardening import Malformed
 from lerobot_armory.proto import armory_pb2 as pb
-from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer
+from lerobot_armory.proto.armory_pb2_grpc import ArmoryServicer, ArmoryStub
 from lerobot_armory.proto.limits import FORWARD_PROOF_KEY, FORWARDED_FOR_KEY
-from lerobot_armory.serving.admission import peer_host
+from lerobot_armory.serving.admission import AdmissionLimiter, peer_host
+from lerobot_armory.serving.forwarding import ForwardingKey
 from lerobot_armory.serving.peer_log import ThrottledLog
-
-if TYPE_CHECKING:
-    from lerobot_armory.entrypoints.cluster.front import ClusterFront
 
 log = logging.getLogger("lerobot_armory.entrypoints.cluster.front")
 
@@ -41,10 +39,27 @@ DOWN = (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED)
 REPLICA_RATE = "too many registrations from"
 
 
+class Coordinator(Protocol):
+    """What the servicer asks of the coordinator (``front.ClusterFront``): the narrow channel
+    between the wire and placement."""
+
+    admission: AdmissionLimiter
+    forwarding: ForwardingKey
+    options: object  # FrontOptions: call_timeout_s
+
+    def choices(self, request: pb.RegisterRequest) -> Iterator[str]: ...
+    def reserve_for(self, rid: str, request: pb.RegisterRequest) -> tuple[str, bool]: ...
+    def unreserve(self, rid: str, robot_id: str) -> None: ...
+    def mark_down(self, rid: str) -> None: ...
+    def placed_on(self, rid: str, robot_id: str) -> None: ...
+    def refused_for(self, why: str) -> None: ...
+    def stub(self, address: str) -> ArmoryStub: ...
+
+
 class FrontService(ArmoryServicer):
     """``Register`` places (the coordinator decides) and forwards; ``Stream`` is refused."""
 
-    def __init__(self, front: ClusterFront) -> None:
+    def __init__(self, front: Coordinator) -> None:
         self.front = front
         self.peer_log = ThrottledLog(log)  # one line per misbehaving peer per 10 s
 
@@ -63,7 +78,8 @@ class FrontService(ArmoryServicer):
             if not address:
                 continue
             remaining = context.time_remaining()
-            timeout = front.options.call_timeout_s if remaining is None else max(0.05, min(front.options.call_timeout_s, remaining))
+            limit: float = front.options.call_timeout_s  # type: ignore[attr-defined]
+            timeout = limit if remaining is None else max(0.05, min(limit, remaining))
             try:
                 metadata = self._forwarded_for(host, request.robot_id) if keyed else None
                 response = front.stub(address).Register(request, timeout=timeout, metadata=metadata)
