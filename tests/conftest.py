@@ -64,11 +64,11 @@ def _subprocess_marker_is_honest(request: pytest.FixtureRequest, monkeypatch: py
         argv = [args] if isinstance(args, (str, bytes, os.PathLike)) else list(args)  # type: ignore[call-overload]
         words = os.fsdecode(argv[0]).split() if argv else []
         path = Path(words[0]) if words else Path()
-        # torch.compile's inductor starts its compile workers in whichever test compiles first:
-        # the library's process, not one the test starts.
-        inductor = any("torch/_inductor" in os.fsdecode(a) for a in argv)
+        # torch.compile's inductor starts its compile workers, and checks each C++ kernel it built
+        # loads, in whichever test compiles first: the library's processes, not the test's.
+        inductor = any(("torch/_inductor" in os.fsdecode(a) or "torchinductor" in os.fsdecode(a)) for a in argv)
         if (path.parent == BIN or path.name.startswith("python")) and not inductor:
-            started.append(str(path))
+            started.append(" ".join(os.fsdecode(a) for a in argv)[:300])
         real(self, args, *rest, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(subprocess.Popen, "__init__", init)

@@ -13,7 +13,7 @@ from lerobot_armory.engine.cuda_graphs import BucketedSampler, bucket_for, parse
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.protocol import noise_seed
-from tests.support.vla import TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
+from tests.support.vla import three_steps, TASKS, assert_shared_chunks_equal_alone, observation, serve_prompt_robots
 from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
 from tests.support.vla import assert_unwritten_memory_never_reaches_a_chunk, sampler_inputs
 from tests.support.vla import rtc_batch as batch
@@ -78,13 +78,15 @@ def test_padding_rows_never_change_a_real_rows_chunk(engines):
 @pytest.mark.parametrize("guided", [False, True])
 def test_the_whole_sampler_traces_as_one_graph_with_no_host_sync_at_every_bucket(engines, guided):
     """What predicts a successful CUDA graph capture on a GPU, checked on the CPU: for every bucket,
-    ``torch.compile(fullgraph=True)`` traces the whole sampler (vision tower, prefix, all ten
-    denoising steps, RTC) as one graph with no break, and no op in it waits for the host. LeRobot's
+    ``torch.compile(fullgraph=True)`` traces the whole sampler (vision tower, prefix, the
+    denoising steps — three here, tests/support/vla.py's ``three_steps`` —, RTC) as one graph with no break, and no op in it waits for the host. LeRobot's
     own sampler, traced by the same counter, does wait (the check can fail)."""
     from lerobot_armory.acceleration.pi05_static import StaticPi05
 
     lerobot, static = engines
-    assert_traces_as_one_graph_with_no_host_sync(StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
+    with three_steps(static.policy):
+        sampler = StaticPi05(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight)
+    assert_traces_as_one_graph_with_no_host_sync(sampler, static, lerobot, guided)
 
 
 def test_buckets_default_to_every_size_to_16_then_multiples_of_8_ending_at_the_cap():

@@ -12,7 +12,7 @@ import pytest
 from lerobot_armory.engine import rtc
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
-from tests.support.vla import assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
+from tests.support.vla import three_steps, assert_padding_never_changes_a_real_row, assert_static_equals_lerobot, assert_traces_as_one_graph_with_no_host_sync
 from tests.support.vla import rtc_batch as batch, sampler_inputs
 
 RTC = rtc.RTCOptions(enabled=True, execution_horizon=8, delay_margin=0)
@@ -82,7 +82,9 @@ def test_the_whole_pi0_sampler_traces_as_one_graph_with_no_host_sync_at_every_bu
     from lerobot_armory.acceleration.pi0_static import StaticPi0
 
     lerobot, static = engines
-    assert_traces_as_one_graph_with_no_host_sync(StaticPi0(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
+    with three_steps(static.policy):
+        sampler = StaticPi0(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight)
+    assert_traces_as_one_graph_with_no_host_sync(sampler, static, lerobot, guided)
 
 
 def test_in_bf16_the_fused_pi0_stays_a_bf16_rounding_from_float32_like_lerobots(pi0_dir):

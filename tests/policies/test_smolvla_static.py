@@ -12,7 +12,7 @@ from lerobot_armory.engine import rtc
 from lerobot_armory.engine.options import EngineOptions, PolicyOptions
 from lerobot_armory.engine.policy_engine import PolicyEngine
 from lerobot_armory.errors import ConfigError
-from tests.support.vla import TASKS, assert_padding_never_changes_a_real_row, assert_shared_chunks_equal_alone, assert_static_equals_lerobot
+from tests.support.vla import three_steps, TASKS, assert_padding_never_changes_a_real_row, assert_shared_chunks_equal_alone, assert_static_equals_lerobot
 from tests.support.vla import assert_traces_as_one_graph_with_no_host_sync, serve_prompt_robots
 from tests.support.vla import assert_unwritten_memory_never_reaches_a_chunk, sampler_inputs
 from tests.support.vla import rtc_batch as batch
@@ -83,7 +83,9 @@ def test_the_whole_smolvla_sampler_traces_as_one_graph_with_no_host_sync_at_ever
     from lerobot_armory.acceleration.smolvla_static import StaticSmolVLA
 
     lerobot, static = engines
-    assert_traces_as_one_graph_with_no_host_sync(StaticSmolVLA(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight), static, lerobot, guided)
+    with three_steps(static.policy):
+        sampler = StaticSmolVLA(static.policy, guided=guided, max_guidance_weight=RTC.max_guidance_weight)
+    assert_traces_as_one_graph_with_no_host_sync(sampler, static, lerobot, guided)
 
 
 def test_what_the_smolvla_sampler_does_not_do_yet_is_refused_in_one_line(smolvla_dir):

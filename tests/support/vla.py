@@ -128,6 +128,20 @@ def assert_padding_never_changes_a_real_row(static: PolicyEngine) -> None:
         assert torch.equal(own, sample(inputs)[:3]) and torch.equal(own, sample(wild)[:3])
 
 
+@contextlib.contextmanager
+def three_steps(policy: Any) -> Iterator[None]:
+    """The policy's config asks for three denoising steps while a sampler is built inside (π0 /
+    π0.5's ``num_inference_steps``, SmolVLA's ``num_steps``): the first, a middle and the last
+    step, each the same operations, unrolled in a trace. Ten cost the trace tests ~25 s each."""
+    name = "num_steps" if hasattr(policy.config, "num_steps") else "num_inference_steps"
+    old = getattr(policy.config, name)
+    setattr(policy.config, name, 3)
+    try:
+        yield
+    finally:
+        setattr(policy.config, name, old)
+
+
 def assert_traces_as_one_graph_with_no_host_sync(sampler: Any, static: PolicyEngine, lerobot: PolicyEngine, guided: bool) -> None:
     """What predicts a CUDA graph capture, on the CPU: for every bucket 1, 2, 4, 8, dynamo traces
     ``sampler.sample`` (vision tower, prefix, every step, RTC when ``guided``) as one graph with no
