@@ -39,7 +39,17 @@ def _base_python() -> str | None:
 
 
 def openpi_python() -> str | None:
-    """The env's python (built on first use), or None when no Python 3.10-3.12 exists here."""
+    """The env's python (built on first use), or None when no Python 3.10-3.12 exists here.
+    One builder at a time: pytest-xdist workers that both need it wait on a file lock."""
+    import fcntl
+
+    ENV.parent.mkdir(parents=True, exist_ok=True)
+    with open(ENV.parent / "openpi-client-env.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return _build()
+
+
+def _build() -> str | None:
     python = ENV / "bin" / "python"
     if python.exists() and subprocess.run([python, "-c", "import openpi_client, websockets.sync.client"]).returncode == 0:
         return str(python)
